@@ -1,0 +1,340 @@
+"""Engine, sessions, migrations and the daemon's synchronous bookkeeping calls.
+
+SQLite by default (one file, WAL, foreign keys on), any SQLAlchemy URL otherwise: the same code runs
+on PostgreSQL. Bulk data (samples, segments, results) goes through db.writer.DbWriter off the event
+loop; the calls here are the few small writes the daemon needs an id back from.
+
+SQLite durability: journal_mode=WAL with synchronous=FULL. WAL alone already survives a killed
+process (a commit is in the WAL file before COMMIT returns); FULL adds an fsync of the WAL on every
+commit, so an acknowledged commit also survives a power cut or kernel panic, which a factory station
+must expect. The cost is one fsync per writer transaction, and the writer batches ~0.2 s of events
+per transaction, so it is a handful of fsyncs per second.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+from sqlalchemy import create_engine, event, func, select, update
+from sqlalchemy.engine import Engine, make_url
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.orm import Session, sessionmaker
+
+from db.models import SCHEMA_REVISION, Batch, Dut, DutRun, SampleChunk, SegmentRow, utcnow
+from station.types import StationError
+
+log = logging.getLogger(__name__)
+
+DB_DIR = Path(__file__).resolve().parent
+ALEMBIC_INI = DB_DIR / "alembic.ini"
+MIGRATIONS_DIR = DB_DIR / "migrations"
+
+BATCH_ACTIVE_STATES = ("created", "running", "paused")
+BATCH_END_STATES = ("finished", "aborted", "failed", "interrupted")
+RUN_ACTIVE_STATES = ("connecting", "identified", "running")
+RUN_END_STATES = ("done", "faulted", "interrupted")
+SQLITE_SYNCHRONOUS = "FULL"
+
+
+@dataclass
+class RunPoint:
+    run_id: int
+    slot: str
+    serial: str
+    sensor: str
+    state: str
+    fault_reason: str
+    identity: dict
+    n_samples: int
+    n_segments: int
+    last_time_s: float | None
+
+
+@dataclass
+class ResumePoint:
+    """Where a batch stopped: resume at `next_step` (last_completed_step + 1, 0 if none)."""
+
+    batch_id: int
+    profile: str
+    operator: str
+    state: str
+    step_index: int | None
+    last_completed_step: int | None
+    config_snapshot: dict
+    runs: list[RunPoint] = field(default_factory=list)
+
+    @property
+    def next_step(self) -> int:
+        return 0 if self.last_completed_step is None else self.last_completed_step + 1
+
+
+def _sqlite_on_connect(dbapi_conn: Any, _record: Any) -> None:
+    cur = dbapi_conn.cursor()
+    cur.execute("PRAGMA journal_mode=WAL")
+    cur.execute(f"PRAGMA synchronous={SQLITE_SYNCHRONOUS}")
+    cur.execute("PRAGMA foreign_keys=ON")
+    cur.execute("PRAGMA busy_timeout=30000")
+    cur.close()
+
+
+def make_engine(url: str, **kwargs: Any) -> Engine:
+    """An engine for `url`; SQLite gets WAL, synchronous=FULL, foreign keys, a busy timeout."""
+    u = make_url(url)
+    if u.get_backend_name() == "sqlite":
+        if u.database and u.database != ":memory:" and not u.database.startswith("file:"):
+            Path(u.database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+        kwargs.setdefault("connect_args", {}).setdefault("timeout", 30)
+        engine = create_engine(u, **kwargs)
+        event.listen(engine, "connect", _sqlite_on_connect)
+        return engine
+    kwargs.setdefault("pool_pre_ping", True)
+    return create_engine(u, **kwargs)
+
+
+class Database:
+    """The station database: `Database(url)`, then `.upgrade()` (or `.check()`) before use."""
+
+    def __init__(self, url: str, echo: bool = False) -> None:
+        self.url = url
+        self.engine = make_engine(url, echo=echo)
+        self.Session = sessionmaker(self.engine, expire_on_commit=False)
+
+    @property
+    def is_sqlite(self) -> bool:
+        return self.engine.dialect.name == "sqlite"
+
+    def dispose(self) -> None:
+        self.engine.dispose()
+
+    close = dispose
+
+    def __repr__(self) -> str:
+        return f"Database({self.engine.url.render_as_string(hide_password=True)!r})"
+
+    @contextmanager
+    def session(self) -> Iterator[Session]:
+        """A session in a transaction: committed on success, rolled back on error."""
+        with self.Session() as s, s.begin():
+            yield s
+
+    # ---- schema ---------------------------------------------------------------------------
+    def _alembic_config(self, connection: Any = None) -> Any:
+        from alembic.config import Config
+
+        cfg = Config(str(ALEMBIC_INI))
+        cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
+        cfg.set_main_option("sqlalchemy.url", self.engine.url.render_as_string(hide_password=False).replace("%", "%%"))
+        if connection is not None:
+            cfg.attributes["connection"] = connection
+        return cfg
+
+    def known_revisions(self) -> set[str]:
+        from alembic.script import ScriptDirectory
+
+        script = ScriptDirectory.from_config(self._alembic_config())
+        return {rev.revision for rev in script.walk_revisions()}
+
+    def head_revision(self) -> str:
+        from alembic.script import ScriptDirectory
+
+        return ScriptDirectory.from_config(self._alembic_config()).get_current_head() or ""
+
+    def current_revision(self) -> str | None:
+        """The database's Alembic revision, None for an empty (never migrated) database."""
+        from alembic.runtime.migration import MigrationContext
+
+        try:
+            with self.engine.connect() as conn:
+                return MigrationContext.configure(conn).get_current_revision()
+        except OperationalError as exc:
+            raise StationError(f"cannot open database {self.url}: {exc.orig}") from None
+
+    def _refuse_unknown(self, rev: str | None) -> None:
+        if rev is not None and rev not in self.known_revisions():
+            raise StationError(
+                f"database {self.engine.url.render_as_string(hide_password=True)} has schema revision "
+                f"{rev!r}, newer than (unknown to) this station software, which knows up to "
+                f"{self.head_revision()!r}: upgrade the software or point it at another database"
+            )
+
+    def upgrade(self) -> str:
+        """Migrate to the newest schema this code knows; refuse a database from newer code."""
+        from alembic import command
+
+        self._refuse_unknown(self.current_revision())
+        with self.engine.begin() as conn:
+            command.upgrade(self._alembic_config(conn), "head")
+        rev = self.current_revision() or ""
+        log.info("database %s at schema revision %s", self, rev)
+        return rev
+
+    def check(self) -> str:
+        """Refuse an unknown (newer) or outdated schema without changing anything."""
+        rev = self.current_revision()
+        self._refuse_unknown(rev)
+        head = self.head_revision()
+        if rev != head:
+            raise StationError(
+                f"database schema revision {rev!r} is older than this software's {head!r}: "
+                "run `station db upgrade`"
+            )
+        return rev
+
+    # ---- batches and runs (the daemon's synchronous calls) ---------------------------------
+    def create_batch(self, profile: str, operator: str, config_snapshot: dict, state: str = "created") -> int:
+        with self.session() as s:
+            b = Batch(
+                profile=profile,
+                operator=operator,
+                state=state,
+                config_snapshot=dict(config_snapshot or {}),
+                schema_version=SCHEMA_REVISION,
+            )
+            s.add(b)
+            s.flush()
+            return b.id
+
+    def set_batch_state(
+        self,
+        batch_id: int,
+        state: str,
+        step_index: int | None = None,
+        completed_step: int | None = None,
+        reason: str | None = None,
+    ) -> None:
+        """Record the batch state; `completed_step` is what resume restarts after."""
+        values: dict[str, Any] = {"state": state}
+        if step_index is not None:
+            values["step_index"] = step_index
+        if completed_step is not None:
+            values["last_completed_step"] = completed_step
+        if reason is not None:
+            values["reason"] = reason
+        if state in BATCH_END_STATES:
+            values["ended_at"] = utcnow()
+        elif state in BATCH_ACTIVE_STATES:
+            values["ended_at"] = None
+        with self.session() as s:
+            res = s.execute(update(Batch).where(Batch.id == batch_id).values(**values))
+            if res.rowcount == 0:
+                raise KeyError(f"no batch {batch_id}")
+
+    def upsert_dut(self, s: Session, serial: str, sensor: str = "") -> Dut:
+        dut = s.scalars(select(Dut).where(Dut.serial == serial)).one_or_none()
+        now = utcnow()
+        if dut is None:
+            dut = Dut(serial=serial, sensor=sensor or "", first_seen=now, last_seen=now)
+            s.add(dut)
+            s.flush()
+        else:
+            dut.last_seen = now
+            if sensor:
+                dut.sensor = sensor
+        return dut
+
+    def create_run(
+        self, batch_id: int, slot: str, serial: str, sensor: str = "", identity: dict | None = None,
+        state: str = "identified",
+    ) -> int:
+        with self.session() as s:
+            dut = self.upsert_dut(s, serial, sensor)
+            run = DutRun(batch_id=batch_id, slot=slot, dut_id=dut.id, state=state, identity=dict(identity or {}))
+            s.add(run)
+            s.flush()
+            return run.id
+
+    def set_run_state(self, run_id: int, state: str, fault_reason: str = "") -> None:
+        values: dict[str, Any] = {"state": state, "fault_reason": fault_reason}
+        if state in RUN_END_STATES:
+            values["ended_at"] = utcnow()
+        with self.session() as s:
+            res = s.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
+            if res.rowcount == 0:
+                raise KeyError(f"no run {run_id}")
+
+    # ---- resume ----------------------------------------------------------------------------
+    def mark_interrupted(self, reason: str = "station restarted") -> list[int]:
+        """At daemon start: whatever was running when the last process died is interrupted.
+        Only states change; every committed sample, segment and result stays. Returns the ids of
+        the interrupted batches."""
+        now = utcnow()
+        with self.session() as s:
+            ids = list(s.scalars(select(Batch.id).where(Batch.state.in_(BATCH_ACTIVE_STATES)).order_by(Batch.id)))
+            if ids:
+                s.execute(
+                    update(Batch).where(Batch.id.in_(ids)).values(state="interrupted", reason=reason, ended_at=now)
+                )
+            s.execute(
+                update(DutRun)
+                .where(DutRun.state.in_(RUN_ACTIVE_STATES))
+                .values(state="interrupted", fault_reason=reason, ended_at=now)
+            )
+        return ids
+
+    def resume_point(self, batch_id: int) -> ResumePoint:
+        """What the daemon needs to resume a batch: its last completed step and its runs."""
+        with self.session() as s:
+            b = s.get(Batch, batch_id)
+            if b is None:
+                raise KeyError(f"no batch {batch_id}")
+            nseg = (
+                select(SegmentRow.run_id, func.count(SegmentRow.id).label("n"))
+                .group_by(SegmentRow.run_id)
+                .subquery()
+            )
+            tlast = (
+                select(SampleChunk.run_id, func.max(SampleChunk.t_last_s).label("t"))
+                .group_by(SampleChunk.run_id)
+                .subquery()
+            )
+            rows = s.execute(
+                select(DutRun, Dut.serial, Dut.sensor, nseg.c.n, tlast.c.t)
+                .join(Dut, Dut.id == DutRun.dut_id)
+                .outerjoin(nseg, nseg.c.run_id == DutRun.id)
+                .outerjoin(tlast, tlast.c.run_id == DutRun.id)
+                .where(DutRun.batch_id == batch_id)
+                .order_by(DutRun.id)
+            ).all()
+            runs = [
+                RunPoint(
+                    run_id=r.id,
+                    slot=r.slot,
+                    serial=serial,
+                    sensor=sensor,
+                    state=r.state,
+                    fault_reason=r.fault_reason,
+                    identity=dict(r.identity or {}),
+                    n_samples=int(r.n_samples),
+                    n_segments=int(n or 0),
+                    last_time_s=t,
+                )
+                for r, serial, sensor, n, t in rows
+            ]
+            return ResumePoint(
+                batch_id=b.id,
+                profile=b.profile,
+                operator=b.operator,
+                state=b.state,
+                step_index=b.step_index,
+                last_completed_step=b.last_completed_step,
+                config_snapshot=dict(b.config_snapshot or {}),
+                runs=runs,
+            )
+
+    def interrupted_batches(self) -> list[int]:
+        with self.session() as s:
+            return list(s.scalars(select(Batch.id).where(Batch.state == "interrupted").order_by(Batch.id)))
+
+    def sqlite_integrity_check(self) -> str:
+        """`PRAGMA integrity_check` ('ok' when sound); 'n/a' on other databases."""
+        if not self.is_sqlite:
+            return "n/a"
+        with self.engine.connect() as conn:
+            return str(conn.exec_driver_sql("PRAGMA integrity_check").scalar())
+
+
+__all__ = ["Database", "ResumePoint", "RunPoint", "make_engine", "SQLITE_SYNCHRONOUS"]

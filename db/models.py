@@ -1,0 +1,252 @@
+"""SQLAlchemy 2.0 typed models: per-serial history of DUTs, batches, runs, segments, results.
+
+The schema itself is owned by the Alembic revisions in db/migrations/versions/ (written by hand);
+these models must match them, which tests/test_db_migrations.py checks with Alembic's comparator.
+All times are timezone-aware UTC. JSON columns hold what the daemon reported, verbatim, so nothing
+is lost even where the typed columns summarize it.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    Text,
+    TypeDecorator,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+# The revision of the newest schema this code knows (db/migrations/versions/).
+SCHEMA_REVISION = "0001"
+
+NAMING_CONVENTION = {
+    "ix": "ix_%(table_name)s_%(column_0_N_name)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+def utcnow() -> datetime:
+    return datetime.now(timezone.utc)
+
+
+class UtcDateTime(TypeDecorator):
+    """Timezone-aware UTC everywhere: SQLite drops the offset, so put UTC back on the way out."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=timezone.utc)
+        value = value.astimezone(timezone.utc)
+        return value.replace(tzinfo=None) if dialect.name == "sqlite" else value
+
+    def process_result_value(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            return value.replace(tzinfo=timezone.utc)
+        return value.astimezone(timezone.utc)
+
+
+# Integer primary keys that are 64-bit on PostgreSQL and SQLite's rowid alias on SQLite.
+BigId = BigInteger().with_variant(Integer(), "sqlite")
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+    type_annotation_map = {datetime: UtcDateTime(), dict[str, Any]: JSON(), Any: JSON()}
+
+
+class Dut(Base):
+    """One physical board, by serial number: the key of its whole history."""
+
+    __tablename__ = "dut"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    serial: Mapped[str] = mapped_column(String(64), unique=True)
+    sensor: Mapped[str] = mapped_column(String(32), default="")
+    first_seen: Mapped[datetime] = mapped_column(default=utcnow)
+    last_seen: Mapped[datetime] = mapped_column(default=utcnow)
+
+    runs: Mapped[list["DutRun"]] = relationship(back_populates="dut")
+
+
+class Batch(Base):
+    """One sequencer program run over the plate; enough to resume it at its last completed step."""
+
+    __tablename__ = "batch"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    profile: Mapped[str] = mapped_column(String(64))
+    operator: Mapped[str] = mapped_column(String(128), default="")
+    state: Mapped[str] = mapped_column(String(32), default="created", index=True)
+    reason: Mapped[str] = mapped_column(Text, default="")
+    step_index: Mapped[int | None] = mapped_column(Integer)
+    last_completed_step: Mapped[int | None] = mapped_column(Integer)
+    config_snapshot: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    schema_version: Mapped[str] = mapped_column(String(32), default=SCHEMA_REVISION)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    ended_at: Mapped[datetime | None] = mapped_column()
+
+    runs: Mapped[list["DutRun"]] = relationship(back_populates="batch", order_by="DutRun.id")
+
+
+class DutRun(Base):
+    """One DUT in one slot of one batch. result_seq is the MES cursor: it increases every time a
+    result of this run is stored, so `results since N` pages with a stable order."""
+
+    __tablename__ = "dut_run"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    batch_id: Mapped[int] = mapped_column(ForeignKey("batch.id", ondelete="CASCADE"), index=True)
+    slot: Mapped[str] = mapped_column(String(64))
+    dut_id: Mapped[int] = mapped_column(ForeignKey("dut.id"), index=True)
+    state: Mapped[str] = mapped_column(String(32), default="connecting")
+    fault_reason: Mapped[str] = mapped_column(Text, default="")
+    identity: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    n_samples: Mapped[int] = mapped_column(BigInteger, default=0)
+    lost_samples: Mapped[int] = mapped_column(BigInteger, default=0)
+    samples_pruned_at: Mapped[datetime | None] = mapped_column()
+    result_seq: Mapped[int | None] = mapped_column(BigInteger, unique=True)
+    started_at: Mapped[datetime] = mapped_column(default=utcnow)
+    ended_at: Mapped[datetime | None] = mapped_column(index=True)
+
+    batch: Mapped[Batch] = relationship(back_populates="runs")
+    dut: Mapped[Dut] = relationship(back_populates="runs")
+
+
+class SegmentRow(Base):
+    """One averaged stable segment (station.types.Segment) plus the step it was logged in."""
+
+    __tablename__ = "segment"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("dut_run.id", ondelete="CASCADE"), index=True)
+    step_index: Mapped[int] = mapped_column(Integer)
+    position: Mapped[int | None] = mapped_column(Integer)
+    seg_index: Mapped[int] = mapped_column(Integer)
+    orientation: Mapped[int] = mapped_column(Integer)
+    n_samples: Mapped[int] = mapped_column(Integer)
+    acc_mean_x_g: Mapped[float] = mapped_column(Float)
+    acc_mean_y_g: Mapped[float] = mapped_column(Float)
+    acc_mean_z_g: Mapped[float] = mapped_column(Float)
+    acc_std_x_g: Mapped[float] = mapped_column(Float)
+    acc_std_y_g: Mapped[float] = mapped_column(Float)
+    acc_std_z_g: Mapped[float] = mapped_column(Float)
+    temp_mean_c: Mapped[float] = mapped_column(Float)
+    temp_std_c: Mapped[float] = mapped_column(Float)
+    t_start_s: Mapped[float] = mapped_column(Float)
+    t_end_s: Mapped[float] = mapped_column(Float)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class ThermalResultRow(Base):
+    """TDB/TDSF per axis of one method (streaming | offline) for one run (martinez2022)."""
+
+    __tablename__ = "thermal_result"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("dut_run.id", ondelete="CASCADE"), index=True)
+    method: Mapped[str] = mapped_column(String(16))
+    tdb_x_mg_per_c: Mapped[float | None] = mapped_column(Float)
+    tdb_y_mg_per_c: Mapped[float | None] = mapped_column(Float)
+    tdb_z_mg_per_c: Mapped[float | None] = mapped_column(Float)
+    tdsf_x_ppm_per_c: Mapped[float | None] = mapped_column(Float)
+    tdsf_y_ppm_per_c: Mapped[float | None] = mapped_column(Float)
+    tdsf_z_ppm_per_c: Mapped[float | None] = mapped_column(Float)
+    tdb_sigma_x_mg_per_c: Mapped[float | None] = mapped_column(Float)
+    tdb_sigma_y_mg_per_c: Mapped[float | None] = mapped_column(Float)
+    tdb_sigma_z_mg_per_c: Mapped[float | None] = mapped_column(Float)
+    tdsf_sigma_x_ppm_per_c: Mapped[float | None] = mapped_column(Float)
+    tdsf_sigma_y_ppm_per_c: Mapped[float | None] = mapped_column(Float)
+    tdsf_sigma_z_ppm_per_c: Mapped[float | None] = mapped_column(Float)
+    tdsf_clamped_x: Mapped[bool] = mapped_column(Boolean, default=False)
+    tdsf_clamped_y: Mapped[bool] = mapped_column(Boolean, default=False)
+    tdsf_clamped_z: Mapped[bool] = mapped_column(Boolean, default=False)
+    n_segments: Mapped[int] = mapped_column(Integer, default=0)
+    detail: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class SfemResultRow(Base):
+    """SFEM fit of one temperature step (sensors2023); the cubic polynomials over temperature sit
+    on the row of the run's polynomial fit (temperature_step None)."""
+
+    __tablename__ = "sfem_result"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("dut_run.id", ondelete="CASCADE"), index=True)
+    temperature_step: Mapped[int | None] = mapped_column(Integer)
+    temp_c: Mapped[float | None] = mapped_column(Float)
+    rmse_before_mg: Mapped[float | None] = mapped_column(Float)
+    rmse_after_mg: Mapped[float | None] = mapped_column(Float)
+    parameters: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    polynomial_coefficients: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class SampleChunk(Base):
+    """A compressed block of a run's sample stream (db/codec.py); seq orders the chunks."""
+
+    __tablename__ = "sample_chunk"
+    __table_args__ = (Index("uq_sample_chunk_run_id_seq", "run_id", "seq", unique=True),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("dut_run.id", ondelete="CASCADE"))
+    seq: Mapped[int] = mapped_column(Integer)
+    t_first_s: Mapped[float] = mapped_column(Float)
+    t_last_s: Mapped[float] = mapped_column(Float)
+    n: Mapped[int] = mapped_column(Integer)
+    lost_samples: Mapped[int] = mapped_column(Integer, default=0)
+    sealed: Mapped[bool] = mapped_column(Boolean, default=False)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class Outbox(Base):
+    """MES webhook outbox: written in the same transaction as the result it announces."""
+
+    __tablename__ = "outbox"
+    __table_args__ = (Index("ix_outbox_pending", "delivered_at", "next_attempt_at"),)
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    idempotency_key: Mapped[str] = mapped_column(String(128), unique=True)
+    topic: Mapped[str] = mapped_column(String(64), default="result")
+    payload: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[datetime] = mapped_column(default=utcnow)
+    delivered_at: Mapped[datetime | None] = mapped_column()
+    last_error: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+__all__ = [
+    "Base",
+    "Dut",
+    "Batch",
+    "DutRun",
+    "SegmentRow",
+    "ThermalResultRow",
+    "SfemResultRow",
+    "SampleChunk",
+    "Outbox",
+    "SCHEMA_REVISION",
+    "utcnow",
+]

@@ -1,0 +1,381 @@
+"""Read side for the web page, REST API and MES, plus the MES outbox.
+
+Every function takes a db.Database and returns plain JSON-ready dicts (times as ISO 8601 UTC), or
+None for an unknown serial / run / batch so the web layer can answer 404.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import func, insert, select, update
+from sqlalchemy.exc import IntegrityError
+
+from db.database import Database
+from db.models import Batch, Dut, DutRun, Outbox, SampleChunk, SegmentRow, SfemResultRow, ThermalResultRow, utcnow
+from station.types import AXES
+
+PREFERRED_THERMAL = ("offline", "streaming")  # the offline fit is the better estimate when both exist
+
+
+def _iso(t: datetime | None) -> str | None:
+    return None if t is None else t.isoformat()
+
+
+def thermal_json(row: ThermalResultRow) -> dict:
+    out: dict[str, Any] = {"id": row.id, "method": row.method, "n_segments": row.n_segments, "created_at": _iso(row.created_at)}
+    for ax in AXES:
+        out[ax] = {
+            "tdb_mg_per_c": getattr(row, f"tdb_{ax}_mg_per_c"),
+            "tdsf_ppm_per_c": getattr(row, f"tdsf_{ax}_ppm_per_c"),
+            "tdb_sigma_mg_per_c": getattr(row, f"tdb_sigma_{ax}_mg_per_c"),
+            "tdsf_sigma_ppm_per_c": getattr(row, f"tdsf_sigma_{ax}_ppm_per_c"),
+            "tdsf_clamped": getattr(row, f"tdsf_clamped_{ax}"),
+        }
+    return out
+
+
+def sfem_json(rows: list[SfemResultRow]) -> dict | None:
+    """The SFEM result as reported: one fit, or {"steps": [...], "polynomial_coefficients": ...}."""
+    if not rows:
+        return None
+    steps = [r for r in rows if r.temperature_step is not None]
+    poly = [r for r in rows if r.polynomial_coefficients is not None]
+    if len(rows) == 1 and (len(steps) <= 1):
+        out = dict(rows[0].parameters or {})
+        out.setdefault("temperature_step", rows[0].temperature_step)
+        return out
+    out = {"steps": [dict(r.parameters or {}) for r in sorted(steps, key=lambda r: (r.temperature_step, r.id))]}
+    if poly:
+        out["polynomial_coefficients"] = poly[-1].polynomial_coefficients
+    return out
+
+
+def _run_results(s: Any, run_id: int) -> dict:
+    """Latest thermal result per method and the latest SFEM rows of one run."""
+    rows = s.scalars(select(ThermalResultRow).where(ThermalResultRow.run_id == run_id).order_by(ThermalResultRow.id)).all()
+    by_method: dict[str, dict] = {}
+    for r in rows:
+        by_method[r.method] = thermal_json(r)
+    preferred = next((m for m in PREFERRED_THERMAL if m in by_method), next(iter(by_method), None))
+    sfem_rows = s.scalars(select(SfemResultRow).where(SfemResultRow.run_id == run_id).order_by(SfemResultRow.id)).all()
+    if sfem_rows:  # only the rows of the newest report (same created_at)
+        newest = sfem_rows[-1].created_at
+        sfem_rows = [r for r in sfem_rows if r.created_at == newest]
+    thermal = None
+    if preferred is not None:
+        thermal = {ax: by_method[preferred][ax] for ax in AXES}
+    return {"thermal": thermal, "thermal_method": preferred, "thermal_by_method": by_method, "sfem": sfem_json(sfem_rows)}
+
+
+def _run_json(r: DutRun, serial: str, n_segments: int | None = None) -> dict:
+    out = {
+        "id": r.id,
+        "batch_id": r.batch_id,
+        "slot": r.slot,
+        "serial": serial,
+        "state": r.state,
+        "fault_reason": r.fault_reason,
+        "identity": r.identity,
+        "n_samples": r.n_samples,
+        "lost_samples": r.lost_samples,
+        "samples_pruned_at": _iso(r.samples_pruned_at),
+        "result_seq": r.result_seq,
+        "started_at": _iso(r.started_at),
+        "ended_at": _iso(r.ended_at),
+    }
+    if n_segments is not None:
+        out["n_segments"] = n_segments
+    return out
+
+
+def _nseg_subquery() -> Any:
+    return select(SegmentRow.run_id, func.count(SegmentRow.id).label("n")).group_by(SegmentRow.run_id).subquery()
+
+
+def dut_by_serial(db: Database, serial: str) -> dict | None:
+    """The DUT with the results of its latest run that has any (design 5.3 GET /api/duts/{serial})."""
+    with db.session() as s:
+        dut = s.scalars(select(Dut).where(Dut.serial == serial)).one_or_none()
+        if dut is None:
+            return None
+        n_runs = s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id)) or 0
+        latest = s.scalars(
+            select(DutRun).where(DutRun.dut_id == dut.id, DutRun.result_seq.is_not(None)).order_by(DutRun.result_seq.desc())
+        ).first()
+        out = {
+            "serial": dut.serial,
+            "sensor": dut.sensor,
+            "first_seen": _iso(dut.first_seen),
+            "last_seen": _iso(dut.last_seen),
+            "n_runs": n_runs,
+            "result_run_id": None if latest is None else latest.id,
+            "thermal": None,
+            "thermal_method": None,
+            "thermal_by_method": {},
+            "sfem": None,
+        }
+        if latest is not None:
+            out.update(_run_results(s, latest.id))
+        return out
+
+
+def search_duts(db: Database, serial_like: str | None = None, limit: int = 50) -> list[dict]:
+    """DUT summaries whose serial contains serial_like (case-insensitive), most recently seen first."""
+    with db.session() as s:
+        nruns = select(DutRun.dut_id, func.count(DutRun.id).label("n")).group_by(DutRun.dut_id).subquery()
+        q = select(Dut, nruns.c.n).outerjoin(nruns, nruns.c.dut_id == Dut.id)
+        if serial_like:
+            q = q.where(func.lower(Dut.serial).contains(serial_like.lower(), autoescape=True))
+        q = q.order_by(Dut.last_seen.desc(), Dut.id.desc()).limit(max(1, min(limit, 1000)))
+        return [
+            {"serial": d.serial, "sensor": d.sensor, "first_seen": _iso(d.first_seen), "last_seen": _iso(d.last_seen),
+             "n_runs": int(n or 0)}
+            for d, n in s.execute(q).all()
+        ]
+
+
+def runs_of_dut(db: Database, serial: str) -> list[dict] | None:
+    """Every run of a serial, newest first; None for an unknown serial."""
+    with db.session() as s:
+        dut = s.scalars(select(Dut).where(Dut.serial == serial)).one_or_none()
+        if dut is None:
+            return None
+        nseg = _nseg_subquery()
+        rows = s.execute(
+            select(DutRun, nseg.c.n)
+            .outerjoin(nseg, nseg.c.run_id == DutRun.id)
+            .where(DutRun.dut_id == dut.id)
+            .order_by(DutRun.id.desc())
+        ).all()
+        return [_run_json(r, dut.serial, int(n or 0)) for r, n in rows]
+
+
+def run_detail(db: Database, run_id: int) -> dict | None:
+    """One run with its results and its batch's profile."""
+    with db.session() as s:
+        row = s.execute(
+            select(DutRun, Dut.serial, Batch.profile).join(Dut, Dut.id == DutRun.dut_id).join(Batch, Batch.id == DutRun.batch_id)
+            .where(DutRun.id == run_id)
+        ).first()
+        if row is None:
+            return None
+        r, serial, profile = row
+        n = s.scalar(select(func.count(SegmentRow.id)).where(SegmentRow.run_id == run_id)) or 0
+        out = _run_json(r, serial, int(n))
+        out["profile"] = profile
+        out.update(_run_results(s, run_id))
+        return out
+
+
+def segment_json(g: SegmentRow) -> dict:
+    return {
+        "id": g.id,
+        "run_id": g.run_id,
+        "step_index": g.step_index,
+        "position": g.position,
+        "index": g.seg_index,
+        "orientation": g.orientation,
+        "n_samples": g.n_samples,
+        "t_start_s": g.t_start_s,
+        "t_end_s": g.t_end_s,
+        "acc_mean_g": [g.acc_mean_x_g, g.acc_mean_y_g, g.acc_mean_z_g],
+        "acc_std_g": [g.acc_std_x_g, g.acc_std_y_g, g.acc_std_z_g],
+        "temp_mean_c": g.temp_mean_c,
+        "temp_std_c": g.temp_std_c,
+        "created_at": _iso(g.created_at),
+    }
+
+
+def segments_of_run(db: Database, run_id: int) -> list[dict] | None:
+    """Segments of a run in the order they were logged; None for an unknown run."""
+    with db.session() as s:
+        if s.get(DutRun, run_id) is None:
+            return None
+        rows = s.scalars(select(SegmentRow).where(SegmentRow.run_id == run_id).order_by(SegmentRow.id)).all()
+        return [segment_json(g) for g in rows]
+
+
+def result_key(run_id: int, result_seq: int) -> str:
+    """Idempotency key of one stored result (a run's newer result gets a new key)."""
+    return f"run-{run_id}-result-{result_seq}"
+
+
+def results_since(db: Database, since: int = 0, limit: int = 100, since_time: datetime | None = None) -> list[dict]:
+    """Runs whose result was stored after cursor `since`, in increasing `id` (= the run's
+    result_seq, which is bumped whenever a run gets a new result). Page on with since=last id.
+    since_time (optional) also requires the run's latest result to be at/after that time."""
+    limit = max(1, min(int(limit), 1000))
+    with db.session() as s:
+        q = (
+            select(DutRun, Dut.serial, Batch.profile)
+            .join(Dut, Dut.id == DutRun.dut_id)
+            .join(Batch, Batch.id == DutRun.batch_id)
+            .where(DutRun.result_seq > int(since))
+            .order_by(DutRun.result_seq)
+            .limit(limit)
+        )
+        if since_time is not None:
+            recent = select(ThermalResultRow.run_id).where(ThermalResultRow.created_at >= since_time).union(
+                select(SfemResultRow.run_id).where(SfemResultRow.created_at >= since_time)
+            )
+            q = q.where(DutRun.id.in_(recent))
+        rows = s.execute(q).all()
+        out = []
+        for r, serial, profile in rows:
+            t_th = s.scalar(select(func.max(ThermalResultRow.created_at)).where(ThermalResultRow.run_id == r.id))
+            t_sf = s.scalar(select(func.max(SfemResultRow.created_at)).where(SfemResultRow.run_id == r.id))
+            times = [t for t in (t_th, t_sf) if t is not None]
+            item = {
+                "id": r.result_seq,
+                "idempotency_key": result_key(r.id, r.result_seq),
+                "created_at": _iso(max(times)) if times else None,
+                "run_id": r.id,
+                "batch_id": r.batch_id,
+                "slot": r.slot,
+                "serial": serial,
+                "sensor": (r.identity or {}).get("sensor"),
+                "profile": profile,
+                "state": r.state,
+                "ended_at": _iso(r.ended_at),
+            }
+            item.update(_run_results(s, r.id))
+            out.append(item)
+        return out
+
+
+def batch_detail(db: Database, batch_id: int) -> dict | None:
+    with db.session() as s:
+        b = s.get(Batch, batch_id)
+        if b is None:
+            return None
+        nseg = _nseg_subquery()
+        rows = s.execute(
+            select(DutRun, Dut.serial, nseg.c.n)
+            .join(Dut, Dut.id == DutRun.dut_id)
+            .outerjoin(nseg, nseg.c.run_id == DutRun.id)
+            .where(DutRun.batch_id == batch_id)
+            .order_by(DutRun.id)
+        ).all()
+        return {
+            "id": b.id,
+            "profile": b.profile,
+            "operator": b.operator,
+            "state": b.state,
+            "reason": b.reason,
+            "step_index": b.step_index,
+            "last_completed_step": b.last_completed_step,
+            "config_snapshot": b.config_snapshot,
+            "schema_version": b.schema_version,
+            "created_at": _iso(b.created_at),
+            "ended_at": _iso(b.ended_at),
+            "runs": [_run_json(r, serial, int(n or 0)) for r, serial, n in rows],
+        }
+
+
+def list_batches(db: Database, limit: int = 50, before_id: int | None = None) -> list[dict]:
+    with db.session() as s:
+        q = select(Batch).order_by(Batch.id.desc()).limit(max(1, min(limit, 1000)))
+        if before_id is not None:
+            q = q.where(Batch.id < before_id)
+        return [
+            {"id": b.id, "profile": b.profile, "operator": b.operator, "state": b.state, "step_index": b.step_index,
+             "last_completed_step": b.last_completed_step, "created_at": _iso(b.created_at), "ended_at": _iso(b.ended_at)}
+            for b in s.scalars(q)
+        ]
+
+
+def run_sample_bytes(db: Database, run_id: int) -> int:
+    """Stored bytes of a run's compressed sample stream."""
+    with db.session() as s:
+        return int(s.scalar(select(func.coalesce(func.sum(func.length(SampleChunk.data)), 0)).where(SampleChunk.run_id == run_id)))
+
+
+# ---- MES outbox --------------------------------------------------------------------------------
+def outbox_json(o: Outbox) -> dict:
+    return {
+        "id": o.id,
+        "idempotency_key": o.idempotency_key,
+        "topic": o.topic,
+        "payload": o.payload,
+        "attempts": o.attempts,
+        "next_attempt_at": _iso(o.next_attempt_at),
+        "delivered_at": _iso(o.delivered_at),
+        "last_error": o.last_error,
+        "created_at": _iso(o.created_at),
+    }
+
+
+def outbox_enqueue(db: Database, idempotency_key: str, payload: dict, topic: str = "result") -> int:
+    """Queue a message; enqueueing the same key again returns the existing message's id."""
+    from db.writer import plain_json
+
+    now = utcnow()
+    try:
+        with db.session() as s:
+            res = s.execute(
+                insert(Outbox).values(
+                    idempotency_key=idempotency_key, topic=topic, payload=plain_json(payload), attempts=0,
+                    next_attempt_at=now, last_error="", created_at=now,
+                )
+            )
+            return int(res.inserted_primary_key[0])
+    except IntegrityError:
+        with db.session() as s:
+            oid = s.scalar(select(Outbox.id).where(Outbox.idempotency_key == idempotency_key))
+            if oid is None:
+                raise
+            return int(oid)
+
+
+def outbox_pending(db: Database, limit: int = 50, now: datetime | None = None) -> list[dict]:
+    """Undelivered messages due now (next_attempt_at <= now), oldest first."""
+    now = now or utcnow()
+    with db.session() as s:
+        rows = s.scalars(
+            select(Outbox)
+            .where(Outbox.delivered_at.is_(None), Outbox.next_attempt_at <= now)
+            .order_by(Outbox.next_attempt_at, Outbox.id)
+            .limit(max(1, limit))
+        ).all()
+        return [outbox_json(o) for o in rows]
+
+
+def outbox_mark_delivered(db: Database, outbox_id: int) -> None:
+    with db.session() as s:
+        res = s.execute(
+            update(Outbox).where(Outbox.id == outbox_id)
+            .values(delivered_at=utcnow(), attempts=Outbox.attempts + 1, last_error="")
+        )
+        if res.rowcount == 0:
+            raise KeyError(f"no outbox message {outbox_id}")
+
+
+def outbox_mark_failed(db: Database, outbox_id: int, error: str, next_attempt_at: datetime) -> None:
+    """One failed delivery: count it, keep the error, retry at next_attempt_at (caller's backoff)."""
+    with db.session() as s:
+        res = s.execute(
+            update(Outbox).where(Outbox.id == outbox_id)
+            .values(attempts=Outbox.attempts + 1, last_error=str(error)[:2000], next_attempt_at=next_attempt_at)
+        )
+        if res.rowcount == 0:
+            raise KeyError(f"no outbox message {outbox_id}")
+
+
+__all__ = [
+    "search_duts",
+    "result_key",
+    "dut_by_serial",
+    "runs_of_dut",
+    "run_detail",
+    "segments_of_run",
+    "results_since",
+    "batch_detail",
+    "list_batches",
+    "run_sample_bytes",
+    "outbox_enqueue",
+    "outbox_pending",
+    "outbox_mark_delivered",
+    "outbox_mark_failed",
+]

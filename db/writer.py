@@ -1,0 +1,529 @@
+"""DbWriter: the daemon's events into the database, on one thread, off the event loop.
+
+`submit(event)` only puts the event on a queue (never blocks, never touches the database). The
+writer thread takes whatever has arrived within `interval_s` (or up to `max_events`) and commits it
+in one transaction, so the cost of a commit (an fsync with SQLite synchronous=FULL) is shared by
+many events; segments and results are therefore durable a fraction of a second after they happen,
+not at batch end. `flush()` returns once everything submitted before it is committed.
+
+Samples: every transaction appends each run's new samples as one small chunk (durable at once);
+once a run has `seal_samples` samples in small chunks, the writer replaces them, in the same
+transaction, by one sealed chunk, which compresses far better. A crash at any point leaves either
+the small chunks or the sealed one, never both and never neither. After a restart the writer picks
+up a run's unsealed chunks and goes on compacting them.
+
+Every stored result bumps its run's result_seq, the MES cursor of repository.results_since. With
+outbox=True the writer also puts the result's MES message in the outbox table in the same
+transaction; off by default because the web's MES worker copies results_since into the outbox
+itself (two copies would reach the MES under two keys).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+from sqlalchemy import delete, func, insert, select, update
+from sqlalchemy.engine import Connection
+from sqlalchemy.exc import OperationalError
+
+from db import codec
+from db.database import BATCH_END_STATES, RUN_END_STATES, Database
+from db.models import Batch, DutRun, Outbox, SampleChunk, SegmentRow, SfemResultRow, ThermalResultRow, utcnow
+from station.events import BatchStateChanged, DutResult, Event, SamplesReceived, SegmentLogged, SlotStateChanged
+from station.types import AXES
+
+log = logging.getLogger(__name__)
+
+
+def plain_json(value: Any) -> Any:
+    """JSON-safe copy: numpy to Python, tuples to lists, NaN/inf to None (PostgreSQL rejects NaN)."""
+    if isinstance(value, dict):
+        return {str(k): plain_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_json(v) for v in value]
+    if hasattr(value, "tolist"):
+        return plain_json(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if hasattr(value, "__dataclass_fields__"):
+        return plain_json({k: getattr(value, k) for k in value.__dataclass_fields__})
+    return value
+
+
+def _num(v: Any) -> float | None:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def thermal_rows(thermal: dict | None) -> list[dict]:
+    """Rows for thermal_result from a DutResult.thermal dict: either the `station calibrate --json`
+    shape ({"streaming": {...}, "offline": {...}}) or one ThermalResult.to_json()."""
+    if not thermal:
+        return []
+    found: list[tuple[str, dict]] = []
+    for key in ("streaming", "offline"):
+        v = thermal.get(key)
+        if isinstance(v, dict) and isinstance(v.get("axes"), dict):
+            found.append((str(v.get("method") or key), v))
+    if not found and isinstance(thermal.get("axes"), dict):
+        found.append((str(thermal.get("method") or "streaming"), thermal))
+    rows = []
+    for method, res in found:
+        row: dict[str, Any] = {"method": method[:16], "n_segments": int(res.get("n_segments") or 0)}
+        for ax in AXES:
+            a = res["axes"].get(ax) or {}
+            row[f"tdb_{ax}_mg_per_c"] = _num(a.get("tdb_mg_per_c"))
+            row[f"tdsf_{ax}_ppm_per_c"] = _num(a.get("tdsf_ppm_per_c"))
+            row[f"tdb_sigma_{ax}_mg_per_c"] = _num(a.get("tdb_sigma_mg_per_c"))
+            row[f"tdsf_sigma_{ax}_ppm_per_c"] = _num(a.get("tdsf_sigma_ppm_per_c"))
+            row[f"tdsf_clamped_{ax}"] = bool(a.get("tdsf_clamped", False))
+        row["detail"] = plain_json(res)
+        rows.append(row)
+    return rows
+
+
+def sfem_rows(sfem: dict | None) -> list[dict]:
+    """Rows for sfem_result: one per temperature step (`{"steps": [...], "polynomial": ...}`) or
+    one row for a single fit (the `station sfem --json` shape)."""
+    if not sfem:
+        return []
+    poly = sfem.get("polynomial_coefficients") or sfem.get("polynomials") or sfem.get("polynomial")
+    steps = sfem.get("steps")
+    rows = []
+    if isinstance(steps, list):
+        for i, st in enumerate(steps):
+            st = st or {}
+            rows.append(
+                {
+                    "temperature_step": int(st.get("temperature_step", i)),
+                    "temp_c": _num(st.get("temp_c")),
+                    "rmse_before_mg": _num(st.get("rmse_before_mg")),
+                    "rmse_after_mg": _num(st.get("rmse_after_mg")),
+                    "parameters": plain_json(st),
+                    "polynomial_coefficients": None,
+                }
+            )
+        if poly is not None:
+            rest = {k: v for k, v in sfem.items() if k != "steps"}
+            rows.append(
+                {
+                    "temperature_step": None,
+                    "temp_c": None,
+                    "rmse_before_mg": _num(sfem.get("rmse_before_mg")),
+                    "rmse_after_mg": _num(sfem.get("rmse_after_mg")),
+                    "parameters": plain_json(rest),
+                    "polynomial_coefficients": plain_json(poly),
+                }
+            )
+        return rows
+    step = sfem.get("temperature_step")
+    return [
+        {
+            "temperature_step": None if step is None else int(step),
+            "temp_c": _num(sfem.get("temp_c")),
+            "rmse_before_mg": _num(sfem.get("rmse_before_mg")),
+            "rmse_after_mg": _num(sfem.get("rmse_after_mg")),
+            "parameters": plain_json(sfem),
+            "polynomial_coefficients": None if poly is None else plain_json(poly),
+        }
+    ]
+
+
+_STORED = (SamplesReceived, SegmentLogged, DutResult, SlotStateChanged, BatchStateChanged)
+
+
+@dataclass
+class CommitInfo:
+    """What one writer transaction made durable (passed to `on_commit`)."""
+
+    n_events: int
+    n_samples: int
+    segments: list[tuple[int, int, int]]  # (run_id, segment index, row id)
+    results: list[tuple[int, int]]  # (run_id, result_seq)
+
+
+@dataclass
+class _RunBuf:
+    next_seq: int
+    pending: list[codec.Quantized] = field(default_factory=list)
+    pending_ids: list[int] = field(default_factory=list)
+    pending_first_seq: int | None = None
+    pending_n: int = 0
+    pending_lost: int = 0
+
+    def copy(self) -> "_RunBuf":
+        return _RunBuf(
+            self.next_seq, list(self.pending), list(self.pending_ids), self.pending_first_seq, self.pending_n,
+            self.pending_lost,
+        )
+
+
+class _Marker:
+    def __init__(self, stop: bool = False) -> None:
+        self.done = threading.Event()
+        self.stop = stop
+
+
+class DbWriter:
+    """One writer thread: `submit()` events, `flush()` to wait for their commit, `close()`."""
+
+    def __init__(
+        self,
+        database: Database,
+        interval_s: float = 0.2,
+        max_events: int = 2000,
+        seal_samples: int = 1024,
+        outbox: bool = False,
+        on_commit: Callable[[CommitInfo], None] | None = None,
+    ) -> None:
+        self.db = database
+        self.interval_s = interval_s
+        self.max_events = max_events
+        self.seal_samples = seal_samples
+        self.outbox = outbox
+        self.on_commit = on_commit
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._runs: dict[tuple[int, str], int] = {}
+        self._runs_lock = threading.Lock()
+        self._bufs: dict[int, _RunBuf] = {}
+        self._closed = False
+        self.stats: dict[str, Any] = {
+            "submitted": 0, "committed_events": 0, "committed_samples": 0, "commits": 0,
+            "dropped_events": 0, "unbound_events": 0, "last_error": "",
+        }
+        self._thread = threading.Thread(target=self._loop, name="db-writer", daemon=True)
+        self._thread.start()
+
+    # ---- called from the event loop (cheap, non-blocking) -----------------------------------
+    def bind_run(self, batch_id: int, slot: str, run_id: int) -> None:
+        """Events of (batch_id, slot) belong to run_id (from Database.create_run)."""
+        with self._runs_lock:
+            self._runs[(batch_id, slot)] = run_id
+
+    def submit(self, event: Event) -> None:
+        if self._closed:
+            raise RuntimeError("DbWriter is closed")
+        self.stats["submitted"] += 1
+        self._q.put(event)
+
+    @property
+    def backlog(self) -> int:
+        return self._q.qsize()
+
+    def flush(self, timeout: float | None = None) -> bool:
+        """Block until everything submitted so far is committed (True) or timeout (False)."""
+        if not self._thread.is_alive():
+            return self._q.empty()
+        m = _Marker()
+        self._q.put(m)
+        return m.done.wait(timeout)
+
+    async def aflush(self, timeout: float | None = None) -> bool:
+        return await asyncio.to_thread(self.flush, timeout)
+
+    def close(self, timeout: float | None = 60.0) -> None:
+        """Commit everything, seal every run's pending samples, stop the thread."""
+        if self._closed:
+            return
+        self._closed = True
+        m = _Marker(stop=True)
+        self._q.put(m)
+        m.done.wait(timeout)
+        self._thread.join(timeout)
+
+    def __enter__(self) -> "DbWriter":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ---- writer thread ----------------------------------------------------------------------
+    def _loop(self) -> None:
+        while True:
+            first = self._q.get()
+            items = [first]
+            if not isinstance(first, _Marker):
+                deadline = time.monotonic() + self.interval_s
+                while len(items) < self.max_events:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    try:
+                        item = self._q.get(timeout=remaining)
+                    except queue.Empty:
+                        break
+                    items.append(item)
+                    if isinstance(item, _Marker):
+                        break
+            events = [i for i in items if not isinstance(i, _Marker)]
+            markers = [i for i in items if isinstance(i, _Marker)]
+            stop = any(m.stop for m in markers)
+            if events or stop:
+                self._commit_with_retry(events, seal_all=stop)
+            for m in markers:
+                m.done.set()
+            if stop:
+                return
+
+    def _commit_with_retry(self, events: list[Event], seal_all: bool = False) -> None:
+        for attempt in range(5):
+            try:
+                self._commit(events, seal_all)
+                return
+            except OperationalError as exc:  # locked/busy or a lost PostgreSQL connection: retry
+                self.stats["last_error"] = str(exc.orig)
+                log.warning("db writer: commit failed (%s), retrying", exc.orig)
+                time.sleep(0.2 * (attempt + 1))
+            except Exception as exc:  # a bad event: isolate it, keep the rest
+                self.stats["last_error"] = repr(exc)
+                log.exception("db writer: commit of %d events failed; retrying one by one", len(events))
+                break
+        for ev in events:
+            try:
+                self._commit([ev], False)
+            except Exception as exc:
+                self.stats["dropped_events"] += 1
+                self.stats["last_error"] = repr(exc)
+                log.error("db writer: dropped %s: %r", type(ev).__name__, exc)
+        if seal_all:
+            try:
+                self._commit([], True)
+            except Exception as exc:
+                self.stats["last_error"] = repr(exc)
+                log.error("db writer: final sealing failed: %r", exc)
+
+    def _commit(self, events: list[Event], seal_all: bool) -> None:
+        saved = {k: v.copy() for k, v in self._bufs.items()}
+        info = CommitInfo(len(events), 0, [], [])
+        try:
+            with self.db.engine.begin() as conn:
+                samples: dict[int, list[SamplesReceived]] = {}
+                seal: set[int] = set()
+                for ev in events:
+                    if not isinstance(ev, _STORED):
+                        continue  # prompts, lamp, alarms, steps: not stored
+                    run_id = None if isinstance(ev, BatchStateChanged) else self._run_id(conn, ev)
+                    if isinstance(ev, SamplesReceived):
+                        if run_id is not None:
+                            samples.setdefault(run_id, []).append(ev)
+                    elif isinstance(ev, SegmentLogged):
+                        if run_id is not None:
+                            info.segments.append((run_id, ev.segment.index, self._segment(conn, run_id, ev)))
+                    elif isinstance(ev, DutResult):
+                        if run_id is not None:
+                            info.results.append((run_id, self._result(conn, run_id, ev)))
+                    elif isinstance(ev, SlotStateChanged):
+                        if run_id is not None:
+                            self._slot_state(conn, run_id, ev)
+                            if ev.state in RUN_END_STATES:
+                                seal.add(run_id)
+                    elif isinstance(ev, BatchStateChanged):
+                        seal.update(self._batch_state(conn, ev))
+                for run_id, evs in samples.items():
+                    info.n_samples += self._samples(conn, run_id, evs, force_seal=run_id in seal)
+                    seal.discard(run_id)
+                for run_id in sorted(seal | (set(self._bufs) if seal_all else set())):
+                    self._seal(conn, run_id)
+        except BaseException:
+            self._bufs = saved
+            raise
+        self.stats["commits"] += 1
+        self.stats["committed_events"] += len(events)
+        self.stats["committed_samples"] += info.n_samples
+        if self.on_commit is not None:
+            try:
+                self.on_commit(info)
+            except Exception:
+                log.exception("db writer: on_commit callback failed")
+
+    def _run_id(self, conn: Connection, ev: Event) -> int | None:
+        slot = getattr(ev, "slot", None)
+        key = (ev.batch_id, slot)
+        with self._runs_lock:
+            run_id = self._runs.get(key)
+        if run_id is None:
+            run_id = conn.execute(
+                select(DutRun.id).where(DutRun.batch_id == ev.batch_id, DutRun.slot == slot).order_by(DutRun.id.desc())
+            ).scalars().first()
+            if run_id is None:
+                self.stats["unbound_events"] += 1
+                log.warning("db writer: no run for batch %s slot %s; %s dropped", ev.batch_id, slot, ev.kind)
+                return None
+            with self._runs_lock:
+                self._runs.setdefault(key, run_id)
+        return run_id
+
+    def _segment(self, conn: Connection, run_id: int, ev: SegmentLogged) -> int:
+        sg = ev.segment
+        values = {
+            "run_id": run_id,
+            "step_index": int(ev.step_index),
+            "position": None if sg.position is None else int(sg.position),
+            "seg_index": int(sg.index),
+            "orientation": int(sg.orientation),
+            "n_samples": int(sg.n_samples),
+            "temp_mean_c": float(sg.temp_mean_c),
+            "temp_std_c": float(sg.temp_std_c),
+            "t_start_s": float(sg.t_start_s),
+            "t_end_s": float(sg.t_end_s),
+            "created_at": utcnow(),
+        }
+        for k, ax in enumerate(AXES):
+            values[f"acc_mean_{ax}_g"] = float(sg.acc_mean_g[k])
+            values[f"acc_std_{ax}_g"] = float(sg.acc_std_g[k])
+        return int(conn.execute(insert(SegmentRow).values(**values)).inserted_primary_key[0])
+
+    def _result(self, conn: Connection, run_id: int, ev: DutResult) -> int:
+        now = utcnow()
+        for row in thermal_rows(ev.thermal):
+            conn.execute(insert(ThermalResultRow).values(run_id=run_id, created_at=now, **row))
+        for row in sfem_rows(ev.sfem):
+            conn.execute(insert(SfemResultRow).values(run_id=run_id, created_at=now, **row))
+        seq = int(conn.execute(select(func.coalesce(func.max(DutRun.result_seq), 0))).scalar_one()) + 1
+        conn.execute(update(DutRun).where(DutRun.id == run_id).values(result_seq=seq))
+        if self.outbox:
+            payload = {
+                "result_seq": seq,
+                "run_id": run_id,
+                "batch_id": ev.batch_id,
+                "slot": ev.slot,
+                "serial": ev.serial,
+                "thermal": plain_json(ev.thermal),
+                "sfem": plain_json(ev.sfem),
+            }
+            conn.execute(
+                insert(Outbox).values(
+                    idempotency_key=f"result:{run_id}:{seq}", topic="result", payload=payload, attempts=0,
+                    next_attempt_at=now, last_error="", created_at=now,
+                )
+            )
+        return seq
+
+    def _slot_state(self, conn: Connection, run_id: int, ev: SlotStateChanged) -> None:
+        values: dict[str, Any] = {"state": ev.state, "fault_reason": ev.fault_reason}
+        if ev.state in RUN_END_STATES:
+            values["ended_at"] = utcnow()
+        conn.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
+
+    def _batch_state(self, conn: Connection, ev: BatchStateChanged) -> set[int]:
+        values: dict[str, Any] = {"state": ev.state}
+        if ev.reason:
+            values["reason"] = ev.reason
+        if ev.state in BATCH_END_STATES:
+            values["ended_at"] = utcnow()
+        conn.execute(update(Batch).where(Batch.id == ev.batch_id).values(**values))
+        if ev.state not in BATCH_END_STATES:
+            return set()
+        return set(conn.execute(select(DutRun.id).where(DutRun.batch_id == ev.batch_id)).scalars())
+
+    # ---- samples ----------------------------------------------------------------------------
+    def _buf(self, conn: Connection, run_id: int) -> _RunBuf:
+        buf = self._bufs.get(run_id)
+        if buf is None:
+            # First time this process sees the run (fresh or resumed): continue its chunk sequence
+            # and take over any unsealed chunks a previous process left.
+            rows = conn.execute(
+                select(SampleChunk.id, SampleChunk.seq, SampleChunk.sealed, SampleChunk.lost_samples)
+                .where(SampleChunk.run_id == run_id)
+                .order_by(SampleChunk.seq)
+            ).all()
+            buf = _RunBuf(next_seq=(rows[-1].seq + 1) if rows else 0)
+            tail = []
+            for r in reversed(rows):
+                if r.sealed:
+                    break
+                tail.append(r)
+            data = dict(
+                conn.execute(select(SampleChunk.id, SampleChunk.data).where(SampleChunk.id.in_([r.id for r in tail]))).all()
+            ) if tail else {}
+            for r in reversed(tail):
+                q = codec.decode(data[r.id])
+                buf.pending.append(q)
+                buf.pending_ids.append(r.id)
+                buf.pending_n += len(q)
+                buf.pending_lost += r.lost_samples
+                if buf.pending_first_seq is None:
+                    buf.pending_first_seq = r.seq
+            self._bufs[run_id] = buf
+        return buf
+
+    def _samples(self, conn: Connection, run_id: int, evs: list[SamplesReceived], force_seal: bool) -> int:
+        parts = []
+        lost = 0
+        for ev in evs:
+            b = ev.block
+            if len(b) == 0:
+                lost += b.lost_samples
+                continue
+            parts.append(codec.quantize(b.time_s, b.acc_g, b.temp_c, 1 if ev.lamp_on else 0, ev.position))
+            lost += b.lost_samples
+        n = sum(len(p) for p in parts)
+        if n:
+            conn.execute(
+                update(DutRun)
+                .where(DutRun.id == run_id)
+                .values(n_samples=DutRun.n_samples + n, lost_samples=DutRun.lost_samples + lost)
+            )
+        buf = self._buf(conn, run_id)
+        if not n:
+            if force_seal:
+                self._seal(conn, run_id)
+            return 0
+        q = codec.Quantized.concat(parts) if len(parts) > 1 else parts[0]
+        buf.pending.append(q)
+        buf.pending_n += n
+        buf.pending_lost += lost
+        if force_seal or buf.pending_n >= self.seal_samples:
+            self._seal(conn, run_id)
+        else:
+            seq = buf.next_seq
+            buf.next_seq += 1
+            cid = self._insert_chunk(conn, run_id, seq, q, lost, sealed=False)
+            buf.pending_ids.append(cid)
+            if buf.pending_first_seq is None:
+                buf.pending_first_seq = seq
+        return n
+
+    def _seal(self, conn: Connection, run_id: int) -> None:
+        """Replace the run's small chunks (plus unwritten samples) by one sealed chunk."""
+        buf = self._buf(conn, run_id)
+        if not buf.pending:
+            return
+        if buf.pending_ids:
+            conn.execute(delete(SampleChunk).where(SampleChunk.id.in_(buf.pending_ids)))
+            seq = buf.pending_first_seq
+        else:
+            seq = buf.next_seq
+            buf.next_seq += 1
+        q = codec.Quantized.concat(buf.pending) if len(buf.pending) > 1 else buf.pending[0]
+        self._insert_chunk(conn, run_id, int(seq), q, buf.pending_lost, sealed=True)
+        buf.pending, buf.pending_ids, buf.pending_first_seq, buf.pending_n, buf.pending_lost = [], [], None, 0, 0
+
+    def _insert_chunk(self, conn: Connection, run_id: int, seq: int, q: codec.Quantized, lost: int, sealed: bool) -> int:
+        res = conn.execute(
+            insert(SampleChunk).values(
+                run_id=run_id,
+                seq=seq,
+                t_first_s=float(q.time[0]) / codec.TIME_SCALE,
+                t_last_s=float(q.time[-1]) / codec.TIME_SCALE,
+                n=len(q),
+                lost_samples=int(lost),
+                sealed=sealed,
+                data=codec.encode(q),
+            )
+        )
+        return int(res.inserted_primary_key[0])
+
+
+__all__ = ["DbWriter", "CommitInfo", "thermal_rows", "sfem_rows", "plain_json"]

@@ -1,0 +1,352 @@
+"""CAN board driver (design 3.2) over python-can: many boards on one bus, told apart by node id.
+
+`CanBus` owns the one `can.Bus` and a reader thread (python-can's blocking `recv`, so any
+interface works: socketcan, slcan on a serial port, virtual, ...). The thread only queues raw
+frames; the event loop drains the queue in one callback per burst and dispatches by node id to
+the registered `CanBoard`s. A bus failure faults every board on that bus (they all share it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import dataclasses
+import threading
+from typing import Any
+
+import can
+import numpy as np
+
+from drivers.base import BoardDriver, DriverError, LinkStats
+from drivers.protocol import can_frames as cf
+from drivers.protocol.serial_frames import SeqTracker
+from station.types import Identity, SampleBlock
+
+MAX_PENDING_SAMPLES = 2_000_000
+
+
+def _sensor_from_ug(ug_per_lsb: float) -> str:
+    """The CAN identity has no sensor field: the known boards differ by sensitivity."""
+    if abs(ug_per_lsb - 60.0) < 0.5:
+        return "LIS3DSH"
+    if abs(ug_per_lsb - 3.9) < 0.05 or abs(ug_per_lsb - 62.4) < 0.05:
+        return "ADXL355"
+    return "unknown"
+
+
+class CanBus:
+    """One CAN bus shared by many boards.
+
+    interface/channel/bitrate go to `can.Bus`; extra keyword arguments too (e.g.
+    `sleep_after_open=0` for slcan on a simulated adapter, `receive_own_messages`).
+    """
+
+    def __init__(self, interface: str, channel: str, bitrate: int | None = 500_000, **bus_kwargs: Any) -> None:
+        self.interface = interface
+        self.channel = channel
+        self.bitrate = bitrate
+        self.bus_kwargs = bus_kwargs
+        self.bus: can.BusABC | None = None
+        self._boards: dict[int, CanBoard] = {}
+        self._inbox: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._wake_pending = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._running = False
+        self._open_lock: asyncio.Lock | None = None
+        self.error: DriverError | None = None
+        self.frames_rx = 0
+        self.frames_foreign = 0  # ids no registered board claims
+
+    def __repr__(self) -> str:
+        return f"CanBus({self.interface!r}, {self.channel!r})"
+
+    async def open(self) -> None:
+        """Idempotent: every board on the bus may call it."""
+        if self._open_lock is None:
+            self._open_lock = asyncio.Lock()
+        async with self._open_lock:
+            if self.bus is not None:
+                return
+            self._loop = asyncio.get_running_loop()
+            kwargs = dict(self.bus_kwargs)
+            if self.bitrate is not None:
+                kwargs["bitrate"] = self.bitrate
+            try:
+                self.bus = await asyncio.to_thread(
+                    can.Bus, interface=self.interface, channel=self.channel, **kwargs
+                )
+            except Exception as exc:  # python-can raises many kinds (CanError, OSError, ValueError)
+                raise DriverError(f"cannot open CAN bus {self.interface}:{self.channel}: {exc}") from exc
+            self.error = None
+            self._running = True
+            self._thread = threading.Thread(target=self._reader, name=f"can-{self.channel}", daemon=True)
+            self._thread.start()
+
+    def _reader(self) -> None:
+        bus, loop = self.bus, self._loop
+        assert bus is not None and loop is not None
+        inbox = self._inbox
+        while self._running:
+            try:
+                msg = bus.recv(0.1)
+            except Exception as exc:  # noqa: BLE001 - the bus is gone
+                if self._running:
+                    loop.call_soon_threadsafe(self._fail, f"CAN bus {self.channel} failed: {exc}")
+                return
+            if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+                continue
+            inbox.append((msg.arbitration_id, bytes(msg.data)))
+            if not self._wake_pending:
+                self._wake_pending = True
+                try:
+                    loop.call_soon_threadsafe(self._drain)
+                except RuntimeError:  # loop closed
+                    return
+
+    def _drain(self) -> None:
+        self._wake_pending = False
+        inbox = self._inbox
+        touched: set[CanBoard] = set()
+        while inbox:
+            arb_id, data = inbox.popleft()
+            self.frames_rx += 1
+            board = self._boards.get(arb_id & 0x7F)
+            if board is None:
+                self.frames_foreign += 1
+                continue
+            board._on_frame(arb_id & 0x780, data)
+            touched.add(board)
+        for board in touched:
+            board._flush()
+
+    def _fail(self, message: str) -> None:
+        if self.error is None:
+            self.error = DriverError(message)
+        self._running = False
+        for board in list(self._boards.values()):
+            board._on_bus_error(self.error)
+
+    def register(self, board: "CanBoard") -> None:
+        if board.node_id in self._boards and self._boards[board.node_id] is not board:
+            raise DriverError(f"CAN node {board.node_id} already has a driver on {self.channel}")
+        self._boards[board.node_id] = board
+
+    def unregister(self, board: "CanBoard") -> None:
+        if self._boards.get(board.node_id) is board:
+            del self._boards[board.node_id]
+
+    async def send(self, arbitration_id: int, data: bytes) -> None:
+        if self.error is not None:
+            raise self.error
+        if self.bus is None:
+            raise DriverError(f"CAN bus {self.channel} is not open")
+        msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
+        try:
+            await asyncio.to_thread(self.bus.send, msg, 1.0)
+        except Exception as exc:  # noqa: BLE001
+            raise DriverError(f"CAN send on {self.channel} failed: {exc}") from exc
+
+    async def close(self) -> None:
+        self._running = False
+        if self._thread is not None:
+            await asyncio.to_thread(self._thread.join, 2.0)
+            self._thread = None
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            try:
+                await asyncio.to_thread(bus.shutdown)
+            except Exception:  # noqa: BLE001 - shutting down a failed bus
+                pass
+
+    async def __aenter__(self) -> "CanBus":
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+
+class CanBoard(BoardDriver):
+    """One CAN board by node id. Time is the extended sample index / ODR (the frame has no clock).
+
+    The board sends no acknowledgements: START/STOP/SET_ODR are fire-and-forget; identify()
+    retries until the four identity frames are in or timeout_s ends. `sensor` names the sensor
+    when known from configuration (the CAN identity has no sensor field; otherwise guessed from
+    ug_per_lsb).
+    """
+
+    def __init__(self, bus: CanBus, node_id: int, *, sensor: str | None = None, retries: int = 3) -> None:
+        self.bus = bus
+        self.node_id = cf.check_node(node_id)
+        self.sensor = sensor
+        self.retries = max(1, int(retries))
+        self.stats = LinkStats()
+        self.identity: Identity | None = None
+        self._seq = SeqTracker(8)
+        self._odr_hz: float | None = None
+        self._time_base_s = 0.0
+        self._index_base = 0
+        self._pending: list[tuple[float, int, int, int, int]] = []
+        self._pending_lost = 0
+        self._data = asyncio.Event()
+        self._got = False
+        self._ident: cf.IdentityAssembler | None = None
+        self._ident_fut: asyncio.Future[Identity] | None = None
+        self._error: DriverError | None = None
+        self._opened = False
+
+    def __repr__(self) -> str:
+        return f"CanBoard({self.bus.channel!r}, node={self.node_id})"
+
+    async def open(self) -> None:
+        self._data = asyncio.Event()
+        await self.bus.open()
+        self.bus.register(self)
+        self._opened = True
+        self._error = None
+
+    # ---- frames (called in the loop by CanBus._drain) --------------------------------------
+    def _on_frame(self, func: int, data: bytes) -> None:
+        if func == cf.SAMPLE_BASE:
+            try:
+                s = cf.decode_sample(data)
+            except ValueError:
+                self.stats.frames_malformed += 1
+                return
+            self.stats.frames_ok += 1
+            lost = self._seq.update(s.seq)
+            if lost:
+                self.stats.samples_lost += lost
+                self._pending_lost += lost
+            odr = self._odr_hz or (self.identity.odr_hz if self.identity else 0.0)
+            if not odr:
+                self.stats.frames_malformed += 1  # cannot time a sample without an ODR
+                return
+            t = self._time_base_s + (self._seq.index - self._index_base) / odr
+            self._pending.append((t, s.ax, s.ay, s.az, s.t))
+            self._got = True
+        elif func == cf.IDENT_BASE:
+            if self._ident is None:
+                self._ident = cf.IdentityAssembler()
+            try:
+                done = self._ident.feed(data)
+            except ValueError:
+                self.stats.frames_malformed += 1
+                return
+            self.stats.frames_ok += 1
+            if done and self._ident_fut is not None and not self._ident_fut.done():
+                a = self._ident
+                ug = float(f"{a.ug_per_lsb:.7g}")
+                odr = float(f"{a.odr_hz:.7g}")
+                self._ident_fut.set_result(
+                    Identity(
+                        serial=a.serial,
+                        sensor=self.sensor or _sensor_from_ug(ug),
+                        fw="",
+                        ug_per_lsb=ug,
+                        t_lsb_per_c=1.0,
+                        t_lsb_at_25c=0.0,
+                        odr_hz=odr,
+                    )
+                )
+        elif func == cf.CMD_BASE:
+            pass  # our own command echoed back by an interface
+        else:
+            self.stats.frames_malformed += 1
+
+    def _flush(self) -> None:
+        if self._got:
+            self._got = False
+            if len(self._pending) > MAX_PENDING_SAMPLES:
+                drop = len(self._pending) - MAX_PENDING_SAMPLES
+                del self._pending[:drop]
+                self.stats.samples_lost += drop
+                self._pending_lost += drop
+            self._data.set()
+
+    def _on_bus_error(self, error: DriverError) -> None:
+        self._error = error
+        if self._ident_fut is not None and not self._ident_fut.done():
+            self._ident_fut.set_exception(error)
+        self._data.set()
+
+    def _check(self) -> None:
+        if self._error is not None:
+            raise self._error
+        if not self._opened:
+            raise DriverError(f"CAN node {self.node_id} is not open")
+
+    async def _send(self, data: bytes) -> None:
+        self._check()
+        await self.bus.send(cf.CMD_BASE + self.node_id, data)
+
+    # ---- commands --------------------------------------------------------------------------
+    async def identify(self, timeout_s: float = 2.0) -> Identity:
+        self._check()
+        loop = asyncio.get_running_loop()
+        per_try = timeout_s / self.retries
+        for _ in range(self.retries):
+            self._ident = cf.IdentityAssembler()
+            self._ident_fut = loop.create_future()
+            await self._send(cf.encode_command(cf.CMD_IDENTIFY))
+            try:
+                ident = await asyncio.wait_for(asyncio.shield(self._ident_fut), per_try)
+            except asyncio.TimeoutError:
+                continue
+            finally:
+                self._ident_fut = None
+            self._rebase(ident.odr_hz)
+            self.identity = ident
+            return ident
+        self._check()
+        raise DriverError(f"no identity reply from CAN node {self.node_id} on {self.bus.channel} within {timeout_s:g} s")
+
+    def _rebase(self, odr_hz: float) -> None:
+        """Keep time continuous when the sample rate changes: new samples count from here."""
+        if self._odr_hz and self._odr_hz != odr_hz:
+            self._time_base_s += (self._seq.index - self._index_base) / self._odr_hz
+            self._index_base = self._seq.index
+        self._odr_hz = odr_hz
+
+    async def start(self) -> None:
+        if self.identity is None:
+            await self.identify()
+        await self._send(cf.encode_command(cf.CMD_START))
+
+    async def stop(self) -> None:
+        await self._send(cf.encode_command(cf.CMD_STOP))
+
+    async def set_odr(self, odr_hz: float) -> None:
+        await self._send(cf.encode_command(cf.CMD_SET_ODR, odr_hz))
+        self._rebase(float(odr_hz))
+        if self.identity is not None:
+            self.identity = dataclasses.replace(self.identity, odr_hz=float(odr_hz))
+
+    # ---- samples ---------------------------------------------------------------------------
+    async def read_block(self, timeout_s: float = 1.0) -> SampleBlock:
+        if not self._pending:
+            self._check()
+            self._data.clear()
+            try:
+                await asyncio.wait_for(self._data.wait(), timeout_s)
+            except asyncio.TimeoutError:
+                pass
+            if not self._pending and self._error is not None:
+                raise self._error
+        rows, self._pending = self._pending, []
+        lost, self._pending_lost = self._pending_lost, 0
+        if not rows:
+            return SampleBlock(np.empty(0), np.empty((0, 3)), np.empty(0), lost)
+        ident = self.identity or Identity(serial="")
+        arr = np.array(rows, dtype=np.float64)
+        return SampleBlock(
+            time_s=arr[:, 0],
+            acc_g=ident.acc_g(arr[:, 1:4]),
+            temp_c=ident.temp_c(arr[:, 4]),
+            lost_samples=lost,
+        )
+
+    async def close(self) -> None:
+        self.bus.unregister(self)
+        self._opened = False

@@ -1,0 +1,287 @@
+"""Serial board driver (design 3.1) over pyserial: any port name or pyserial URL.
+
+Reading never blocks the event loop: when the port has a file descriptor (real tty, USB CDC,
+pty) the loop watches it (`add_reader`) and reads what is there, so 64 boards cost 64 fds and no
+threads; ports without one (pyserial URLs such as `loop://`, `socket://`) get one small reader
+thread that hands bytes to the loop. Bytes go through the incremental frame parser; samples
+queue until `read_block()` takes them, already in g / C with the board's identity.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import os
+import threading
+
+import numpy as np
+import serial
+
+from drivers.base import BoardDriver, DriverError, LinkStats
+from drivers.protocol import serial_frames as sf
+from station.types import Identity, SampleBlock
+
+MAX_PENDING_SAMPLES = 2_000_000  # if nobody reads, the oldest samples are dropped (counted lost)
+
+
+class SerialBoard(BoardDriver):
+    """One serial board.
+
+    url_or_port: "/dev/ttyACM0", "/dev/pts/7", "socket://host:port", "loop://", ...
+    ack_timeout_s/retries: a command without `A` reply is re-sent this many times, then
+    DriverError. An `E` reply to a command raises DriverError with the board's text.
+    """
+
+    def __init__(
+        self,
+        url_or_port: str,
+        baudrate: int = 115200,
+        *,
+        ack_timeout_s: float = 0.5,
+        retries: int = 3,
+    ) -> None:
+        self.port = url_or_port
+        self.baudrate = baudrate
+        self.ack_timeout_s = ack_timeout_s
+        self.retries = max(1, int(retries))
+        self.stats = LinkStats()
+        self.identity: Identity | None = None
+        self._parser = sf.FrameParser(self.stats)
+        self._seq = sf.SeqTracker(32)
+        self._clock = sf.ClockUnwrapper()
+        self._ser: serial.SerialBase | None = None
+        self._fd: int | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._running = False
+        self._pending: list[tuple[int, int, int, int, int]] = []  # t_us, ax, ay, az, t
+        self._pending_lost = 0
+        self._data = asyncio.Event()
+        self._error: DriverError | None = None
+        self._ident_fut: asyncio.Future[Identity] | None = None
+        self._ack_waiters: dict[str, asyncio.Future[sf.AckFrame]] = {}
+        self._cmd_lock = asyncio.Lock()
+
+    def __repr__(self) -> str:
+        return f"SerialBoard({self.port!r})"
+
+    # ---- link ------------------------------------------------------------------------------
+    async def open(self) -> None:
+        if self._ser is not None:
+            return
+        self._loop = asyncio.get_running_loop()
+        self._data = asyncio.Event()
+        self._cmd_lock = asyncio.Lock()
+        try:
+            self._ser = await asyncio.to_thread(
+                serial.serial_for_url, self.port, baudrate=self.baudrate, timeout=0.1, write_timeout=1.0
+            )
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DriverError(f"cannot open serial port {self.port}: {exc}") from exc
+        self._error = None
+        self._running = True
+        try:
+            fd = self._ser.fileno()
+        except Exception:  # URL handlers without a descriptor
+            fd = None
+        if fd is not None:
+            self._fd = fd
+            os.set_blocking(fd, False)
+            self._loop.add_reader(fd, self._on_readable)
+        else:
+            self._thread = threading.Thread(target=self._reader_thread, name=f"serial-{self.port}", daemon=True)
+            self._thread.start()
+
+    def _on_readable(self) -> None:
+        try:
+            data = os.read(self._fd, 65536)  # type: ignore[arg-type]
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            self._fail(f"serial port {self.port} vanished: {exc}")
+            return
+        if not data:
+            self._fail(f"serial port {self.port} vanished (EOF)")
+            return
+        self._feed(data)
+
+    def _reader_thread(self) -> None:
+        ser = self._ser
+        loop = self._loop
+        assert ser is not None and loop is not None
+        while self._running:
+            try:
+                data = ser.read(max(1, ser.in_waiting))
+            except Exception as exc:  # noqa: BLE001 - any failure means the port is gone
+                if self._running:
+                    loop.call_soon_threadsafe(self._fail, f"serial port {self.port} vanished: {exc}")
+                return
+            if data:
+                loop.call_soon_threadsafe(self._feed, data)
+
+    def _fail(self, message: str) -> None:
+        if self._error is None:
+            self._error = DriverError(message)
+        self._stop_reading()
+        for fut in [self._ident_fut, *self._ack_waiters.values()]:
+            if fut is not None and not fut.done():
+                fut.set_exception(self._error)
+        self._data.set()
+
+    def _stop_reading(self) -> None:
+        if self._fd is not None and self._loop is not None:
+            self._loop.remove_reader(self._fd)
+        self._fd = None
+        self._running = False
+
+    # ---- frames ----------------------------------------------------------------------------
+    def _feed(self, data: bytes) -> None:
+        got_samples = False
+        for frame in self._parser.feed(data):
+            if type(frame) is sf.SampleFrame:
+                lost = self._seq.update(frame.seq)
+                if lost:
+                    self.stats.samples_lost += lost
+                    self._pending_lost += lost
+                self._pending.append(
+                    (self._clock.update(frame.t_us), frame.ax, frame.ay, frame.az, frame.t)
+                )
+                got_samples = True
+            elif isinstance(frame, sf.IdentityFrame):
+                if self._ident_fut is not None and not self._ident_fut.done():
+                    self._ident_fut.set_result(frame.identity)
+            elif isinstance(frame, sf.AckFrame):
+                fut = self._ack_waiters.get(frame.command)
+                if fut is not None and not fut.done():
+                    fut.set_result(frame)
+            elif isinstance(frame, sf.ErrorFrame):
+                for fut in self._ack_waiters.values():
+                    if not fut.done():
+                        fut.set_exception(DriverError(f"board {self.port} error {frame.code}: {frame.text}"))
+        if got_samples:
+            if len(self._pending) > MAX_PENDING_SAMPLES:
+                drop = len(self._pending) - MAX_PENDING_SAMPLES
+                del self._pending[:drop]
+                self.stats.samples_lost += drop
+                self._pending_lost += drop
+            self._data.set()
+
+    def _write(self, raw: bytes) -> None:
+        if self._error is not None:
+            raise self._error
+        if self._ser is None:
+            raise DriverError(f"serial port {self.port} is not open")
+        try:
+            if self._fd is not None:
+                view = memoryview(raw)
+                while view:
+                    try:
+                        n = os.write(self._fd, view)
+                    except BlockingIOError:
+                        n = 0
+                        self._ser.flush()  # tiny frames: only blocks if the driver buffer is full
+                    view = view[n:]
+            else:
+                self._ser.write(raw)
+        except (OSError, serial.SerialException) as exc:
+            self._fail(f"serial port {self.port} vanished: {exc}")
+            raise self._error from exc  # type: ignore[misc]
+
+    def _check(self) -> None:
+        if self._error is not None:
+            raise self._error
+        if self._ser is None:
+            raise DriverError(f"serial port {self.port} is not open")
+
+    # ---- commands --------------------------------------------------------------------------
+    async def identify(self, timeout_s: float = 2.0) -> Identity:
+        self._check()
+        assert self._loop is not None
+        async with self._cmd_lock:
+            per_try = timeout_s / self.retries
+            for _ in range(self.retries):
+                self._ident_fut = self._loop.create_future()
+                self._write(sf.cmd_id())
+                try:
+                    ident = await asyncio.wait_for(asyncio.shield(self._ident_fut), per_try)
+                except asyncio.TimeoutError:
+                    continue
+                finally:
+                    self._ident_fut = None
+                self.identity = ident
+                return ident
+        self._check()
+        raise DriverError(f"no identity reply from {self.port} within {timeout_s:g} s")
+
+    async def _command(self, raw: bytes, key: str) -> None:
+        self._check()
+        assert self._loop is not None
+        async with self._cmd_lock:
+            for _ in range(self.retries):
+                fut = self._loop.create_future()
+                self._ack_waiters[key] = fut
+                self._write(raw)
+                try:
+                    await asyncio.wait_for(asyncio.shield(fut), self.ack_timeout_s)
+                    return
+                except asyncio.TimeoutError:
+                    continue
+                finally:
+                    self._ack_waiters.pop(key, None)
+        self._check()
+        raise DriverError(f"board {self.port} did not acknowledge {key} ({self.retries} tries)")
+
+    async def start(self) -> None:
+        if self.identity is None:
+            await self.identify()
+        self._seq.reset()
+        await self._command(sf.cmd_start(), "START")
+
+    async def stop(self) -> None:
+        await self._command(sf.cmd_stop(), "STOP")
+
+    async def set_odr(self, odr_hz: float) -> None:
+        await self._command(sf.cmd_odr(odr_hz), "ODR")
+        if self.identity is not None:
+            self.identity = dataclasses.replace(self.identity, odr_hz=float(odr_hz))
+
+    # ---- samples ---------------------------------------------------------------------------
+    async def read_block(self, timeout_s: float = 1.0) -> SampleBlock:
+        if not self._pending:
+            if self._error is not None:
+                raise self._error
+            if self._ser is None:
+                raise DriverError(f"serial port {self.port} is not open")
+            self._data.clear()
+            try:
+                await asyncio.wait_for(self._data.wait(), timeout_s)
+            except asyncio.TimeoutError:
+                pass
+            if not self._pending and self._error is not None:
+                raise self._error
+        if self.identity is None and self._pending:
+            await self.identify()
+        rows, self._pending = self._pending, []
+        lost, self._pending_lost = self._pending_lost, 0
+        ident = self.identity or Identity(serial="")
+        if not rows:
+            return SampleBlock(np.empty(0), np.empty((0, 3)), np.empty(0), lost)
+        arr = np.array(rows, dtype=np.int64)
+        return SampleBlock(
+            time_s=arr[:, 0] / 1e6,
+            acc_g=ident.acc_g(arr[:, 1:4]),
+            temp_c=ident.temp_c(arr[:, 4]),
+            lost_samples=lost,
+        )
+
+    async def close(self) -> None:
+        self._stop_reading()
+        ser, self._ser = self._ser, None
+        if self._thread is not None:
+            await asyncio.to_thread(self._thread.join, 1.0)
+            self._thread = None
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # noqa: BLE001 - closing a vanished port
+                pass

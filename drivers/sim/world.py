@@ -1,0 +1,356 @@
+"""The simulated test station's physical world: plate, lamp, fixture, chamber and the DUTs on it.
+
+One SimWorld holds every DUT of a batch and advances them together, vectorized over DUTs, at the
+boards' ODR. Controls (lamp_on, position, chamber_setpoint_c, chamber_ramp_c_per_min) are held
+constant within one advance() call; callers change them between calls.
+
+Thermal chain (all first order, discretized exactly per sample with a = exp(-dt/tau), so a chunk
+of n samples is the same computation as n chunks of one sample):
+
+    chamber air  -> moves toward the set point at chamber_ramp_c_per_min (rate-limited), or sits
+                    at ambient_c when there is no chamber (chamber_setpoint_c is None)
+    local plate  -> follows air + lamp_on * lamp_gain * (lamp_rise_c + turned_extra_c if the plate
+                    is turned over the lamp), time constant lamp_tau_s (room) or chamber_plate_tau_s
+    die          -> follows the local plate with die_tau_s, plus self-heating (first order toward
+                    self_heat_c with self_heat_tau_s since power-up at t = 0)
+    MEMS         -> the die, or lagging it with tau_s when the hidden `thermal_lag` effect is on
+
+Noise: one np.random.Generator per DUT, consumed in sample order (4 normals per sample), so the
+output does not depend on how advance() is chunked.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.signal import lfilter
+
+from drivers.sim.physics import SENSORS, DutTruth
+from station.positions import GRAVITY_DIRECTIONS
+from station.types import T_REF_C, Identity
+
+SIM_FIRMWARE = "sim-1.0"
+
+
+@dataclass
+class EnvConfig:
+    """The room, the lamp and the chamber; defaults give martinez2022-like fast-thermal runs."""
+
+    ambient_c: float = 25.0
+    lamp_rise_c: float = 32.0  # settled plate rise with the lamp on
+    lamp_tau_s: float = 480.0  # plate time constant in room air (lamp heating and cooling)
+    turned_extra_c: float = 6.0  # plate hotter over the lamp after the turn (martinez2022 Fig. 8)
+    turned_positions: tuple[int, ...] = (1,)  # positions in which the DUTs sit over the lamp (N)
+    chamber_ramp_c_per_min: float = 2.0  # default chamber air ramp rate
+    chamber_plate_tau_s: float = 150.0  # plate time constant in the chamber's forced air
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["turned_positions"] = list(self.turned_positions)
+        return d
+
+
+@dataclass
+class WorldChunk:
+    """Samples of one advance(n): raw counts exactly as the boards would send them."""
+
+    time_s: np.ndarray  # (n,) sample times since the world started
+    acc_counts: np.ndarray  # (n_duts, n, 3) int64
+    temp_counts: np.ndarray  # (n_duts, n) int64
+    plate_temp_c: np.ndarray  # (n,) reference thermometer (nominal plate, lamp gain 1)
+    die_temp_c: np.ndarray  # (n_duts, n) true die temperature (what the temp sensor sees, noise-free)
+    mems_temp_c: np.ndarray  # (n_duts, n) true MEMS temperature (= die unless thermal_lag)
+    lamp_on: bool
+    position: int
+    chamber_air_c: np.ndarray  # (n,)
+
+    def __len__(self) -> int:
+        return int(self.time_s.shape[0])
+
+
+def _stack(truths: list[DutTruth], attr: str) -> np.ndarray:
+    return np.array([getattr(t, attr) for t in truths], dtype=np.float64)
+
+
+class SimWorld:
+    """All DUTs of a simulated station (see module doc). Deterministic from `seed`."""
+
+    def __init__(self, duts: list[DutTruth], env: EnvConfig | None = None, odr_hz: float | None = None, seed: int = 0):
+        self.duts = list(duts)
+        self.env = env or EnvConfig()
+        self.seed = int(seed)
+        n = len(self.duts)
+        self._odr_hz = float(odr_hz if odr_hz else (SENSORS[self.duts[0].sensor].odr_hz if n else 3.125))
+        # controls
+        self.lamp_on: bool = False
+        self.position: int = 0
+        self.chamber_setpoint_c: float | None = None
+        self.chamber_ramp_c_per_min: float = self.env.chamber_ramp_c_per_min
+        # clock
+        self._k = 0  # samples since the last ODR change
+        self._t0_s = 0.0  # time of sample _k = 0
+        # per-DUT constants
+        self._A_inv = np.array([np.linalg.inv(t.A) for t in self.duts]).reshape(n, 3, 3)
+        self._bias = _stack(self.duts, "bias_g").reshape(n, 3)
+        self._tdb = _stack(self.duts, "tdb_mg_per_c").reshape(n, 3) * 1e-3
+        self._tdsf = _stack(self.duts, "tdsf_ppm_per_c").reshape(n, 3) * 1e-6
+        self._noise = _stack(self.duts, "noise_g").reshape(n)
+        self._tnoise = _stack(self.duts, "temp_noise_c").reshape(n)
+        self._lsb_g = _stack(self.duts, "ug_per_lsb").reshape(n) * 1e-6
+        self._t_lsb_per_c = _stack(self.duts, "t_lsb_per_c").reshape(n)
+        self._t_lsb_at_25 = _stack(self.duts, "t_lsb_at_25c").reshape(n)
+        specs = [SENSORS[t.sensor] for t in self.duts]
+        self._acc_lim = np.array([s.acc_count_limits for s in specs], dtype=np.int64).reshape(n, 2)
+        self._t_lim = np.array([s.temp_count_limits for s in specs], dtype=np.int64).reshape(n, 2)
+        self._die_tau = _stack(self.duts, "die_tau_s").reshape(n)
+        self._sh_c = _stack(self.duts, "self_heat_c").reshape(n)
+        self._sh_tau = _stack(self.duts, "self_heat_tau_s").reshape(n)
+        self._lamp_gain = np.append(_stack(self.duts, "lamp_gain").reshape(n), 1.0)  # last: reference
+        self._rngs = [np.random.default_rng([self.seed, i, 0x0015E]) for i in range(n)]
+        # thermal state
+        amb = self.env.ambient_c
+        self._air = amb
+        self._plate = np.full(n + 1, amb)  # per DUT local plate, last = reference thermometer
+        self._die_lag = np.full(n, amb)  # die without self-heating
+        self._mems = np.full(n, amb)
+        self._die_prev = np.full(n, amb)
+        self._hyst_z = np.zeros(n)
+        self._heat = np.zeros(n)  # self-heating of the die above the plate (all powered up at t = 0)
+        self._t_on = np.zeros(n)
+        # hidden effects as arrays (zeros where off)
+        self._fx = self._effect_arrays()
+
+    # --- properties ---------------------------------------------------------------------------
+    @property
+    def n_duts(self) -> int:
+        return len(self.duts)
+
+    @property
+    def odr_hz(self) -> float:
+        return self._odr_hz
+
+    @odr_hz.setter
+    def odr_hz(self, hz: float) -> None:
+        """Change the sample rate from now on (every board of the world shares one clock)."""
+        hz = float(hz)
+        if hz <= 0:
+            raise ValueError("ODR must be positive")
+        self._t0_s = self.time_s
+        self._k = 0
+        self._odr_hz = hz
+
+    @property
+    def time_s(self) -> float:
+        """Time of the next sample."""
+        return self._t0_s + self._k / self._odr_hz
+
+    @property
+    def plate_temp_c(self) -> float:
+        """Reference thermometer on the plate (nominal place, lamp gain 1)."""
+        return float(self._plate[-1])
+
+    @property
+    def chamber_air_c(self) -> float:
+        return float(self._air)
+
+    @property
+    def die_temp_c(self) -> np.ndarray:
+        """True die temperature of every DUT now (noise-free)."""
+        return self._die_prev.copy()
+
+    def identity(self, i: int) -> Identity:
+        t = self.duts[i]
+        return Identity(
+            serial=t.serial,
+            sensor=t.sensor,
+            fw=SIM_FIRMWARE,
+            ug_per_lsb=t.ug_per_lsb,
+            t_lsb_per_c=t.t_lsb_per_c,
+            t_lsb_at_25c=t.t_lsb_at_25c,
+            odr_hz=self._odr_hz,
+        )
+
+    def power_cycle(self, i: int, off_s: float = 0.0) -> None:
+        """Board i powers up again now, after having been off for off_s (no simulated time passes).
+
+        The warm-up transient of the hidden `self_heating` effect starts over; the die's own
+        self-heating has decayed by exp(-off_s / self_heat_tau_s) (math.inf: a cold start).
+        """
+        self._t_on[i] = self.time_s
+        self._heat[i] *= float(np.exp(-float(off_s) / self._sh_tau[i]))
+
+    # --- hidden effects -----------------------------------------------------------------------
+    def _effect_arrays(self) -> dict[str, np.ndarray]:
+        n = self.n_duts
+        z3 = lambda: np.zeros((n, 3))  # noqa: E731
+        fx = {
+            "c2": z3(), "c3": z3(), "k2": z3(), "lag_tau": np.zeros(n), "h": z3(), "h_width": np.ones(n),
+            "w": z3(), "w_tau": np.ones(n), "x": np.zeros((n, 3, 3)), "nl": z3(),
+        }
+        self._has = set()
+        for i, t in enumerate(self.duts):
+            for name, p in t.effects.items():
+                self._has.add(name)
+                if name == "bias_t2":
+                    fx["c2"][i] = np.asarray(p["c2_mg_per_c2"]) * 1e-3
+                elif name == "bias_t3":
+                    fx["c3"][i] = np.asarray(p["c3_mg_per_c3"]) * 1e-3
+                elif name == "scale_t2":
+                    fx["k2"][i] = np.asarray(p["k2_ppm_per_c2"]) * 1e-6
+                elif name == "thermal_lag":
+                    fx["lag_tau"][i] = float(p["tau_s"])
+                elif name == "hysteresis":
+                    fx["h"][i] = np.asarray(p["h_mg"]) * 1e-3
+                    fx["h_width"][i] = float(p["width_c"])
+                elif name == "self_heating":
+                    fx["w"][i] = np.asarray(p["w_mg"]) * 1e-3
+                    fx["w_tau"][i] = float(p["tau_s"])
+                elif name == "cross_axis":
+                    x = np.asarray(p["x_ppm_per_c"], dtype=np.float64).reshape(3, 3) * 1e-6
+                    fx["x"][i] = x - np.diag(np.diag(x))
+                elif name == "scale_nonlinearity":
+                    fx["nl"][i] = np.asarray(p["n_ppm_per_c_per_g"]) * 1e-6
+        return fx
+
+    # --- stepping -----------------------------------------------------------------------------
+    def _air_series(self, n: int, dt: float) -> np.ndarray:
+        """Chamber air at each sample of the chunk (rate-limited toward the set point)."""
+        sp = self.chamber_setpoint_c
+        if sp is None:
+            self._air = self.env.ambient_c
+            return np.full(n, self._air)
+        step = abs(float(self.chamber_ramp_c_per_min or 0.0)) * dt / 60.0
+        out = np.empty(n)
+        air = self._air
+        if step <= 0.0:  # no ramp limit: the air jumps to the set point
+            air = float(sp)
+            out.fill(air)
+        else:
+            for k in range(n):
+                d = sp - air
+                if d == 0.0:
+                    out[k:] = air
+                    break
+                air = sp if abs(d) <= step else air + (step if d > 0 else -step)
+                out[k] = air
+        self._air = float(air)
+        return out
+
+    def advance(self, n: int) -> WorldChunk:
+        """Step n samples at the ODR with the current controls; returns raw counts per DUT."""
+        n = int(n)
+        nd = self.n_duts
+        dt = 1.0 / self._odr_hz
+        k = self._k + np.arange(n)
+        time_s = self._t0_s + k / self._odr_hz
+        self._k += n
+        pos = int(self.position)
+        g = GRAVITY_DIRECTIONS[pos]
+
+        # thermal chain -----------------------------------------------------------------------
+        air = self._air_series(n, dt)
+        in_chamber = self.chamber_setpoint_c is not None
+        tau_p = self.env.chamber_plate_tau_s if in_chamber else self.env.lamp_tau_s
+        lamp_c = 0.0
+        if self.lamp_on:
+            lamp_c = self.env.lamp_rise_c + (self.env.turned_extra_c if pos in self.env.turned_positions else 0.0)
+        target = air[None, :] + (lamp_c * self._lamp_gain)[:, None]  # (nd+1, n)
+        plate, self._plate = _first_order(target, self._plate, np.full(nd + 1, tau_p), dt)
+        die_lag, self._die_lag = _first_order(plate[:nd], self._die_lag, self._die_tau, dt)
+        since_on = np.maximum(time_s[None, :] - self._t_on[:, None], 0.0)
+        heat, self._heat = _first_order(np.repeat(self._sh_c[:, None], n, axis=1), self._heat, self._sh_tau, dt)
+        die = die_lag + heat  # (nd, n)
+        fx = self._fx
+        if "thermal_lag" in self._has:
+            lag = np.where(fx["lag_tau"] > 0, fx["lag_tau"], 1e-9)
+            mems, self._mems = _first_order(die, self._mems, lag, dt)
+            mems = np.where((fx["lag_tau"] > 0)[:, None], mems, die)
+            self._mems = np.where(fx["lag_tau"] > 0, self._mems, die[:, -1] if n else self._mems)
+        else:
+            mems = die
+            if n:
+                self._mems = die[:, -1].copy()
+
+        # acceleration ------------------------------------------------------------------------
+        acc0 = self._bias + self._A_inv @ g  # (nd, 3)
+        dT = (mems - T_REF_C)[:, :, None]  # (nd, n, 1)
+        acc = acc0[:, None, :] + dT * (self._tdb + self._tdsf * acc0)[:, None, :]
+        if self._has:
+            acc += self._hidden(acc0, dT, die, since_on, n)
+        if n:
+            self._die_prev = die[:, -1].copy()
+
+        # noise and quantization (per-DUT streams, sample order) ------------------------------
+        acc_counts = np.empty((nd, n, 3), dtype=np.int64)
+        temp_counts = np.empty((nd, n), dtype=np.int64)
+        for i in range(nd):
+            z = self._rngs[i].standard_normal((n, 4))
+            a = acc[i] + z[:, :3] * self._noise[i]
+            acc_counts[i] = np.clip(np.rint(a / self._lsb_g[i]), *self._acc_lim[i]).astype(np.int64)
+            t = die[i] + z[:, 3] * self._tnoise[i]
+            tc = np.rint((t - T_REF_C) * self._t_lsb_per_c[i] + self._t_lsb_at_25[i])
+            temp_counts[i] = np.clip(tc, *self._t_lim[i]).astype(np.int64)
+        return WorldChunk(
+            time_s=time_s,
+            acc_counts=acc_counts,
+            temp_counts=temp_counts,
+            plate_temp_c=plate[-1].copy(),
+            die_temp_c=die,
+            mems_temp_c=mems,
+            lamp_on=bool(self.lamp_on),
+            position=pos,
+            chamber_air_c=air,
+        )
+
+    def _hidden(self, acc0: np.ndarray, dT: np.ndarray, die: np.ndarray, since_on: np.ndarray, n: int) -> np.ndarray:
+        fx = self._fx
+        has = self._has
+        out = np.zeros((self.n_duts, n, 3))
+        if "bias_t2" in has:
+            out += fx["c2"][:, None, :] * dT**2
+        if "bias_t3" in has:
+            out += fx["c3"][:, None, :] * dT**3
+        if "scale_t2" in has:
+            out += (fx["k2"] * acc0)[:, None, :] * dT**2
+        if "cross_axis" in has:
+            out += dT * np.einsum("dij,dj->di", fx["x"], acc0)[:, None, :]
+        if "scale_nonlinearity" in has:
+            out += dT * (fx["nl"] * acc0**2)[:, None, :]
+        if "self_heating" in has:
+            out += fx["w"][:, None, :] * np.exp(-since_on / fx["w_tau"][:, None])[:, :, None]
+        if "hysteresis" in has:
+            z = self._hysteresis_state(die, n)
+            out += fx["h"][:, None, :] * z[:, :, None]
+        return out
+
+    def _hysteresis_state(self, die: np.ndarray, n: int) -> np.ndarray:
+        """Play-type state z in [-1, 1]: z_k = s + (z_{k-1} - s) exp(-|dT_k| / width), s = sign(dT_k)."""
+        d = np.diff(die, axis=1, prepend=self._die_prev[:, None])
+        s = np.sign(d)
+        decay = np.exp(-np.abs(d) / self._fx["h_width"][:, None])
+        z = np.empty_like(die)
+        zk = self._hyst_z.copy()
+        for k in range(n):
+            zk = s[:, k] + (zk - s[:, k]) * decay[:, k]
+            z[:, k] = zk
+        self._hyst_z = zk
+        return z
+
+
+def _first_order(x: np.ndarray, y0: np.ndarray, tau_s: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """y_k = a y_{k-1} + (1 - a) x_k per row, a = exp(-dt/tau): exact for an input held over each
+    sample interval. Rows are independent (one tau each). Returns (y, last y)."""
+    n = x.shape[1]
+    if n == 0:
+        return x.copy(), y0.copy()
+    a = np.exp(-dt / np.asarray(tau_s, dtype=np.float64))
+    y = np.empty_like(x)
+    for ua in np.unique(a):  # lfilter wants one coefficient set; DUTs share few distinct taus anyway
+        rows = np.nonzero(a == ua)[0]
+        zi = (ua * y0[rows])[:, None]
+        y[rows], _ = lfilter([1.0 - ua], [1.0, -ua], x[rows], axis=1, zi=zi)
+    return y, y[:, -1].copy()
+
+
+__all__ = ["EnvConfig", "SimWorld", "WorldChunk", "SIM_FIRMWARE"]

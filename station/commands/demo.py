@@ -1,0 +1,249 @@
+"""`station demo`: a whole simulated station on this machine, with the real daemon driving it.
+
+SimStation puts N serial boards on pseudo-terminals, M CAN boards behind an slcan adapter on a
+pseudo-terminal, and the lamp relay, fixture and plate thermometer on a Modbus TCP server on
+127.0.0.1, all in compressed time (--speed). The daemon connects to them through the very drivers
+`station serve` uses, stores into SQLite, serves the operator page and starts a fast-thermal batch.
+--once runs one batch headless and prints a results table (simulated truth beside each result).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+import time
+from pathlib import Path
+
+from station.types import AXES, StationError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--speed", type=float, default=60.0, help="simulated seconds per wall second (default 60)")
+    p.add_argument("--serial", type=int, default=8, help="simulated serial boards (default 8)")
+    p.add_argument("--can", type=int, default=4, help="simulated CAN boards (default 4)")
+    p.add_argument("--seed", type=int, default=1, help="population seed")
+    p.add_argument("--effect", action="append", default=[], metavar="NAME", help="hidden physics effect to switch on")
+    p.add_argument("--profile", default="fast-thermal", help="profile of the automatic batch")
+    p.add_argument("--no-batch", action="store_true", help="do not start a batch automatically")
+    p.add_argument("--once", action="store_true", help="run one batch headless, print the results and exit")
+    p.add_argument("--no-fixture", action="store_true", help="no motorized fixture: the operator is prompted")
+    p.add_argument("--host", default="127.0.0.1", help="HTTP host (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
+    p.add_argument("--no-web", action="store_true", help="do not serve the web page")
+    p.add_argument("--db", default=None, help="database URL (default sqlite:///./var/demo.db)")
+    p.add_argument("--json", dest="json_out", default=None, metavar="FILE", help="with --once: write the results as JSON")
+    p.add_argument("--verbose", "-v", action="store_true")
+
+
+def sim_config(sim, *, speed: float, db_url: str, fixture: bool = True, thermometer: bool = True,
+               http_host: str = "127.0.0.1", http_port: int = 8080, limits: dict | None = None,
+               timing: dict | None = None, profiles: dict | None = None) -> dict:
+    """A station config (as the TOML would give it) pointing at a running SimStation's links."""
+    slots: list[dict] = [{"name": f"s{i + 1:02d}", "serial": port} for i, port in enumerate(sim.serial_ports)]
+    for j, node in enumerate(sim.can_node_ids):
+        slots.append({"name": f"c{j + 1:02d}", "can": {"interface": "slcan", "channel": sim.can_channel, "node": node}})
+    tcp = {"host": sim.modbus_host, "port": sim.modbus_port}
+    cfg: dict = {
+        "name": "demo station (simulated)",
+        "database_url": db_url,
+        "http": {"host": http_host, "port": http_port},
+        "limits": {"max_dut_temp_c": 85.0, "max_plate_temp_c": 90.0, "lamp_max_on_s": 4800.0, **(limits or {})},
+        "timing": {"speed": speed, "stall_timeout_s": 10.0, **(timing or {})},
+        "slots": slots,
+        "lamp": {"tcp": tcp, "unit": 1},
+        "tokens": [{"token": "demo-operator-token", "role": "operator", "name": "demo"},
+                   {"token": "demo-admin-token", "role": "admin", "name": "demo"},
+                   {"token": "demo-mes-token", "role": "mes", "name": "demo"}],
+    }
+    if fixture:
+        cfg["fixture"] = {"tcp": tcp, "unit": 3}
+    if thermometer:
+        cfg["thermometer"] = {"tcp": tcp, "unit": 2}
+    if profiles:
+        cfg["profiles"] = profiles
+    return cfg
+
+
+def truth_by_slot(sim) -> dict[str, object]:
+    out = {}
+    for i in range(sim.n_serial):
+        out[f"s{i + 1:02d}"] = sim.truths[i]
+    for j in range(sim.n_can):
+        out[f"c{j + 1:02d}"] = sim.truths[sim.n_serial + j]
+    return out
+
+
+def results_table(status: dict, truths: dict | None = None) -> tuple[str, dict]:
+    """Text table of a batch's per-DUT results (and errors vs truth); also the numbers as a dict."""
+    lines = []
+    head = f"{'slot':5} {'serial':14} {'state':9} " + " ".join(f"TDB{a}" .rjust(8) for a in AXES) + " " + \
+        " ".join(f"TDSF{a}".rjust(8) for a in AXES)
+    if truths:
+        head += "  max|dTDB| max|dTDSF|"
+    lines.append(head)
+    summary: dict = {"batch": status["id"], "state": status["state"], "error": status["error"], "duts": {}}
+    for s in status["slots"]:
+        res = s.get("result") or {}
+        axes = res.get("axes") or {}
+        row = f"{s['slot']:5} {str(s['serial'] or '-'):14} {s['state']:9} "
+        entry: dict = {"serial": s["serial"], "state": s["state"], "fault_reason": s["fault_reason"]}
+        if axes:
+            tdb = [axes[a]["tdb_mg_per_c"] for a in AXES]
+            tdsf = [axes[a]["tdsf_ppm_per_c"] for a in AXES]
+            row += " ".join(f"{v:8.4f}" for v in tdb) + " " + " ".join(f"{v:8.1f}" for v in tdsf)
+            entry.update(tdb_mg_per_c=tdb, tdsf_ppm_per_c=tdsf)
+            t = truths.get(s["slot"]) if truths else None
+            if t is not None:
+                e_tdb = max(abs(a - b) for a, b in zip(tdb, list(t.tdb_mg_per_c)))
+                e_tdsf = max(abs(a - b) for a, b in zip(tdsf, list(t.tdsf_ppm_per_c)))
+                row += f"  {e_tdb:9.4f} {e_tdsf:9.1f}"
+                entry.update(err_tdb_mg_per_c=e_tdb, err_tdsf_ppm_per_c=e_tdsf,
+                             true_tdb_mg_per_c=[float(x) for x in t.tdb_mg_per_c],
+                             true_tdsf_ppm_per_c=[float(x) for x in t.tdsf_ppm_per_c])
+        elif s["fault_reason"]:
+            row += s["fault_reason"]
+        lines.append(row)
+        summary["duts"][s["slot"]] = entry
+    return "\n".join(lines), summary
+
+
+async def serve_web(station, host: str, port: int):
+    """The web app in this event loop (same loop as the daemon: the facade is not thread-safe).
+
+    Returns (server, task) or (None, None) when web/app.py is not available.
+    """
+    try:
+        from web.app import create_app
+    except ImportError as exc:
+        logging.getLogger("station").warning("web app not available (%s): no operator page", exc)
+        return None, None
+    import contextlib
+
+    import uvicorn
+
+    class _Server(uvicorn.Server):
+        @contextlib.contextmanager
+        def capture_signals(self):  # the daemon owns SIGINT/SIGTERM (lamp off first)
+            yield
+
+    app = create_app(station)
+    config = uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on")
+    server = _Server(config)
+    task = asyncio.get_running_loop().create_task(server.serve(), name="http")
+    for _ in range(200):
+        if server.started or task.done():
+            break
+        await asyncio.sleep(0.02)
+    if task.done():
+        exc = task.exception() if not task.cancelled() else None
+        raise StationError(f"cannot serve HTTP on {host}:{port}: {exc or 'server exited'}")
+    return server, task
+
+
+async def stop_web(server, task) -> None:
+    if server is None:
+        return
+    server.should_exit = True
+    try:
+        await asyncio.wait_for(task, 5.0)
+    except (asyncio.TimeoutError, Exception):
+        task.cancel()
+
+
+def install_stop_signals(stop: asyncio.Event) -> None:
+    import signal
+
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+        except (NotImplementedError, RuntimeError):
+            pass
+
+
+def setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not verbose:  # errors reach the user as one StationError line, not library chatter
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+def run(args: argparse.Namespace) -> int:
+    setup_logging(args.verbose)
+    if args.serial < 0 or args.can < 0 or args.serial + args.can == 0:
+        raise StationError("need at least one simulated board (--serial/--can)")
+    if args.can > 127:
+        raise StationError("--can: at most 127 CAN boards on one bus")
+    if args.speed <= 0:
+        raise StationError("--speed must be > 0")
+    return asyncio.run(_main(args))
+
+
+async def _main(args: argparse.Namespace) -> int:
+    from drivers.sim.station_sim import SimStation
+    from station.config import parse_config
+    from station.supervisor import Station, open_database
+
+    db_url = args.db or f"sqlite:///{Path('var').resolve() / 'demo.db'}"
+    stop = asyncio.Event()
+    install_stop_signals(stop)
+    async with SimStation(n_serial=args.serial, n_can=args.can, seed=args.seed, speed=args.speed,
+                          effects=tuple(args.effect)) as sim:
+        cfg = parse_config(sim_config(sim, speed=args.speed, db_url=db_url, fixture=not args.no_fixture,
+                                      http_host=args.host, http_port=args.port), "<demo>")
+        db = open_database(cfg.database_url)
+        if hasattr(db, "mark_interrupted"):
+            db.mark_interrupted("station restarted")
+        station = Station(cfg, db=db)
+        server = task = None
+        rc = 0
+        try:
+            await station.start()
+            faulted = [s for s in station.slots_status() if s["state"] == "faulted"]
+            for s in faulted:
+                print(f"station demo: slot {s['slot']}: {s['fault_reason']}", file=sys.stderr)
+            if not args.once and not args.no_web:
+                server, task = await serve_web(station, args.host, args.port)
+                if server is not None:
+                    print(f"station demo: operator page on http://{args.host}:{args.port}/ "
+                          f"({args.serial} serial + {args.can} CAN boards, speed x{args.speed:g}, db {db_url})",
+                          flush=True)
+            batch_id = None
+            if not args.no_batch or args.once:
+                batch_id = station.start_batch(args.profile, None, "demo")
+                print(f"station demo: batch {batch_id} ({args.profile}) started", flush=True)
+            if args.once:
+                assert batch_id is not None
+                t0 = time.monotonic()
+                done = asyncio.create_task(station.wait_batch(batch_id))
+                stopper = asyncio.create_task(stop.wait())
+                await asyncio.wait({done, stopper}, return_when=asyncio.FIRST_COMPLETED)
+                stopper.cancel()
+                if not done.done():
+                    done.cancel()
+                    print("station demo: interrupted", file=sys.stderr)
+                    rc = 130
+                else:
+                    await station.flush_db()
+                    status = station.batch_status(batch_id)
+                    table, summary = results_table(status, truth_by_slot(sim))
+                    summary["wall_s"] = time.monotonic() - t0
+                    summary["sample_time_s"] = status["sample_time_s"]
+                    print(f"batch {batch_id} {status['state']} {status['error']} in {summary['wall_s']:.1f} s wall, "
+                          f"{status['sample_time_s']:.0f} s sample time")
+                    print(table, flush=True)
+                    if args.json_out:
+                        import json
+
+                        Path(args.json_out).write_text(json.dumps(summary, indent=2))
+                    rc = 0 if status["state"] == "finished" else 1
+            else:
+                await stop.wait()
+        finally:
+            await stop_web(server, task)
+            await station.close("daemon shutdown")
+            if hasattr(db, "dispose"):
+                db.dispose()
+        return rc

@@ -1,0 +1,103 @@
+"""`station serve --config FILE`: the station daemon on real hardware as configured.
+
+Connects the Modbus instruments (an unreachable lamp relay, fixture, thermometer or chamber is a
+one-line error and exit 2), identifies every slot (a wrong port or a silent board faults only that
+slot and is reported on stderr), serves the REST API / operator page and runs batches. SIGINT and
+SIGTERM switch the lamp off before anything else, interrupt a running batch and exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+from station.commands.demo import install_stop_signals, results_table, serve_web, setup_logging, stop_web
+from station.types import StationError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default="station.toml", help="station config (TOML), default ./station.toml")
+    p.add_argument("--host", default=None, help="override [http] host")
+    p.add_argument("--port", type=int, default=None, help="override [http] port")
+    p.add_argument("--no-web", action="store_true", help="no REST API / page (headless)")
+    p.add_argument("--start-batch", metavar="PROFILE", default=None, help="start a batch of PROFILE at once")
+    p.add_argument("--slots", default=None, help="with --start-batch: comma separated slot names (default all)")
+    p.add_argument("--once", action="store_true", help="with --start-batch: exit when the batch ends (0 = finished)")
+    p.add_argument("--check", action="store_true", help="check the config and the links, then exit")
+    p.add_argument("--verbose", "-v", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    setup_logging(args.verbose)
+    from station.config import load_config
+
+    cfg = load_config(args.config)
+    if args.once and not args.start_batch:
+        raise StationError("--once needs --start-batch PROFILE")
+    return asyncio.run(_main(args, cfg))
+
+
+async def _main(args: argparse.Namespace, cfg) -> int:
+    from station.supervisor import Station, open_database
+
+    stop = asyncio.Event()
+    install_stop_signals(stop)
+    try:
+        db = open_database(cfg.database_url)
+    except StationError:
+        raise
+    except Exception as exc:  # SQLAlchemy: bad URL, unwritable file, server down
+        raise StationError(f"database {cfg.database_url}: {exc}") from None
+    if hasattr(db, "mark_interrupted"):
+        db.mark_interrupted("station restarted")
+    station = Station(cfg, db=db)
+    server = task = None
+    rc = 0
+    try:
+        await station.start()
+        slots = station.slots_status()
+        for s in slots:
+            if s["state"] == "faulted":
+                print(f"station serve: slot {s['slot']}: {s['fault_reason']}", file=sys.stderr, flush=True)
+        ok = [s for s in slots if s["state"] != "faulted"]
+        print(f"station serve: {len(ok)}/{len(slots)} slot(s) identified", flush=True)
+        if args.check:
+            return 0 if len(ok) == len(slots) else 1
+        if not args.no_web:
+            host = args.host or cfg.http.host
+            port = args.port if args.port is not None else cfg.http.port
+            server, task = await serve_web(station, host, port)
+            if server is not None:
+                print(f"station serve: listening on http://{host}:{port}/", flush=True)
+        batch_id = None
+        if args.start_batch:
+            names = [s.strip() for s in args.slots.split(",")] if args.slots else None
+            try:
+                batch_id = station.start_batch(args.start_batch, names, "serve --start-batch")
+            except ValueError as exc:
+                raise StationError(str(exc)) from None
+            print(f"station serve: batch {batch_id} ({args.start_batch}) started", flush=True)
+        if args.once and batch_id is not None:
+            done = asyncio.create_task(station.wait_batch(batch_id))
+            stopper = asyncio.create_task(stop.wait())
+            await asyncio.wait({done, stopper}, return_when=asyncio.FIRST_COMPLETED)
+            stopper.cancel()
+            if done.done():
+                await station.flush_db()
+                status = station.batch_status(batch_id)
+                print(f"batch {batch_id} {status['state']} {status['error']}")
+                print(results_table(status)[0], flush=True)
+                rc = 0 if status["state"] == "finished" else 1
+            else:
+                done.cancel()
+                rc = 130
+        else:
+            await stop.wait()
+            rc = 0
+    finally:
+        await stop_web(server, task)
+        await station.close("daemon shutdown")
+        if hasattr(db, "dispose"):
+            db.dispose()
+    return rc

@@ -1,0 +1,256 @@
+"""Station configuration: one TOML file, validated with pydantic.
+
+A bad file gives one StationError line naming the key and what is wrong, e.g.
+`config station.toml: slots[2].serial: slot 's03' needs exactly one of 'serial' or 'can'`.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from station.positions import POSITION_INDEX, POSITION_NAMES
+from station.types import StationError
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=False)
+
+
+class CanNode(_Model):
+    """A CAN board: node id on a bus given by python-can interface and channel."""
+
+    interface: str = "slcan"
+    channel: str
+    node: int = Field(ge=1, le=127)
+    bitrate: int = 500_000
+
+
+class SlotConfig(_Model):
+    """One DUT place on the plate: a serial port / pyserial URL or a CAN node, never both."""
+
+    name: str = Field(min_length=1, max_length=32)
+    serial: str | None = None
+    can: CanNode | None = None
+
+    @model_validator(mode="after")
+    def _one_link(self) -> "SlotConfig":
+        if (self.serial is None) == (self.can is None):
+            raise ValueError(f"slot {self.name!r} needs exactly one of 'serial' or 'can'")
+        return self
+
+    @property
+    def link(self) -> str:
+        if self.serial is not None:
+            return f"serial {self.serial}"
+        assert self.can is not None
+        return f"can {self.can.interface}:{self.can.channel} node {self.can.node}"
+
+
+class ModbusTcp(_Model):
+    host: str
+    port: int = Field(default=502, ge=1, le=65535)
+
+
+class ModbusRtu(_Model):
+    port: str
+    baudrate: int = 19200
+
+
+class ModbusDevice(_Model):
+    """A Modbus device (design 3.3): Modbus TCP (host/port) or RTU (serial port), and a unit id."""
+
+    tcp: ModbusTcp | None = None
+    rtu: ModbusRtu | None = None
+    unit: int = Field(ge=0, le=247)
+    timeout_s: float = Field(default=1.0, gt=0)
+
+    @model_validator(mode="after")
+    def _one_link(self) -> "ModbusDevice":
+        if (self.tcp is None) == (self.rtu is None):
+            raise ValueError("needs exactly one of 'tcp' or 'rtu'")
+        return self
+
+    @property
+    def link_key(self) -> tuple:
+        if self.tcp is not None:
+            return ("tcp", self.tcp.host, self.tcp.port)
+        assert self.rtu is not None
+        return ("rtu", self.rtu.port, self.rtu.baudrate)
+
+    @property
+    def link(self) -> str:
+        if self.tcp is not None:
+            return f"modbus tcp {self.tcp.host}:{self.tcp.port} unit {self.unit}"
+        assert self.rtu is not None
+        return f"modbus rtu {self.rtu.port} unit {self.unit}"
+
+
+class Limits(_Model):
+    """Safety limits (design 3.3). The lamp on-time is counted in the plant's time (see safety.py)."""
+
+    max_dut_temp_c: float = 85.0
+    max_plate_temp_c: float = 90.0
+    lamp_max_on_s: float = Field(default=3600.0, gt=0)
+
+
+class Timing(_Model):
+    """Wall-clock supervision of the links (not the science, which runs on sample time)."""
+
+    speed: float = Field(default=1.0, gt=0, description="plant time per wall second: 1 on real hardware")
+    stall_timeout_s: float = Field(default=10.0, gt=0, description="wall seconds without samples -> slot faulted")
+    identify_timeout_s: float = Field(default=3.0, gt=0)
+    fixture_timeout_s: float = Field(default=120.0, gt=0, description="wall seconds for a fixture move")
+    read_period_s: float = Field(default=0.1, gt=0, le=5, description="wall seconds between block reads")
+
+
+class Token(_Model):
+    token: str = Field(min_length=8)
+    role: Literal["operator", "mes", "admin"]
+    name: str = ""
+
+
+class Http(_Model):
+    host: str = "127.0.0.1"
+    port: int = Field(default=8080, ge=0, le=65535)
+
+
+class StepConfig(_Model):
+    """One profile step (see station/profiles.py for the meaning)."""
+
+    name: str
+    position: int | str
+    lamp: bool = False
+    chamber_setpoint_c: float | None = None
+    require: Literal["segment", "static", "none"] = "segment"
+    dwell_s: float = Field(default=0.0, ge=0, description="sample seconds to log for 'static'/'none'")
+    settle_s: float = Field(default=0.0, ge=0, description="sample seconds ignored after the move")
+    timeout_s: float = Field(gt=0, description="in sample time")
+
+    @field_validator("position")
+    @classmethod
+    def _known_position(cls, v: int | str) -> int | str:
+        if isinstance(v, str):
+            if v not in POSITION_INDEX:
+                raise ValueError(f"unknown position {v!r} (known: P, N, +x..-z, sfem-z0..sfem-x315)")
+        elif not 0 <= v < len(POSITION_NAMES):
+            raise ValueError(f"position index {v} out of range 0..{len(POSITION_NAMES) - 1}")
+        return v
+
+
+class ProfileConfig(_Model):
+    description: str = ""
+    analysis: Literal["thermal", "sfem", "none"] = "none"
+    steps: list[StepConfig] = Field(min_length=1)
+
+
+class StationConfig(_Model):
+    name: str = "station"
+    database_url: str = "sqlite:///var/station.db"
+    mes_webhook_url: str | None = None
+    http: Http = Http()
+    limits: Limits = Limits()
+    timing: Timing = Timing()
+    slots: list[SlotConfig] = Field(min_length=1)
+    lamp: ModbusDevice
+    fixture: ModbusDevice | None = None
+    thermometer: ModbusDevice | None = None
+    chamber: ModbusDevice | None = None
+    tokens: list[Token] = []
+    profiles: dict[str, ProfileConfig] = {}
+
+    @model_validator(mode="after")
+    def _unique(self) -> "StationConfig":
+        seen: set[str] = set()
+        links: set[tuple] = set()
+        for s in self.slots:
+            if s.name in seen:
+                raise ValueError(f"duplicate slot name {s.name!r}")
+            seen.add(s.name)
+            key = ("serial", s.serial) if s.serial else ("can", s.can.interface, s.can.channel, s.can.node)  # type: ignore[union-attr]
+            if key in links:
+                raise ValueError(f"slot {s.name!r} uses the same link as another slot ({s.link})")
+            links.add(key)
+        toks = [t.token for t in self.tokens]
+        if len(toks) != len(set(toks)):
+            raise ValueError("duplicate auth token")
+        return self
+
+    def slot(self, name: str) -> SlotConfig:
+        for s in self.slots:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    def role_of(self, token: str) -> str | None:
+        for t in self.tokens:
+            if t.token == token:
+                return t.role
+        return None
+
+    def snapshot(self) -> dict:
+        """The config as stored with each batch; auth tokens are masked."""
+        data = self.model_dump(mode="json")
+        data["tokens"] = [{"role": t["role"], "name": t["name"], "token": "***"} for t in data["tokens"]]
+        return data
+
+
+def _loc(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif part in ("function-after", "model-after") or "[" in str(part):
+            continue
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "(top level)"
+
+
+def format_validation_error(exc: ValidationError, source: str) -> str:
+    err = exc.errors()[0]
+    where = _loc(tuple(p for p in err["loc"] if not (isinstance(p, str) and p.startswith("function-"))))
+    msg = err["msg"]
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    if err["type"] == "extra_forbidden":
+        msg = "unknown key"
+    elif err["type"] == "missing":
+        msg = "required key is missing"
+    more = len(exc.errors()) - 1
+    tail = f" (and {more} more problem{'s' if more > 1 else ''})" if more else ""
+    return f"config {source}: {where}: {msg}{tail}"
+
+
+def parse_config(data: dict, source: str = "<dict>") -> StationConfig:
+    try:
+        cfg = StationConfig.model_validate(data)
+    except ValidationError as exc:
+        raise StationError(format_validation_error(exc, source)) from None
+    # Site profiles are checked here too, so a bad step is a config error, not a batch failure.
+    from station.profiles import profile_from_config
+
+    for name, prof in cfg.profiles.items():
+        try:
+            profile_from_config(name, prof)
+        except ValueError as exc:
+            raise StationError(f"config {source}: profiles.{name}: {exc}") from None
+    return cfg
+
+
+def load_config(path: str | Path) -> StationConfig:
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise StationError(f"config file not found: {p}") from None
+    except OSError as exc:
+        raise StationError(f"cannot read config {p}: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise StationError(f"config {p}: TOML syntax error: {exc}") from None
+    return parse_config(data, str(p))

@@ -1,0 +1,528 @@
+"""Fit the baseline thermal model (martinez2022 eq. 1), optionally plus effects, to one DUT's log.
+
+Per axis i and orientation p: Acc_i = Acc0_{p,i} + dT (TDB_i + TDSF_i Acc0_{p,i}) + effect terms.
+Linear parameters (Acc0 per orientation, TDB, TDSF, effect amplitudes) are solved by weighted
+least squares; the bilinear TDSF*Acc0 products use the current Acc0 estimate and are iterated to
+the fixed point (the product is ~1e-3 of Acc0, so 3 passes converge to machine precision). Shared
+nonlinear parameters (lag and warm-up time constants, hysteresis width) are fitted by variable
+projection: scipy.optimize.least_squares over them, with the linear solve inside.
+
+Fitting runs on 10 s block means of the regressors (exact for a linear model: regressors are
+computed per sample, then averaged), which keeps every fit fast; predictions are per sample.
+Residual = measured - model, in mg, always.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from station.diagnostics.effects import Context, Effect, get_effect, smooth_temperature
+from station.logfile import DutLog
+from station.types import AXES, StationError, T_REF_C
+
+MODEL_FORMAT = "station-diagnostic-model"
+MODEL_VERSION = 1
+
+
+@dataclass
+class Segmentation:
+    """Block structure used for fitting, scoring and held-out folds (all contiguous in time)."""
+
+    fit_block_s: float = 10.0  # regressors averaged over these for the fit
+    window_s: float = 60.0  # residual RMS reported on means over these windows
+    chunk_s: float = 300.0  # held-out unit: a contiguous chunk never used in its fold's fit
+    n_folds: int = 5
+
+
+@dataclass
+class DutData:
+    """One DUT's log prepared for fitting: orientation codes, blocks, windows and folds."""
+
+    serial: str
+    time_s: np.ndarray
+    acc_mg: np.ndarray  # (n, 3)
+    temp_c: np.ndarray
+    temp_smooth_c: np.ndarray
+    pos: np.ndarray  # (n,) orientation code 0..P-1
+    pos_labels: list[str]
+    block: np.ndarray  # (n,) fit-block id (contiguous, sorted)
+    block_starts: np.ndarray
+    window: np.ndarray  # (n,) RMS window id
+    chunk: np.ndarray  # (n,) held-out chunk id
+    fold: np.ndarray  # (n,) fold of the sample
+    run: np.ndarray  # (n,) constant-orientation run id
+    t_power_on_s: float
+    lamp: np.ndarray | None = None
+    block_pos: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    block_count: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    block_fold: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    block_chunk: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    y_block: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    cache: dict = field(default_factory=dict)  # per-sample regressors that depend only on the data
+
+    @property
+    def n(self) -> int:
+        return int(self.time_s.shape[0])
+
+    def block_mean(self, x: np.ndarray) -> np.ndarray:
+        s = np.add.reduceat(x, self.block_starts, axis=0)
+        shape = (-1,) + (1,) * (x.ndim - 1)
+        return s / self.block_count.reshape(shape)
+
+
+def _orientation_codes(log: DutLog) -> tuple[np.ndarray, list[str]]:
+    """Orientation per sample: the log's position column, else clusters of the acceleration."""
+    if log.position is not None and np.all(log.position >= 0):
+        uniq = sorted(set(int(p) for p in np.unique(log.position)))
+        lut = {p: k for k, p in enumerate(uniq)}
+        return np.array([lut[int(p)] for p in log.position], dtype=np.int64), [str(p) for p in uniq]
+    # No position column: an orientation is a cluster of readings within 0.3 g on every axis.
+    centers: list[np.ndarray] = []
+    codes = np.empty(len(log), dtype=np.int64)
+    rounded = np.round(log.acc_g / 0.05) * 0.05
+    prev = -1
+    for k in range(len(log)):
+        a = rounded[k]
+        if prev >= 0 and np.max(np.abs(a - centers[prev])) < 0.3:
+            codes[k] = prev
+            continue
+        for c, ctr in enumerate(centers):
+            if np.max(np.abs(a - ctr)) < 0.3:
+                prev = c
+                break
+        else:
+            centers.append(a.copy())
+            prev = len(centers) - 1
+        codes[k] = prev
+    return codes, [f"o{k}" for k in range(len(centers))]
+
+
+def prepare(log: DutLog, seg: Segmentation | None = None) -> DutData:
+    """Cut a log into constant-orientation runs, fit blocks, RMS windows and held-out chunks."""
+    seg = seg or Segmentation()
+    n = len(log)
+    if n < 50:
+        raise StationError(f"{log.serial or 'log'}: only {n} samples, too short to diagnose")
+    time_s = np.asarray(log.time_s, dtype=np.float64)
+    if np.any(np.diff(time_s) <= 0):
+        raise StationError(f"{log.serial or 'log'}: time_s is not strictly increasing")
+    dt = float(np.median(np.diff(time_s)))
+    pos, labels = _orientation_codes(log)
+    # drop orientation-change transients: samples of runs shorter than 2 fit blocks
+    brk = np.flatnonzero((np.diff(pos) != 0) | (np.diff(time_s) > 10 * dt)) + 1
+    starts = np.concatenate([[0], brk])
+    ends = np.concatenate([brk, [n]])
+    bs = max(1, int(round(seg.fit_block_s / dt)))
+    ws = bs * max(1, int(round(seg.window_s / seg.fit_block_s)))
+    cs = ws * max(1, int(round(seg.chunk_s / seg.window_s)))
+    block = np.empty(n, np.int64)
+    window = np.empty(n, np.int64)
+    chunk = np.empty(n, np.int64)
+    run = np.empty(n, np.int64)
+    nb = nw = nc = 0
+    for r, (a, b) in enumerate(zip(starts, ends)):
+        k = np.arange(b - a)
+        block[a:b] = nb + k // bs
+        window[a:b] = nw + k // ws
+        chunk[a:b] = nc + k // cs
+        run[a:b] = r
+        nb = block[b - 1] + 1
+        nw = window[b - 1] + 1
+        nc = chunk[b - 1] + 1
+    fold = chunk % seg.n_folds
+    block_starts = np.flatnonzero(np.concatenate([[True], np.diff(block) != 0]))
+    meta_on = log.meta.get("t_power_on_s")
+    t_on = float(meta_on) if meta_on not in (None, "") else min(0.0, float(time_s[0]))
+    d = DutData(
+        serial=log.serial or "dut",
+        time_s=time_s,
+        acc_mg=np.asarray(log.acc_g, dtype=np.float64) * 1000.0,
+        temp_c=np.asarray(log.temp_c, dtype=np.float64),
+        temp_smooth_c=smooth_temperature(np.asarray(log.temp_c, np.float64), time_s, 60.0),
+        pos=pos, pos_labels=labels, block=block, block_starts=block_starts, window=window,
+        chunk=chunk, fold=fold, run=run, t_power_on_s=t_on, lamp=log.lamp,
+    )
+    d.block_count = np.diff(np.concatenate([block_starts, [n]])).astype(np.float64)
+    d.block_pos = pos[block_starts]
+    d.block_fold = fold[block_starts]
+    d.block_chunk = chunk[block_starts]
+    d.y_block = d.block_mean(d.acc_mg)
+    return d
+
+
+# ---------------------------------------------------------------------------------------------
+# fitting
+
+
+@dataclass
+class DutFit:
+    """A fitted model for one DUT (on the training blocks given)."""
+
+    effects: list[str]
+    nl: dict[str, dict[str, float]]  # effect -> nonlinear parameter -> value
+    nl_sigma: dict[str, dict[str, float]]
+    beta: list[np.ndarray]  # per axis, over columns (NaN-free; dropped columns are 0)
+    beta_sigma: list[np.ndarray]
+    col_names: list[list[str]]  # per axis
+    acc0_g: np.ndarray  # (P, 3), NaN for orientations not in training
+    ssr_block: np.ndarray  # (3,) weighted training SSR on block means (mg^2 * samples)
+    n_train_blocks: int
+
+
+class _Design:
+    """Builds the per-sample design matrix for a DUT, an effect list and nonlinear values."""
+
+    def __init__(self, d: DutData, effects: list[Effect]):
+        self.d = d
+        self.effects = effects
+        self.lag = [e for e in effects if type(e).temperature is not Effect.temperature]
+
+    def temp_seen(self, nl: dict[str, dict[str, float]]) -> np.ndarray:
+        t = self.d.temp_c
+        for e in self.lag:
+            t2 = e.temperature(t, self.d.time_s, nl.get(e.name, {}))
+            if t2 is not None:
+                t = t2
+        return t
+
+    def context(self, nl, acc0_sample_g: np.ndarray) -> Context:
+        d = self.d
+        return Context(time_s=d.time_s, temp_c=d.temp_c, temp_smooth_c=d.temp_smooth_c,
+                       dt_c=self.temp_seen(nl) - T_REF_C, acc0_g=acc0_sample_g,
+                       t_power_on_s=d.t_power_on_s, cache=d.cache)
+
+    def matrices(self, nl, acc0_g: np.ndarray) -> tuple[list[np.ndarray], list[list[str]]]:
+        """Per axis: (n, k) design in mg per unit of parameter, and the parameter names."""
+        d = self.d
+        P = len(d.pos_labels)
+        a0 = np.nan_to_num(acc0_g)[d.pos]  # (n, 3)
+        ctx = self.context(nl, a0)
+        ind = np.zeros((d.n, P))
+        ind[np.arange(d.n), d.pos] = 1000.0  # Acc0 in g -> mg
+        extra = [e.columns(ctx, nl.get(e.name, {})) for e in self.effects]
+        mats, names = [], []
+        for i in range(3):
+            cols = [ind, ctx.dt_c[:, None], (ctx.dt_c * a0[:, i] * 1e-3)[:, None]]
+            nm = [f"acc0_g[{lab}]" for lab in d.pos_labels] + ["tdb_mg_per_c", "tdsf_ppm_per_c"]
+            for e, c in zip(self.effects, extra):
+                if c.shape[2]:
+                    cols.append(c[:, i, :])
+                    nm += [f"{e.name}.{ln}" for ln in e.linear]
+            mats.append(np.hstack(cols))
+            names.append(nm)
+        return mats, names
+
+
+def _solve(Xb: np.ndarray, yb: np.ndarray, w: np.ndarray):
+    """Weighted least squares dropping columns that are zero on the training blocks."""
+    sw = np.sqrt(w)
+    A = Xb * sw[:, None]
+    # a column with no support in the training data (e.g. a warm-up transient whose start is held
+    # out, with a tiny tau) carries no information: do not let column scaling blow it up
+    live = np.max(np.abs(A), axis=0) > 1e-9 * max(1.0, float(np.max(np.abs(A))))
+    beta = np.zeros(Xb.shape[1])
+    cov = np.full((Xb.shape[1], Xb.shape[1]), np.nan)
+    if live.any():
+        As = A[:, live]
+        scale = np.linalg.norm(As, axis=0)
+        scale[scale == 0] = 1.0
+        sol, *_ = np.linalg.lstsq(As / scale, yb * sw, rcond=None)
+        beta[live] = sol / scale
+        try:
+            inv = np.linalg.pinv((As / scale).T @ (As / scale))
+            cov[np.ix_(live, live)] = inv / np.outer(scale, scale)
+        except np.linalg.LinAlgError:
+            pass
+    return beta, cov, live
+
+
+def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray, passes: int = 3):
+    """Linear solve with the Acc0 fixed-point iteration; returns betas, covs, acc0, residuals."""
+    d = design.d
+    P = len(d.pos_labels)
+    acc0 = acc0_init.copy()
+    w = d.block_count[train_blocks]
+    for _ in range(passes):
+        mats, names = design.matrices(nl, acc0)
+        betas, covs, res = [], [], []
+        new_acc0 = np.full((P, 3), np.nan)
+        for i in range(3):
+            Xb = d.block_mean(mats[i])[train_blocks]
+            yb = d.y_block[train_blocks, i]
+            beta, cov, live = _solve(Xb, yb, w)
+            betas.append(beta)
+            covs.append(cov)
+            res.append((yb - Xb @ beta) * np.sqrt(w))
+            present = live[:P]
+            new_acc0[present, i] = beta[:P][present]
+        acc0 = new_acc0
+    return betas, covs, acc0, np.concatenate(res), mats, names
+
+
+def _nl_specs(effects: list[Effect]):
+    return [(e.name, p) for e in effects for p in e.nonlinear]
+
+
+def _initial_acc0(d: DutData, train_blocks: np.ndarray) -> np.ndarray:
+    P = len(d.pos_labels)
+    acc0 = np.full((P, 3), np.nan)
+    for p in range(P):
+        m = train_blocks & (d.block_pos == p)
+        if m.any():
+            acc0[p] = np.average(d.y_block[m], axis=0, weights=d.block_count[m]) / 1000.0
+    return acc0
+
+
+def fit_dut(d: DutData, effect_names: list[str], train_blocks: np.ndarray | None = None,
+            nl_start: dict[str, dict[str, float]] | None = None, max_nfev: int = 40) -> DutFit:
+    """Fit baseline + effects on the training blocks (all blocks by default)."""
+    effects = [get_effect(n) for n in effect_names]
+    if train_blocks is None:
+        train_blocks = np.ones(d.block_starts.shape[0], bool)
+    design = _Design(d, effects)
+    acc0 = _initial_acc0(d, train_blocks)
+    specs = _nl_specs(effects)
+    nl: dict[str, dict[str, float]] = {e.name: {} for e in effects}
+    nl_sigma: dict[str, dict[str, float]] = {e.name: {} for e in effects}
+    if specs:
+        def unpack(u):
+            out = {e.name: {} for e in effects}
+            for (name, p), v in zip(specs, u):
+                out[name][p.name] = float(math.exp(v) if p.log else v)
+            return out
+
+        def pack(vals):
+            return np.array([math.log(vals[name][p.name]) if p.log else vals[name][p.name]
+                             for name, p in specs])
+
+        lo = np.array([math.log(p.lower) if p.log else p.lower for _, p in specs])
+        hi = np.array([math.log(p.upper) if p.log else p.upper for _, p in specs])
+        state = {"acc0": acc0}
+
+        def resid(u):
+            _, _, a0, r, _, _ = _inner(design, unpack(u), train_blocks, state["acc0"], passes=2)
+            return r
+
+        if nl_start and all(p.name in nl_start.get(name, {}) for name, p in specs):
+            u0 = np.clip(pack(nl_start), lo + 1e-9, hi - 1e-9)
+        else:
+            # coarse grid per parameter (others at their init), best start for the polish
+            u0 = np.array([math.log(p.init) if p.log else p.init for _, p in specs])
+            for k in range(len(specs)):
+                grid = np.linspace(lo[k], hi[k], 9)[1:-1]
+                costs = []
+                for g in grid:
+                    u = u0.copy()
+                    u[k] = g
+                    costs.append(float(np.sum(resid(u) ** 2)))
+                u0[k] = grid[int(np.argmin(costs))]
+        sol = least_squares(resid, u0, bounds=(lo, hi), diff_step=1e-3, x_scale=1.0, max_nfev=max_nfev)
+        nl = unpack(sol.x)
+        # nonlinear uncertainty from the projected Jacobian (white-noise scaling; see ranking)
+        J = sol.jac
+        dof = max(1, sol.fun.size - J.shape[1])
+        s2 = float(np.sum(sol.fun**2)) / dof
+        try:
+            cov_u = np.linalg.pinv(J.T @ J) * s2
+            for k, (name, p) in enumerate(specs):
+                su = math.sqrt(max(cov_u[k, k], 0.0))
+                val = nl[name][p.name]
+                nl_sigma[name][p.name] = val * su if p.log else su
+        except np.linalg.LinAlgError:
+            pass
+    betas, covs, acc0, r, mats, names = _inner(design, nl, train_blocks, acc0, passes=3)
+    nb = int(train_blocks.sum())
+    rk = [r[k * nb:(k + 1) * nb] for k in range(3)]
+    ssr = np.array([float(np.sum(x**2)) for x in rk])
+    # autocorrelated residuals: inflate the white-noise covariance by the integrated
+    # autocorrelation time of the (weighted) block residual
+    tau = np.array([_tau_int(x) for x in rk])
+    sig = []
+    for i in range(3):
+        ncol = mats[i].shape[1]
+        s2 = ssr[i] / max(1.0, nb - ncol) * tau[i]
+        sig.append(np.sqrt(np.maximum(np.diag(covs[i]), 0.0) * s2))
+    for name in nl_sigma:
+        for k in nl_sigma[name]:
+            nl_sigma[name][k] *= math.sqrt(float(np.mean(tau)))
+    return DutFit(effects=list(effect_names), nl=nl, nl_sigma=nl_sigma, beta=betas, beta_sigma=sig,
+                  col_names=names, acc0_g=acc0, ssr_block=ssr, n_train_blocks=nb)
+
+
+def _tau_int(x: np.ndarray) -> float:
+    """Integrated autocorrelation time (in samples) with Sokal's automatic window (c = 5)."""
+    x = np.asarray(x, float)
+    n = x.size
+    if n < 8:
+        return 1.0
+    x = x - x.mean()
+    f = np.fft.rfft(x, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[:n]
+    if acf[0] <= 0:
+        return 1.0
+    rho = acf / acf[0]
+    csum = 1.0 + 2.0 * np.cumsum(rho[1:])
+    m = np.arange(1, n)
+    ok = m >= 5.0 * csum
+    tau = csum[np.argmax(ok)] if ok.any() else csum[-1]
+    return float(min(max(tau, 1.0), n))
+
+
+def predict_dut(d: DutData, fit: DutFit) -> np.ndarray:
+    """Model prediction per sample (n, 3) in mg; NaN for orientations the fit never saw."""
+    design = _Design(d, [get_effect(n) for n in fit.effects])
+    mats, _ = design.matrices(fit.nl, fit.acc0_g)
+    pred = np.column_stack([mats[i] @ fit.beta[i] for i in range(3)])
+    unseen = np.isnan(fit.acc0_g[d.pos]).any(axis=1)
+    pred[unseen] = np.nan
+    return pred
+
+
+def window_rms(d: DutData, resid_mg: np.ndarray, mask: np.ndarray | None = None,
+               basis: str = "window") -> float:
+    """RMS of the residual over axes: per sample, or of means over the RMS windows."""
+    ok = ~np.isnan(resid_mg).any(axis=1)
+    if mask is not None:
+        ok &= mask
+    if not ok.any():
+        return float("nan")
+    r = resid_mg[ok]
+    if basis == "sample":
+        return float(np.sqrt(np.mean(r**2)))
+    wid = d.window[ok]
+    cnt = np.bincount(wid).astype(float)
+    sums = np.stack([np.bincount(wid, weights=r[:, i]) for i in range(3)], axis=1)
+    keep = cnt > 0
+    means = sums[keep] / cnt[keep, None]
+    return float(np.sqrt(np.sum(cnt[keep, None] * means**2) / (3.0 * cnt[keep].sum())))
+
+
+def heldout_residual(d: DutData, effect_names: list[str], full: DutFit, n_folds: int,
+                     max_nfev: int = 15) -> np.ndarray:
+    """Residual of each sample predicted by a fit that never saw its chunk (blocked K-fold)."""
+    out = np.full((d.n, 3), np.nan)
+    for k in range(n_folds):
+        test = d.fold == k
+        if not test.any():
+            continue
+        train_blocks = d.block_fold != k
+        if not train_blocks.any():
+            continue
+        f = fit_dut(d, effect_names, train_blocks, nl_start=full.nl, max_nfev=max_nfev)
+        pred = predict_dut(d, f)
+        out[test] = d.acc_mg[test] - pred[test]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# saved model: compensation
+
+
+@dataclass
+class DiagnosticModel:
+    """Baseline + effects with fitted values, per DUT (or per sensor type); saved as versioned JSON.
+
+    compensate() inverts the model: returns the acceleration at 25 C (Acc0) in g.
+    """
+
+    serial: str
+    effects: list[str]
+    axes: dict[str, dict[str, float]]  # axis -> param name -> value (linear params, no acc0)
+    nonlinear: dict[str, dict[str, float]]
+    sigma: dict = field(default_factory=dict)
+    t_ref_c: float = T_REF_C
+    t_power_on_s: float = 0.0
+    version: int = MODEL_VERSION
+
+    @staticmethod
+    def from_fit(serial: str, fit: DutFit, t_power_on_s: float = 0.0) -> "DiagnosticModel":
+        axes, sigma = {}, {}
+        for i, ax in enumerate(AXES):
+            axes[ax] = {}
+            sigma[ax] = {}
+            for name, b, s in zip(fit.col_names[i], fit.beta[i], fit.beta_sigma[i]):
+                if name.startswith("acc0_g["):
+                    continue
+                axes[ax][name] = float(b)
+                sigma[ax][name] = float(s) if np.isfinite(s) else None
+        sigma["nonlinear"] = fit.nl_sigma
+        return DiagnosticModel(serial=serial, effects=list(fit.effects), axes=axes,
+                               nonlinear={k: dict(v) for k, v in fit.nl.items()}, sigma=sigma,
+                               t_power_on_s=t_power_on_s)
+
+    def to_json(self) -> dict:
+        return {"format": MODEL_FORMAT, "version": self.version, "serial": self.serial,
+                "t_ref_c": self.t_ref_c, "t_power_on_s": self.t_power_on_s, "effects": self.effects,
+                "axes": self.axes, "nonlinear": self.nonlinear, "sigma": self.sigma}
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n", encoding="utf-8")
+
+    @staticmethod
+    def from_json(obj: dict) -> "DiagnosticModel":
+        if obj.get("format") != MODEL_FORMAT:
+            raise StationError("not a station diagnostic model (format field missing)")
+        if int(obj.get("version", 0)) > MODEL_VERSION:
+            raise StationError(f"model version {obj.get('version')} is newer than this code ({MODEL_VERSION})")
+        for e in obj["effects"]:
+            get_effect(e)
+        return DiagnosticModel(serial=obj.get("serial", ""), effects=list(obj["effects"]),
+                               axes=obj["axes"], nonlinear=obj.get("nonlinear", {}),
+                               sigma=obj.get("sigma", {}), t_ref_c=float(obj.get("t_ref_c", T_REF_C)),
+                               t_power_on_s=float(obj.get("t_power_on_s", 0.0)),
+                               version=int(obj.get("version", MODEL_VERSION)))
+
+    @staticmethod
+    def load(path: str | Path) -> "DiagnosticModel":
+        p = Path(path)
+        try:
+            obj = json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise StationError(f"{p}: cannot read model ({exc})") from None
+        return DiagnosticModel.from_json(obj)
+
+    def predict(self, time_s: np.ndarray, acc0_g: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
+        """Model output in g for true readings acc0_g (n, 3) at the measured temperatures."""
+        time_s = np.asarray(time_s, np.float64)
+        temp_c = np.asarray(temp_c, np.float64)
+        acc0_g = np.asarray(acc0_g, np.float64).reshape(-1, 3)
+        effects = [get_effect(n) for n in self.effects]
+        t = temp_c
+        for e in effects:
+            t2 = e.temperature(t, time_s, self.nonlinear.get(e.name, {}))
+            if t2 is not None:
+                t = t2
+        ctx = Context(time_s=time_s, temp_c=temp_c, temp_smooth_c=smooth_temperature(temp_c, time_s),
+                      dt_c=t - self.t_ref_c, acc0_g=acc0_g, t_power_on_s=self.t_power_on_s, cache={})
+        out = acc0_g * 1000.0
+        for i, ax in enumerate(AXES):
+            p = self.axes[ax]
+            out[:, i] += ctx.dt_c * (p["tdb_mg_per_c"] + p["tdsf_ppm_per_c"] * acc0_g[:, i] * 1e-3)
+        for e in effects:
+            cols = e.columns(ctx, self.nonlinear.get(e.name, {}))
+            for i, ax in enumerate(AXES):
+                for m, ln in enumerate(e.linear):
+                    out[:, i] += cols[:, i, m] * self.axes[ax].get(f"{e.name}.{ln}", 0.0)
+        return out / 1000.0
+
+    def compensate(self, time_s: np.ndarray, acc_g: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
+        """Acc0 (g, reading at 25 C without the modelled effects) from measured acc and temperature.
+
+        Fixed-point inversion of predict(): the Acc0-dependent terms are ~1e-3 of Acc0, so a few
+        passes converge.
+        """
+        acc_g = np.asarray(acc_g, np.float64).reshape(-1, 3)
+        acc0 = acc_g.copy()
+        for _ in range(6):
+            acc0 = acc0 + (acc_g - self.predict(time_s, acc0, temp_c))
+        return acc0
+
+
+__all__ = ["Segmentation", "DutData", "DutFit", "prepare", "fit_dut", "predict_dut", "window_rms",
+           "heldout_residual", "DiagnosticModel"]

@@ -1,0 +1,208 @@
+"""Profiles are data: the sequencer's programs (design 4).
+
+A step says where the plate is (position index), whether the lamp is on, the chamber set point,
+what every DUT must log before the step ends, and a timeout in SAMPLE time (the boards' clock), so
+a compressed-time replay behaves like the real station. A site adds its own profiles under
+`[profiles.NAME]` in the config; a site profile with a built-in's name replaces it.
+
+require:
+  segment  the DUT's streaming calibrator completes a segment after the step started, at this
+           step's position (martinez2022: stable temperature, 500 discarded + 1000 averaged samples)
+  static   the DUT logs `dwell_s` of sample time at this position after `settle_s` (SFEM, six-position)
+  none     the step just lasts `dwell_s` of sample time (a soak, a lamp-off cool-down)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from station.positions import POSITION_INDEX, POSITION_NAMES, SFEM24, SIX_POSITION
+
+REQUIREMENTS = ("segment", "static", "none")
+ANALYSES = ("thermal", "sfem", "none")
+
+
+@dataclass(frozen=True)
+class Step:
+    name: str
+    position: int
+    lamp: bool = False
+    chamber_setpoint_c: float | None = None
+    require: str = "segment"
+    dwell_s: float = 0.0
+    settle_s: float = 0.0
+    timeout_s: float = 3600.0
+
+    @property
+    def position_name(self) -> str:
+        return POSITION_NAMES[self.position]
+
+    def to_json(self) -> dict:
+        return {
+            "name": self.name,
+            "position": self.position,
+            "position_name": self.position_name,
+            "lamp": self.lamp,
+            "chamber_setpoint_c": self.chamber_setpoint_c,
+            "require": self.require,
+            "dwell_s": self.dwell_s,
+            "settle_s": self.settle_s,
+            "timeout_s": self.timeout_s,
+        }
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str
+    steps: tuple[Step, ...]
+    description: str = ""
+    analysis: str = "none"  # what runs at the end: thermal (TDB/TDSF), sfem, none
+    builtin: bool = field(default=True, compare=False)
+
+    def __post_init__(self) -> None:
+        if not self.steps:
+            raise ValueError("a profile needs at least one step")
+        if self.analysis not in ANALYSES:
+            raise ValueError(f"analysis must be one of {ANALYSES}, not {self.analysis!r}")
+        for i, s in enumerate(self.steps):
+            if s.require not in REQUIREMENTS:
+                raise ValueError(f"steps[{i}].require must be one of {REQUIREMENTS}, not {s.require!r}")
+            if not 0 <= s.position < len(POSITION_NAMES):
+                raise ValueError(f"steps[{i}].position {s.position} out of range")
+            if s.timeout_s <= 0:
+                raise ValueError(f"steps[{i}].timeout_s must be > 0")
+            if s.require in ("static", "none") and s.dwell_s <= 0:
+                raise ValueError(f"steps[{i}]: require={s.require!r} needs dwell_s > 0")
+            if s.require == "static" and s.settle_s + s.dwell_s >= s.timeout_s:
+                raise ValueError(f"steps[{i}]: settle_s + dwell_s must be shorter than timeout_s")
+
+    def to_json(self) -> dict:
+        return {
+            "name": self.name,
+            "description": self.description,
+            "analysis": self.analysis,
+            "steps": [s.to_json() for s in self.steps],
+        }
+
+
+def _pos(p: int | str) -> int:
+    return POSITION_INDEX[p] if isinstance(p, str) else int(p)
+
+
+def _fast_thermal() -> Profile:
+    # Timeouts are generous maxima in sample time; a step normally ends as soon as every DUT has
+    # logged its segment (~8 min of stable samples at 3.125 Hz after the plate settles).
+    p, n = _pos("P"), _pos("N")
+    return Profile(
+        "fast-thermal",
+        (
+            Step("P ambient", p, lamp=False, require="segment", timeout_s=1800.0),
+            Step("P hot", p, lamp=True, require="segment", timeout_s=3000.0),
+            Step("N hot", n, lamp=True, require="segment", timeout_s=2400.0),
+            Step("N ambient", n, lamp=False, require="segment", timeout_s=3600.0),
+        ),
+        description="martinez2022 fast thermal calibration: two orientations x two temperatures",
+        analysis="thermal",
+    )
+
+
+def _six_position(temps_c=(25.0, 45.0, 65.0)) -> Profile:
+    steps = []
+    for t in temps_c:
+        for k, name in enumerate(SIX_POSITION):
+            steps.append(
+                Step(
+                    f"{name} @ {t:g} C",
+                    _pos(name),
+                    chamber_setpoint_c=t,
+                    require="static",
+                    settle_s=1800.0 if k == 0 else 30.0,
+                    dwell_s=320.0,  # 1000 samples at 3.125 Hz
+                    timeout_s=7200.0 if k == 0 else 1200.0,
+                )
+            )
+    return Profile(
+        "six-position",
+        tuple(steps),
+        description="martinez2022 reference: each axis up and down at several chamber temperatures",
+        analysis="none",
+    )
+
+
+def _sfem24(temps_c=(25.0, 45.0, 65.0)) -> Profile:
+    steps = []
+    for t in temps_c:
+        for k, name in enumerate(SFEM24):
+            steps.append(
+                Step(
+                    f"{name} @ {t:g} C",
+                    _pos(name),
+                    chamber_setpoint_c=t,
+                    require="static",
+                    settle_s=1800.0 if k == 0 else 10.0,
+                    dwell_s=64.0,  # 200 samples at 3.125 Hz
+                    timeout_s=7200.0 if k == 0 else 600.0,
+                )
+            )
+    return Profile(
+        "sfem-24",
+        tuple(steps),
+        description="sensors2023 SFEM: the 24 positions of Table 1 at each temperature step",
+        analysis="sfem",
+    )
+
+
+def _validation() -> Profile:
+    steps = []
+    for lamp in (False, True):
+        label = "hot" if lamp else "ambient"
+        for k, name in enumerate(SIX_POSITION):
+            steps.append(
+                Step(
+                    f"{name} {label}",
+                    _pos(name),
+                    lamp=lamp,
+                    require="static",
+                    settle_s=900.0 if k == 0 else 30.0,
+                    dwell_s=160.0,
+                    timeout_s=2400.0 if k == 0 else 900.0,
+                )
+            )
+    steps.append(Step("cool down", _pos("-z"), lamp=False, require="none", dwell_s=600.0, timeout_s=1200.0))
+    return Profile(
+        "validation",
+        tuple(steps),
+        description="check of calibrated DUTs: six positions at ambient and lamp-hot, for compensated-error review",
+        analysis="none",
+    )
+
+
+BUILTIN_PROFILES: dict[str, Profile] = {
+    p.name: p for p in (_fast_thermal(), _six_position(), _sfem24(), _validation())
+}
+
+
+def profile_from_config(name: str, cfg) -> Profile:
+    """A site profile from its validated config model (station.config.ProfileConfig)."""
+    steps = tuple(
+        Step(
+            name=s.name,
+            position=_pos(s.position),
+            lamp=s.lamp,
+            chamber_setpoint_c=s.chamber_setpoint_c,
+            require=s.require,
+            dwell_s=s.dwell_s,
+            settle_s=s.settle_s,
+            timeout_s=s.timeout_s,
+        )
+        for s in cfg.steps
+    )
+    return Profile(name, steps, description=cfg.description, analysis=cfg.analysis, builtin=False)
+
+
+def all_profiles(config=None) -> dict[str, Profile]:
+    out = dict(BUILTIN_PROFILES)
+    if config is not None:
+        for name, prof in config.profiles.items():
+            out[name] = profile_from_config(name, prof)
+    return out

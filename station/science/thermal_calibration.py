@@ -1,0 +1,97 @@
+"""Thermal calibration of one DUT record with both methods: the JSON of `station calibrate --json`.
+
+The streaming calibrator (martinez2022 3.3, what the MCU/daemon runs live) and the offline fit
+(regression over all stable data, Table 5 "Regr.") run on the same samples. The top-level "axes"
+holds the OFFLINE values: they use every stable sample instead of two 1000-sample averages per
+orientation and carry 1-sigma uncertainties, so they are the better estimate; the streaming values
+are kept beside them for comparison and for what a board would compute itself.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import asdict, replace
+
+import numpy as np
+from scipy.signal import lfilter
+
+from station.logfile import DutLog
+from station.science.offline_fit import offline_fit
+from station.science.streaming import InsufficientData, StreamingConfig, result_from_segments, trace_gate
+from station.types import AXES, SampleBlock, Segment, StationError
+
+AXES_METHOD = "offline"
+
+
+def _filtered_swing_c(temp_c: np.ndarray, alpha: float) -> float:
+    """Temperature swing of the filtered reading (one noisy sample does not make a swing)."""
+    f, _ = lfilter([alpha], [1.0, -(1.0 - alpha)], temp_c, zi=[(1.0 - alpha) * temp_c[0]])
+    return float(np.max(f) - np.min(f))
+
+
+def _with_positions(segments: list[Segment], time_s: np.ndarray, position: np.ndarray | None) -> list[Segment]:
+    if position is None:
+        return segments
+    out = []
+    for s in segments:
+        sel = (time_s >= s.t_start_s) & (time_s <= s.t_end_s)
+        vals = position[sel]
+        vals = vals[vals >= 0]
+        out.append(replace(s, position=int(Counter(vals.tolist()).most_common(1)[0][0])) if vals.size else s)
+    return out
+
+
+def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None = None) -> dict:
+    """Both methods on one record; raises StationError (InsufficientData) with one clear line."""
+    cfg = config or StreamingConfig()
+    serial, sensor, position = "", "", None
+    if isinstance(block_or_log, DutLog):
+        serial, sensor, position = block_or_log.serial, block_or_log.meta.get("sensor", ""), block_or_log.position
+        block = block_or_log.block()
+    else:
+        block = block_or_log
+    n = len(block)
+    need = cfg.discard_samples + cfg.average_samples
+    if n < 4 * need:
+        raise InsufficientData(
+            f"only {n} samples: a fast-thermal calibration needs four segments of "
+            f"{cfg.discard_samples}+{cfg.average_samples} stable samples"
+        )
+    if not (np.all(np.isfinite(block.acc_g)) and np.all(np.isfinite(block.temp_c)) and np.all(np.isfinite(block.time_s))):
+        raise InsufficientData("the log holds non-numeric (nan/inf) samples")
+    swing = _filtered_swing_c(block.temp_c, cfg.alpha_acc)
+    if swing < cfg.segment_delta_c:
+        raise InsufficientData(
+            f"temperature swing is {swing:.1f} C, below the {cfg.segment_delta_c:g} C the method needs "
+            "between segments (was the lamp on?)"
+        )
+    trace, segments = trace_gate(block.time_s, block.acc_g, block.temp_c, cfg)
+    segments = _with_positions(segments, block.time_s, position)
+    try:
+        streaming = result_from_segments(segments, cfg)
+    except InsufficientData as exc:
+        per_o = Counter(s.orientation for s in segments)
+        raise InsufficientData(
+            f"{len(segments)} segment(s) logged ({', '.join(f'orientation {o}: {c}' for o, c in sorted(per_o.items())) or 'none'}); "
+            f"need at least two segments in each of two orientations ({exc})"
+        ) from None
+    offline = offline_fit(block.time_s, block.acc_g, block.temp_c, cfg, trace=trace)
+    out = {
+        "serial": serial,
+        "sensor": sensor,
+        "axes_method": AXES_METHOD,
+        "axes": {name: dict(offline.to_json()["axes"][name]) for name in AXES},
+        "streaming": streaming.to_json(),
+        "offline": offline.to_json(),
+        "segments": [asdict(s) for s in segments],
+        "n_samples": n,
+        "temperature_swing_c": swing,
+        "config": asdict(cfg),
+    }
+    for s in out["segments"]:
+        s["acc_mean_g"] = list(s["acc_mean_g"])
+        s["acc_std_g"] = list(s["acc_std_g"])
+    return out
+
+
+__all__ = ["calibrate", "AXES_METHOD"]

@@ -1,0 +1,92 @@
+"""Helpers for the diagnostics tests: simulated logs from drivers.sim and the honest noise floor.
+
+The noise floor of a log is the residual a perfect model would leave: measured minus the true
+model (the simulator's true parameters, Acc0 from the true bias/A matrix) evaluated on the
+*measured* inputs (quantized, noisy temperature; time), i.e. white noise plus the effect of the
+temperature sensor's noise and 1 C quantization. It is computed on the same samples, and on the
+same basis (per sample or 1-minute means) as the model's RMS.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.sim.physics import DutTruth, draw_population
+from drivers.sim.world import EnvConfig, SimWorld
+from station.diagnostics.model import DiagnosticModel, prepare, window_rms
+from station.logfile import DutLog
+from station.positions import GRAVITY_DIRECTIONS
+
+# (position, lamp_on, chamber_setpoint or None, chamber ramp C/min, seconds)
+Step = tuple[int, bool, float | None, float, float]
+
+# Multi-rate, multi-orientation profile: lamp heating/cooling (exponential: every rate from
+# ~4 C/min down to 0) in five orientations (P, N, +x, +y, +z).
+MULTI: list[Step] = [(p, lamp, None, 0.0, 1200.0) for p in (0, 1, 2, 4, 6) for lamp in (True, False)]
+
+# Single ramp rate: a chamber triangle at 1 C/min between 20 and 50 C, in two orientations.
+SINGLE_RATE: list[Step] = [
+    (p, False, sp, 1.0, 1900.0) for p in (0, 1) for sp in (50.0, 20.0)
+]
+
+
+def sim_logs(effects=(), n_duts: int = 1, seed: int = 3, profile: list[Step] | None = None,
+             truths: list[DutTruth] | None = None) -> tuple[list[DutLog], list[DutTruth]]:
+    truths = truths or draw_population(n_duts, seed, effects=tuple(effects))
+    world = SimWorld(truths, env=EnvConfig(), seed=seed)
+    chunks = []
+    for pos, lamp, sp, ramp, dur in profile or MULTI:
+        world.position = pos
+        world.lamp_on = lamp
+        world.chamber_setpoint_c = sp
+        if sp is not None:
+            world.chamber_ramp_c_per_min = ramp
+        chunks.append((world.advance(int(round(dur * world.odr_hz))), pos, lamp))
+    logs = []
+    for i, t in enumerate(truths):
+        time_s = np.concatenate([c.time_s for c, _, _ in chunks])
+        counts = np.concatenate([c.acc_counts[i] for c, _, _ in chunks])
+        tc = np.concatenate([c.temp_counts[i] for c, _, _ in chunks])
+        pos = np.concatenate([np.full(len(c), p) for c, p, _ in chunks])
+        lamp = np.concatenate([np.full(len(c), int(l)) for c, _, l in chunks]).astype(np.int8)
+        logs.append(DutLog(time_s=time_s, acc_g=counts * t.ug_per_lsb * 1e-6,
+                           temp_c=25.0 + (tc - t.t_lsb_at_25c) / t.t_lsb_per_c,
+                           meta={"serial": t.serial, "sensor": t.sensor}, lamp=lamp, position=pos.astype(np.int64)))
+    return logs, truths
+
+
+def true_model(truth: DutTruth) -> DiagnosticModel:
+    """The simulator's truth as a DiagnosticModel (effect params in the library's names)."""
+    axes = {ax: {"tdb_mg_per_c": float(truth.tdb_mg_per_c[i]), "tdsf_ppm_per_c": float(truth.tdsf_ppm_per_c[i])}
+            for i, ax in enumerate("xyz")}
+    nonlinear = {}
+    for name, p in truth.effects.items():
+        nonlinear[name] = {}
+        for key, val in p.items():
+            arr = np.asarray(val, float)
+            if name == "cross_axis":
+                for i, ax in enumerate("xyz"):
+                    for j in range(3):
+                        axes[ax][f"cross_axis.x_ppm_per_c[{j}]"] = float(arr[i, j]) if i != j else 0.0
+            elif arr.ndim == 1 and arr.size == 3:
+                for i, ax in enumerate("xyz"):
+                    axes[ax][f"{name}.{key}"] = float(arr[i])
+            else:
+                nonlinear[name][key] = float(arr)
+    return DiagnosticModel(serial=truth.serial, effects=list(truth.effects), axes=axes, nonlinear=nonlinear)
+
+
+def noise_floor(log: DutLog, truth: DutTruth, basis: str = "sample") -> float:
+    d = prepare(log)
+    acc0 = truth.acc0_g(GRAVITY_DIRECTIONS[log.position])
+    pred = true_model(truth).predict(log.time_s, acc0, log.temp_c)
+    return window_rms(d, (log.acc_g - pred) * 1000.0, basis=basis)
+
+
+def pooled_floor(logs, truths, basis="sample") -> float:
+    num = den = 0.0
+    for lg, t in zip(logs, truths):
+        v = noise_floor(lg, t, basis)
+        num += v * v * len(lg)
+        den += len(lg)
+    return float(np.sqrt(num / den))

@@ -1,0 +1,316 @@
+"""Sequencer state machine and LampGuard, driven step by step without hardware.
+
+The DUT side is played by a small feeder that advances each DUT's sample clock and logs segments;
+the lamp relay is an in-memory coil that can be told to fail. The real links are covered by
+tests/test_daemon_e2e.py.
+"""
+
+import asyncio
+import math
+
+import pytest
+
+from drivers.base import Fixture, LampRelay
+from station.events import Alarm, EventBus, LampChanged, PromptRaised
+from station.profiles import BUILTIN_PROFILES, Profile, Step
+from station.safety import LampGuard, LampTripped
+from station.sequencer import TRANSITIONS, DutRun, Sequencer
+from station.types import Segment
+
+
+class MemRelay(LampRelay):
+    def __init__(self):
+        self.coil = None
+        self.writes = []
+        self.fail_next = 0
+
+    async def set_lamp(self, on):
+        if self.fail_next > 0:
+            self.fail_next -= 1
+            raise OSError("relay does not answer")
+        self.coil = on
+        self.writes.append(on)
+
+    async def read_lamp(self):
+        return bool(self.coil)
+
+
+class MemFixture(Fixture):
+    def __init__(self):
+        self.pos = 0
+        self.moves = []
+
+    async def move_to(self, position):
+        self.moves.append(position)
+        self.pos = position
+
+    async def position(self):
+        return self.pos
+
+    async def moving(self):
+        return False
+
+
+class Hw:
+    def __init__(self, bus, fixture=None, **limits):
+        self.relay = MemRelay()
+        kw = dict(max_on_s=1e9, max_dut_temp_c=85.0, max_plate_temp_c=90.0)
+        kw.update(limits)
+        self.lamp = LampGuard(self.relay, bus, retry_delays_s=(0.001, 0.002), **kw)
+        self.fixture = fixture
+        self.chamber = None
+        self.fixture_timeout_s = 1.0
+        self.analysed = False
+        self.released = False
+        self.seq = None
+        self.lamp.on_trip(lambda reason: self.seq.stop("failed", f"safety trip: {reason}"))
+
+    async def connect_duts(self, seq):
+        for d in seq.duts:
+            d.state = "running"
+
+    async def release_duts(self, seq):
+        self.released = True
+        for d in seq.duts:
+            if d.live:
+                d.state = "done" if seq.state == "finished" else "interrupted"
+
+    def fault_dut(self, seq, d, reason):
+        d.state, d.fault_reason = "faulted", reason
+        seq.notify()
+
+    async def analyse(self, seq):
+        self.analysed = True
+
+
+def _seg(i, t, pos):
+    return Segment(i, 0, 1000, t - 300.0, t, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 25.0, 0.1, position=pos)
+
+
+async def feed(seq, slow=(), dt=10.0, log_after_s=60.0):
+    """Advance every live DUT's board clock by dt per tick; log a segment log_after_s into a step."""
+    t = {d.slot: 100.0 * k for k, d in enumerate(seq.duts)}  # boards have different clocks
+    logged = set()
+    while not seq.done.is_set():
+        for d in seq.duts:
+            if not d.live:
+                continue
+            t[d.slot] += dt
+            if d.t0 is None:
+                d.t0 = t[d.slot]
+            d.last_t = t[d.slot]
+            if (
+                seq.state == "logging"
+                and d.slot not in slow
+                and (seq.step_index, d.slot) not in logged
+                and d.last_t - d.step_t_start > log_after_s
+            ):
+                logged.add((seq.step_index, d.slot))
+                d.segments.append(_seg(len(d.segments), d.last_t, seq.position))
+                d.segment_steps.append(seq.step_index)
+        seq.notify()
+        await asyncio.sleep(0.001)
+
+
+def _make(profile, n=3, fixture=True, **limits):
+    bus = EventBus()
+    q = bus.subscribe(maxsize=100000)
+    hw = Hw(bus, MemFixture() if fixture else None, **limits)
+    duts = [DutRun(slot=f"s{i}") for i in range(n)]
+    seq = Sequencer(7, profile, duts, hw, bus, poll_s=0.01)
+    hw.seq = seq
+    hw.lamp.reset(7)
+    return seq, hw, q
+
+
+def _drain(q):
+    out = []
+    while not q.empty():
+        out.append(q.get_nowait())
+    return out
+
+
+async def test_fast_thermal_with_fixture_runs_every_state_and_ends_lamp_off():
+    seq, hw, q = _make(BUILTIN_PROFILES["fast-thermal"])
+    seq.start()
+    feeder = asyncio.create_task(feed(seq))
+    assert await asyncio.wait_for(seq.task, 10) == "finished"
+    feeder.cancel()
+    states = [b for _, _, b in seq.history]
+    assert states == [
+        "connecting",
+        "step_setup", "positioning", "moving", "logging", "step_done",  # P ambient (position unknown)
+        "step_setup", "positioning", "logging", "step_done",  # P hot: already at P
+        "step_setup", "positioning", "moving", "logging", "step_done",  # N hot: turn the plate
+        "step_setup", "positioning", "logging", "step_done",  # N ambient
+        "analysing", "finished",
+    ]
+    assert hw.fixture.moves == [0, 1]
+    assert hw.relay.writes == [False, True, True, False, False, False]
+    assert hw.relay.coil is False and hw.analysed and hw.released
+    assert all(d.state == "done" for d in seq.duts)
+    # every DUT logged one segment per step, each annotated with the step's position
+    for d in seq.duts:
+        assert [s.position for s in d.segments] == [0, 0, 1, 1]
+    events = _drain(q)
+    assert [e.state for e in events if e.kind == "BatchStateChanged"][-1] == "finished"
+    assert [e.step_name for e in events if e.kind == "StepStarted"] == ["P ambient", "P hot", "N hot", "N ambient"]
+
+
+async def test_step_timeout_in_sample_time_faults_only_late_dut():
+    prof = Profile("t", (Step("a", 0, require="segment", timeout_s=500.0), Step("b", 0, require="segment", timeout_s=500.0)))
+    seq, hw, q = _make(prof, n=3)
+    seq.start()
+    feeder = asyncio.create_task(feed(seq, slow={"s1"}))
+    assert await asyncio.wait_for(seq.task, 10) == "finished"
+    feeder.cancel()
+    s0, s1, s2 = seq.duts
+    assert s1.state == "faulted" and "step 'a' timed out after 50" in s1.fault_reason and "sample time" in s1.fault_reason
+    assert s0.state == "done" and s2.state == "done"
+    assert len(s0.segments) == 2  # the others went on through step b
+
+
+async def test_timeout_counts_sample_time_not_wall_time():
+    """Slow samples (1 s of board time per tick) keep a 500 s timeout open although wall time flies."""
+    prof = Profile("t", (Step("a", 0, require="segment", timeout_s=500.0),))
+    seq, hw, q = _make(prof, n=2)
+    seq.start()
+    feeder = asyncio.create_task(feed(seq, slow={"s0", "s1"}, dt=1.0))
+    await asyncio.sleep(0.3)
+    assert seq.state == "logging" and all(d.live for d in seq.duts)
+    assert seq.clock_s() < 500
+    feeder.cancel()
+    seq.stop("aborted", "test")
+    assert await asyncio.wait_for(seq.task, 5) == "aborted"
+
+
+async def test_without_fixture_operator_prompt_and_confirmation():
+    seq, hw, q = _make(BUILTIN_PROFILES["fast-thermal"], fixture=False)
+    seq.start()
+    feeder = asyncio.create_task(feed(seq))
+    for want in ("P", "N"):
+        for _ in range(500):
+            if seq.prompt is not None:
+                break
+            await asyncio.sleep(0.01)
+        assert seq.prompt["text"] == f"turn the plate to {want}"
+        assert seq.state == "waiting_operator"
+        with pytest.raises(ValueError):
+            seq.answer_prompt(seq.prompt["id"] + 99)
+        seq.answer_prompt(seq.prompt["id"], "done")
+        await asyncio.sleep(0.01)
+    assert await asyncio.wait_for(seq.task, 10) == "finished"
+    feeder.cancel()
+    prompts = [e for e in _drain(q) if isinstance(e, PromptRaised)]
+    assert [p.position for p in prompts] == [0, 1]
+    with pytest.raises(ValueError):
+        seq.answer_prompt(1)
+
+
+async def test_abort_switches_lamp_off():
+    prof = Profile("t", (Step("hot", 0, lamp=True, require="none", dwell_s=1e6, timeout_s=2e6),))
+    seq, hw, q = _make(prof)
+    seq.start()
+    feeder = asyncio.create_task(feed(seq))
+    for _ in range(500):
+        if hw.relay.coil:
+            break
+        await asyncio.sleep(0.01)
+    assert hw.relay.coil is True and hw.lamp.is_on
+    seq.stop("aborted", "operator")
+    assert await asyncio.wait_for(seq.task, 5) == "aborted"
+    feeder.cancel()
+    assert hw.relay.coil is False and not hw.lamp.is_on
+    assert seq.error == "operator"
+    assert all(d.state == "interrupted" for d in seq.duts)
+
+
+async def test_over_temperature_trips_lamp_and_fails_batch():
+    prof = Profile("t", (Step("hot", 0, lamp=True, require="none", dwell_s=1e6, timeout_s=2e6),))
+    seq, hw, q = _make(prof)
+    seq.start()
+    feeder = asyncio.create_task(feed(seq))
+    for _ in range(500):
+        if hw.relay.coil:
+            break
+        await asyncio.sleep(0.01)
+    assert hw.lamp.check_dut_temp("s2", 91.0)
+    assert await asyncio.wait_for(seq.task, 5) == "failed"
+    feeder.cancel()
+    assert hw.relay.coil is False
+    assert "s2 at 91.0 C" in seq.error
+    with pytest.raises(LampTripped):
+        await hw.lamp.set_lamp(True, "again")
+    assert any(isinstance(e, Alarm) and "safety trip" in e.text for e in _drain(q))
+
+
+async def test_all_duts_faulted_fails_batch():
+    prof = Profile("t", (Step("a", 0, require="segment", timeout_s=100.0),))
+    seq, hw, q = _make(prof, n=2)
+    seq.start()
+    feeder = asyncio.create_task(feed(seq, slow={"s0", "s1"}))
+    assert await asyncio.wait_for(seq.task, 10) == "failed"
+    feeder.cancel()
+    assert "no DUT left" in seq.error
+
+
+def test_transition_table_is_closed():
+    for src, dsts in TRANSITIONS.items():
+        for d in dsts:
+            assert d in TRANSITIONS, (src, d)
+    seq, hw, q = Sequencer.__new__(Sequencer), None, None
+    seq.state, seq.history, seq.batch_id = "created", [], 1
+    seq.bus = EventBus()
+    with pytest.raises(RuntimeError, match="illegal"):
+        seq._transition("logging")
+
+
+class Clock:
+    def __init__(self):
+        self.t = 1000.0
+
+    def __call__(self):
+        return self.t
+
+
+async def test_lamp_on_time_is_conservative_in_compressed_time():
+    bus = EventBus()
+    clock = Clock()
+    g = LampGuard(MemRelay(), bus, max_on_s=600.0, max_dut_temp_c=85, max_plate_temp_c=90, speed=50.0, clock=clock)
+    g.note_sample_time(100.0)
+    await g.set_lamp(True, "t")
+    # the plant lags (only 200 s of samples in 10 wall s at speed 50 = 500 s): wall x speed counts
+    g.note_sample_time(300.0)
+    clock.t += 10.0
+    assert g.on_time_s() == pytest.approx(500.0)
+    assert not g.check_on_time()
+    # samples run ahead of wall x speed: the sample clock counts
+    g.note_sample_time(800.0)
+    assert g.on_time_s() == pytest.approx(700.0)
+    assert g.check_on_time()
+    await asyncio.sleep(0.05)
+    assert g.relay.coil is False and g.trip_reason.startswith("lamp on for 700 s")
+
+
+async def test_failed_off_write_is_retried_and_alarmed():
+    bus = EventBus()
+    q = bus.subscribe()
+    relay = MemRelay()
+    g = LampGuard(relay, bus, max_on_s=1e9, max_dut_temp_c=85, max_plate_temp_c=90, retry_delays_s=(0.001, 0.002, 0.004))
+    await g.set_lamp(True, "t")
+    relay.fail_next = 2
+    assert await g.off("end") is True
+    assert relay.coil is False
+    alarms = [e for e in _drain(q) if isinstance(e, Alarm)]
+    assert len(alarms) == 2 and "lamp OFF write failed" in alarms[0].text
+    # a relay that stays dead: off() reports failure, alarms, and keeps retrying in the background
+    await g.set_lamp(True, "t")
+    relay.fail_next = 6
+    assert await g.off("end") is False
+    for _ in range(300):
+        if relay.coil is False:
+            break
+        await asyncio.sleep(0.01)
+    assert relay.coil is False
+    assert any(isinstance(e, LampChanged) and not e.on for e in _drain(q))
+    await g.close()

@@ -1,0 +1,124 @@
+"""SimStation end to end: the real drivers on the simulated station's ptys, slcan adapter and
+Modbus server, with the SimWorld physics behind them."""
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from drivers.base import DriverError
+from drivers.can_board import CanBoard, CanBus
+from drivers.modbus_devices import ModbusFixture, ModbusLampRelay, ModbusLink, ModbusThermometer
+from drivers.serial_board import SerialBoard
+from drivers.sim.station_sim import SimStation
+from station.types import SampleBlock
+
+
+async def _open_all(sim):
+    boards = [SerialBoard(p) for p in sim.serial_ports]
+    bus = CanBus(**sim.can_bus_args) if sim.n_can else None
+    boards += [CanBoard(bus, n) for n in sim.can_node_ids]
+    for b in boards:
+        await b.open()
+    return boards, bus
+
+
+async def _drain(boards, acc, wall_s):
+    loop = asyncio.get_running_loop()
+    end = loop.time() + wall_s
+    while loop.time() < end:
+        for i, b in enumerate(boards):
+            acc[i].append(await b.read_block(0.05))
+
+
+async def test_two_serial_two_can_stream_and_lamp_heats_plate():
+    async with SimStation(n_serial=2, n_can=2, seed=3, speed=250) as sim:
+        assert len(sim.serial_ports) == 2 and sim.can_node_ids == [1, 2] and sim.slcan_port
+        boards, bus = await _open_all(sim)
+        idents = [await b.identify() for b in boards]
+        assert [i.serial for i in idents] == [t.serial for t in sim.truths]
+        for b in boards:
+            await b.start()
+        link = ModbusLink(sim.modbus_host, sim.modbus_port)
+        relay, therm = ModbusLampRelay(link), ModbusThermometer(link)
+        t_cold = await therm.read_temp_c()
+        blocks = [[] for _ in boards]
+        await relay.set_lamp(True)
+        assert sim.world.lamp_on
+        await _drain(boards, blocks, 2.5)  # ~600 s of simulated lamp heating
+        t_hot = await therm.read_temp_c()
+        await relay.set_lamp(False)
+        assert not sim.world.lamp_on
+        await _drain(boards, blocks, 2.5)
+        t_cooled = await therm.read_temp_c()
+        assert t_hot > t_cold + 10 and t_cooled < t_hot - 5
+        for i, b in enumerate(boards):
+            blk = SampleBlock.concat(blocks[i])
+            assert len(blk) > 500, b
+            assert blk.lost_samples == 0 and b.stats.frames_bad_checksum == 0
+            assert np.all(np.diff(blk.time_s) > 0)
+            peak = int(np.argmax(blk.temp_c))
+            assert blk.temp_c[peak] > blk.temp_c[0] + 10  # the DUT saw the lamp
+            assert blk.temp_c[-1] < blk.temp_c[peak] - 3  # and cooled after it went off
+            assert np.all(np.abs(np.linalg.norm(blk.acc_g, axis=1) - 1.0) < 0.2)
+        await link.close()
+        await bus.close()
+
+
+async def test_samples_depend_on_sample_time_not_speed():
+    runs = []
+    for speed in (60.0, 400.0):
+        async with SimStation(n_serial=1, n_can=0, seed=11, speed=speed) as sim:
+            (b,), _ = await _open_all(sim)
+            await b.start()
+            blocks = [[]]
+            await _drain([b], blocks, 1.2)
+            runs.append(SampleBlock.concat(blocks[0]))
+            await b.close()
+    a, b = runs
+    common, ia, ib = np.intersect1d(np.round(a.time_s, 6), np.round(b.time_s, 6), return_indices=True)
+    assert len(common) > 100
+    np.testing.assert_array_equal(a.acc_g[ia], b.acc_g[ib])
+    np.testing.assert_array_equal(a.temp_c[ia], b.temp_c[ib])
+
+
+async def test_fault_injection_and_fixture():
+    async with SimStation(n_serial=2, n_can=1, seed=5, speed=100, move_time_s=2.0) as sim:
+        boards, bus = await _open_all(sim)
+        for b in boards:
+            await b.start()
+        fixture = ModbusFixture(ModbusLink(sim.modbus_host, sim.modbus_port))
+        await fixture.move_to(1)
+        assert await fixture.moving() and sim.world.position == 0
+        await fixture.wait_reached(1, timeout_s=5.0)
+        assert sim.world.position == 1
+        sim.board(0).inject_garbage(b"\xde\xad\xbe\xef\n")
+        sim.board(0).corrupt_next(3)
+        sim.board(2).corrupt_next(2)
+        blocks = [[] for _ in boards]
+        await _drain(boards, blocks, 1.0)
+        assert boards[0].stats.bytes_skipped == 5 and boards[0].stats.frames_bad_checksum == 3
+        assert boards[0].stats.samples_lost == 3
+        assert boards[2].stats.samples_lost == 2
+        sim.board(1).disconnect()
+        with pytest.raises(DriverError):
+            for _ in range(20):
+                await boards[1].read_block(0.1)
+        sim.board(0).stop_streaming()
+        await _drain([boards[0], boards[2]], [blocks[0], blocks[2]], 0.3)
+        assert len(await boards[0].read_block(0.3)) == 0  # board 0 went quiet, its link is fine
+        assert len(await boards[2].read_block(1.0)) > 0  # the CAN board streams on
+        await bus.close()
+
+
+async def test_virtual_can_interface():
+    async with SimStation(n_serial=0, n_can=3, seed=2, speed=200, can_interface="virtual") as sim:
+        assert sim.slcan_port is None
+        boards, bus = await _open_all(sim)
+        for b, t in zip(boards, sim.truths):
+            assert (await b.identify()).serial == t.serial
+            await b.start()
+        blocks = [[] for _ in boards]
+        await _drain(boards, blocks, 0.8)
+        assert all(len(SampleBlock.concat(bl)) > 50 for bl in blocks)
+        await bus.close()

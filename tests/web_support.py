@@ -1,0 +1,213 @@
+"""Shared helpers of tests/test_web_*.py and tests/test_browser.py: a whole simulated station
+(SimStation: serial boards on ptys, CAN boards behind slcan on a pty, Modbus TCP lamp relay on
+127.0.0.1), the real Station daemon with a real SQLite file, and the web app served by uvicorn on
+a free loopback port, all in one background thread with its own event loop (as in the daemon).
+Tests talk to it over real HTTP."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+import time
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+TOKENS = {
+    "operator": "op-token-0123456789",
+    "mes": "mes-token-0123456789",
+    "admin": "admin-token-0123456789",
+}
+
+
+def auth(role: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {TOKENS[role]}"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def sim_config(sim, *, speed: float, fixture: bool = False, webhook_url: str | None = None, db_url: str = "memory://"):
+    from station.config import parse_config
+
+    slots = [{"name": f"s{i + 1}", "serial": p} for i, p in enumerate(sim.serial_ports)]
+    slots += [
+        {"name": f"c{n}", "can": {"interface": "slcan", "channel": sim.slcan_port, "node": n}} for n in sim.can_node_ids
+    ]
+    modbus = {"host": sim.modbus_host, "port": sim.modbus_port}
+    data: dict[str, Any] = {
+        "name": "test-station",
+        "database_url": db_url,
+        "slots": slots,
+        "lamp": {"tcp": modbus, "unit": 1},
+        "timing": {"speed": speed},
+        "limits": {"lamp_max_on_s": 7200},
+        "tokens": [{"token": t, "role": r, "name": f"test-{r}"} for r, t in TOKENS.items()],
+    }
+    if fixture:
+        data["fixture"] = {"tcp": modbus, "unit": 3}
+    if webhook_url:
+        data["mes_webhook_url"] = webhook_url
+    return parse_config(data, "test")
+
+
+class LiveStation:
+    """Context manager: SimStation + Station + SQLite + web app on http://127.0.0.1:<port>."""
+
+    def __init__(self, tmp_path: Path, *, n_serial: int = 2, n_can: int = 1, speed: float = 400.0,
+                 fixture: bool = False, seed: int = 7, outbox=False, sse_interval_s: float = 0.3,
+                 access_log: bool = False) -> None:
+        self.tmp_path = Path(tmp_path)
+        self.n_serial, self.n_can, self.speed = n_serial, n_can, speed
+        self.fixture, self.seed, self.outbox = fixture, seed, outbox
+        self.sse_interval_s = sse_interval_s
+        self.access_log = access_log
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.db_path = self.tmp_path / "station.db"
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._ready: Future = Future()
+        self._stop: asyncio.Event | None = None
+        self._thread = threading.Thread(target=self._main, name="live-station", daemon=True)
+        self.station = self.sim = self.app = self.server = None
+
+    # --- lifecycle ----------------------------------------------------------------------------
+    def __enter__(self) -> "LiveStation":
+        self._thread.start()
+        self._ready.result(timeout=60)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.loop is not None and self._stop is not None:
+            self.loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(timeout=60)
+
+    def _main(self) -> None:
+        try:
+            asyncio.run(self._amain())
+        except BaseException as exc:  # noqa: BLE001
+            if not self._ready.done():
+                self._ready.set_exception(exc)
+            raise
+
+    async def _amain(self) -> None:
+        from drivers.sim.station_sim import SimStation
+        from station.supervisor import Station, open_database
+        from web.app import create_app, make_server
+
+        self.loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        async with SimStation(n_serial=self.n_serial, n_can=self.n_can, seed=self.seed, speed=self.speed) as sim:
+            self.sim = sim
+            cfg = sim_config(sim, speed=self.speed, fixture=self.fixture, db_url=f"sqlite:///{self.db_path}")
+            db = open_database(cfg.database_url)
+            station = Station(cfg, db=db)
+            await station.start()
+            self.station = station
+            self.app = create_app(station, outbox=self.outbox, sse_interval_s=self.sse_interval_s)
+            self.server = make_server(self.app, "127.0.0.1", self.port, access_log=self.access_log)
+            serve = asyncio.create_task(self.server.serve())
+            while not self.server.started:
+                if serve.done():
+                    serve.result()
+                await asyncio.sleep(0.02)
+            self._ready.set_result(True)
+            await self._stop.wait()
+            self.server.should_exit = True
+            try:
+                await asyncio.wait_for(serve, 10)
+            except asyncio.TimeoutError:
+                serve.cancel()
+            await station.close()
+            db.dispose()
+
+    # --- helpers ------------------------------------------------------------------------------
+    def call(self, fn, *args, timeout: float = 30, **kwargs):
+        """Run fn (sync or coroutine function) in the station's loop and return its result."""
+
+        async def run():
+            out = fn(*args, **kwargs)
+            if asyncio.iscoroutine(out):
+                out = await out
+            return out
+
+        return asyncio.run_coroutine_threadsafe(run(), self.loop).result(timeout)
+
+    def flush_db(self) -> None:
+        self.call(self.station.flush_db, timeout=60)
+
+
+def wait_for(predicate, timeout_s: float, interval_s: float = 0.1, what: str = "condition"):
+    deadline = time.monotonic() + timeout_s
+    last = None
+    while time.monotonic() < deadline:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(interval_s)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what} (last: {last!r})")
+
+
+# --- a database with stored results, written through the real DbWriter ---------------------------
+
+def thermal_json(tdb, tdsf, method: str) -> dict:
+    return {
+        "method": method,
+        "n_segments": 4,
+        "axes": {ax: {"tdb_mg_per_c": float(tdb[i]), "tdsf_ppm_per_c": float(tdsf[i])} for i, ax in enumerate("xyz")},
+    }
+
+
+def seed_results(db, n_duts: int = 5, *, batch_profile: str = "fast-thermal", serial_prefix: str = "WEB", seed: int = 0):
+    """One batch with n_duts finished runs (samples, 4 segments, streaming + offline results).
+
+    Returns {serial: {"run_id", "tdb", "tdsf"}} (the truth the API must give back)."""
+    from db.writer import DbWriter
+    from station.events import DutResult, SamplesReceived, SegmentLogged, SlotStateChanged
+    from station.types import SampleBlock, Segment
+
+    rng = np.random.default_rng(seed)
+    batch_id = db.create_batch(batch_profile, "tester", {})
+    writer = DbWriter(db, interval_s=0.05)
+    truth = {}
+    try:
+        for i in range(n_duts):
+            serial = f"{serial_prefix}{i + 1:04d}"
+            slot = f"s{i + 1}"
+            run_id = db.create_run(batch_id, slot, serial, "LIS3DSH", {"serial": serial})
+            writer.bind_run(batch_id, slot, run_id)
+            n = 600
+            t = np.arange(n) / 3.125
+            temp = 25.0 + 20.0 * (1 - np.exp(-t / 60.0))
+            sign = np.where(np.arange(n) < n // 2, 1.0, -1.0)[:, None]
+            tdb = rng.uniform(-1.2, 1.4, 3)
+            tdsf = rng.uniform(-500, 0, 3)
+            acc0 = 0.577 * sign * np.ones((n, 3))
+            acc = acc0 + (temp - 25.0)[:, None] * (tdb * 1e-3 + tdsf * 1e-6 * acc0) + rng.normal(0, 1e-4, (n, 3))
+            acc = np.round(acc / 60e-6) * 60e-6
+            writer.submit(SlotStateChanged(batch_id, slot=slot, serial=serial, state="running"))
+            writer.submit(SamplesReceived(batch_id, slot=slot, serial=serial, step_index=0,
+                                          block=SampleBlock(t, acc, np.round(temp)), lamp_on=True, position=0))
+            for k in range(4):
+                seg = Segment(index=k, orientation=k // 2, n_samples=100, t_start_s=float(t[k * 150]),
+                              t_end_s=float(t[k * 150 + 100]), acc_mean_g=tuple(acc[k * 150:k * 150 + 100].mean(0)),
+                              acc_std_g=(1e-4, 1e-4, 1e-4), temp_mean_c=float(temp[k * 150 + 50]), temp_std_c=0.3,
+                              position=k // 2)
+                writer.submit(SegmentLogged(batch_id, slot=slot, serial=serial, step_index=k, segment=seg))
+            thermal = {"serial": serial, "axes": thermal_json(tdb, tdsf, "offline")["axes"],
+                       "streaming": thermal_json(tdb * 1.01, tdsf * 1.01, "streaming"),
+                       "offline": thermal_json(tdb, tdsf, "offline")}
+            writer.submit(DutResult(batch_id, slot=slot, serial=serial, thermal=thermal, sfem=None))
+            writer.submit(SlotStateChanged(batch_id, slot=slot, serial=serial, state="done"))
+            truth[serial] = {"run_id": run_id, "tdb": tdb, "tdsf": tdsf, "slot": slot, "batch_id": batch_id}
+        assert writer.flush(30)
+    finally:
+        writer.close()
+    db.set_batch_state(batch_id, "finished")
+    return truth

@@ -1,0 +1,153 @@
+"""The station's web app: REST API (design 5.3), server-sent events, operator page, MES outbox.
+
+`create_app(station)` builds the FastAPI app around the daemon's `Station` facade; the daemon runs
+it with uvicorn in its own event loop (`make_server`), so routes call the facade directly.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from station.types import StationError
+from web import __version__
+from web.auth import TokenStore, install_log_redaction
+from web.mes_outbox import MesOutbox, OutboxConfig
+from web.repo import NoRepository, WebRepository
+from web.routes import batches, duts, events, results, runs, station as station_routes
+
+STATIC_DIR = Path(__file__).parent / "static"
+log = logging.getLogger("station.web")
+
+# The page loads only its own files: no CDN, no inline script.
+CSP = "default-src 'self'; img-src 'self' data: blob:; style-src 'self'; script-src 'self'; connect-src 'self'"
+
+
+def _validation_message(exc: RequestValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(x) for x in err.get("loc", ()) if x != "body") or "body"
+        parts.append(f"{loc}: {err.get('msg', 'invalid')}")
+    return "; ".join(parts) or "invalid request"
+
+
+def default_repository(station) -> WebRepository:
+    db = getattr(station, "db", None)
+    if db is None or not hasattr(db, "engine"):  # no db, or the daemon's in-memory stand-in
+        return NoRepository()
+    from web.db_repo import DbRepository
+
+    return DbRepository(db)
+
+
+def create_app(
+    station,
+    *,
+    repo: WebRepository | None = None,
+    tokens: TokenStore | None = None,
+    outbox: OutboxConfig | None | bool = True,
+    sse_interval_s: float = 0.5,
+) -> FastAPI:
+    """station: the daemon's facade (station.supervisor.Station or anything with its methods).
+
+    repo: storage for history/MES (default: built from station.db); tokens: default from
+    station.config; outbox: True = from config ([mes] webhook_url), an OutboxConfig, or False/None.
+    """
+    config = getattr(station, "config", None)
+    if repo is None:
+        repo = default_repository(station)
+    if tokens is None:
+        tokens = TokenStore.from_config(config)
+    if outbox is True:
+        outbox = OutboxConfig.from_config(config)
+    install_log_redaction()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        worker = None
+        if outbox and not isinstance(repo, NoRepository):
+            worker = MesOutbox(repo, outbox, bus=getattr(station, "bus", None))
+            await worker.start()
+            log.info("MES outbox delivering to %s", outbox.url)
+        app.state.outbox = worker
+        try:
+            yield
+        finally:
+            if worker is not None:
+                await worker.stop()
+
+    app = FastAPI(
+        title="Thermal calibration station",
+        version=__version__,
+        description="REST API of the MEMS accelerometer thermal calibration station (design 5.3). "
+        "Send `Authorization: Bearer <token>`; roles: operator, mes, admin.",
+        lifespan=lifespan,
+    )
+    app.state.station = station
+    app.state.repo = repo
+    app.state.tokens = tokens
+    app.state.sse_interval_s = sse_interval_s
+    app.state.outbox = None
+
+    @app.exception_handler(RequestValidationError)
+    async def _on_validation(request: Request, exc: RequestValidationError):
+        return JSONResponse(
+            status_code=422,
+            content={"detail": _validation_message(exc), "errors": _jsonable_errors(exc)},
+        )
+
+    @app.exception_handler(StationError)
+    async def _on_station_error(request: Request, exc: StationError):
+        return JSONResponse(status_code=409, content={"detail": str(exc)})
+
+    @app.middleware("http")
+    async def _headers(request: Request, call_next):
+        response = await call_next(request)
+        response.headers.setdefault("Content-Security-Policy", CSP)
+        response.headers.setdefault("X-Content-Type-Options", "nosniff")
+        return response
+
+    for module in (station_routes, batches, duts, runs, results, events):
+        app.include_router(module.router)
+
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    async def index():
+        return FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-cache"})
+
+    return app
+
+
+def _jsonable_errors(exc: RequestValidationError) -> list[dict]:
+    out = []
+    for err in exc.errors():
+        out.append({"loc": [str(x) for x in err.get("loc", ())], "msg": str(err.get("msg", "")), "type": str(err.get("type", ""))})
+    return out
+
+
+def make_server(app: FastAPI, host: str = "127.0.0.1", port: int = 8080, access_log: bool = True):
+    """A uvicorn.Server for the daemon's own event loop: `await make_server(app).serve()`.
+
+    Short graceful-shutdown timeout because open SSE streams never end by themselves; the access
+    log goes through the token-redacting filter.
+    """
+    import uvicorn
+
+    install_log_redaction()
+    config = uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        log_level="info",
+        access_log=access_log,
+        timeout_graceful_shutdown=2,
+        lifespan="on",
+    )
+    return uvicorn.Server(config)

@@ -1,0 +1,176 @@
+"""WebRepository on the station database (db.repository and db.export).
+
+The MES key of a result is `result:<run_id>:<result_seq>`, the same key db.writer uses when it
+queues the message in the result's own transaction (DbWriter(outbox=True)). The webhook worker also
+enqueues every stored result under that key (enqueue is idempotent on the key), so whichever path
+queued it, one result is one outbox row and one MES record; the results feed carries the same key.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+
+from sqlalchemy import func, select, text
+
+from db import repository as R
+from db.database import Database
+from db.models import Dut, DutRun, Outbox
+from station.logfile import DutLog
+from station.types import StationError
+from web.repo import WebRepository
+
+
+def result_key(run_id: int, result_seq: int) -> str:
+    """Same key as db.writer puts on the outbox row of this result."""
+    return f"result:{run_id}:{result_seq}"
+
+
+def _with_methods(d: dict) -> dict:
+    by = d.get("thermal_by_method") or {}
+    d.setdefault("streaming", by.get("streaming"))
+    d.setdefault("offline", by.get("offline"))
+    return d
+
+
+class DbRepository(WebRepository):
+    writes_outbox = False  # the worker enqueues too; same key, so never twice
+
+    def __init__(self, db: Database) -> None:
+        self.db = db
+
+    def search_duts(self, serial_like: str | None, limit: int = 50) -> list[dict]:
+        with self.db.session() as s:
+            q = (
+                select(Dut, func.count(DutRun.id), func.max(DutRun.id))
+                .outerjoin(DutRun, DutRun.dut_id == Dut.id)
+                .group_by(Dut.id)
+                .order_by(Dut.last_seen.desc(), Dut.id.desc())
+                .limit(limit)
+            )
+            if serial_like:
+                pat = "%" + serial_like.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+                q = q.where(func.lower(Dut.serial).like(pat.lower(), escape="\\"))
+            rows = s.execute(q).all()
+            last_ids = [r[2] for r in rows if r[2] is not None]
+            states = dict(s.execute(select(DutRun.id, DutRun.state).where(DutRun.id.in_(last_ids))).all()) if last_ids else {}
+            return [
+                {
+                    "serial": d.serial,
+                    "sensor": d.sensor,
+                    "runs": int(n or 0),
+                    "last_run_id": last,
+                    "last_state": states.get(last),
+                    "last_at": d.last_seen.isoformat() if d.last_seen else None,
+                }
+                for d, n, last in rows
+            ]
+
+    def dut(self, serial: str) -> dict | None:
+        d = R.dut_by_serial(self.db, serial)
+        if d is None:
+            return None
+        d["run_id"] = d.get("result_run_id")
+        return _with_methods(d)
+
+    def runs_of_dut(self, serial: str) -> list[dict] | None:
+        runs = R.runs_of_dut(self.db, serial)
+        if runs is None:
+            return None
+        return [self.run(r["id"]) or r for r in runs]
+
+    def run(self, run_id: int) -> dict | None:
+        r = R.run_detail(self.db, run_id)
+        if r is None:
+            return None
+        r["finished_at"] = r.get("ended_at")
+        return _with_methods(r)
+
+    def batch(self, batch_id: int) -> dict | None:
+        b = R.batch_detail(self.db, batch_id)
+        if b is None:
+            return None
+        b.pop("config_snapshot", None)
+        b["error"] = b.get("reason") or None
+        b["slots"] = [
+            {"slot": r["slot"], "serial": r["serial"], "state": r["state"], "segments": r.get("n_segments", 0),
+             "error": r.get("fault_reason") or None, "run_id": r["id"]}
+            for r in b.pop("runs", [])
+        ]
+        b["stored"] = True
+        return b
+
+    def segments(self, run_id: int) -> list[dict] | None:
+        return R.segments_of_run(self.db, run_id)
+
+    def run_log(self, run_id: int) -> DutLog | None:
+        from db.export import run_log
+
+        try:
+            return run_log(self.db, run_id)
+        except KeyError:
+            return None
+
+    def results_since(self, after_id: int = 0, since_time: float | None = None, limit: int = 100) -> list[dict]:
+        if since_time is not None:
+            t = datetime.fromtimestamp(since_time, tz=timezone.utc)
+            with self.db.session() as s:
+                first = s.scalar(
+                    select(func.min(DutRun.result_seq)).where(DutRun.result_seq.is_not(None), DutRun.ended_at >= t)
+                )
+            if first is None:
+                return []
+            after_id = max(after_id, int(first) - 1)
+        rows = R.results_since(self.db, after_id, limit)
+        for r in rows:
+            r["idempotency_key"] = result_key(r["run_id"], r["id"])
+            r["created_at"] = r.get("ended_at")
+            _with_methods(r)
+        return rows
+
+    def outbox_enqueue(self, idempotency_key: str, payload: dict) -> bool:
+        with self.db.session() as s:
+            exists = s.scalar(select(Outbox.id).where(Outbox.idempotency_key == idempotency_key))
+        if exists is not None:
+            return False
+        R.outbox_enqueue(self.db, idempotency_key, payload)
+        return True
+
+    def outbox_high_water(self) -> int:
+        """Highest result id (result_seq) already in the outbox: a restart scans only newer ones."""
+        with self.db.session() as s:
+            keys = s.scalars(select(Outbox.idempotency_key).where(Outbox.topic == "result").order_by(Outbox.id.desc()).limit(50)).all()
+        best = 0
+        for k in keys:
+            try:
+                best = max(best, int(k.rsplit(":", 1)[1]))
+            except (IndexError, ValueError):
+                continue
+        return best
+
+    def outbox_due(self, now: float, limit: int = 20) -> list[dict]:
+        return R.outbox_pending(self.db, limit, now=datetime.fromtimestamp(now, tz=timezone.utc))
+
+    def outbox_mark_delivered(self, entry_id: int) -> None:
+        R.outbox_mark_delivered(self.db, entry_id)
+
+    def outbox_mark_failed(self, entry_id: int, error: str, next_attempt_at: float) -> None:
+        R.outbox_mark_failed(self.db, entry_id, error, datetime.fromtimestamp(next_attempt_at, tz=timezone.utc))
+
+    def outbox_list(self, limit: int = 100) -> list[dict]:
+        with self.db.session() as s:
+            rows = s.scalars(select(Outbox).order_by(Outbox.id.desc()).limit(limit)).all()
+            out = []
+            for o in rows:
+                d = R.outbox_json(o)
+                d["state"] = "delivered" if o.delivered_at is not None else "pending"
+                d.pop("payload", None)
+                out.append(d)
+            return out
+
+    def health(self) -> str:
+        try:
+            with self.db.engine.connect() as conn:
+                conn.execute(text("SELECT 1"))
+            return "ok"
+        except Exception as exc:  # noqa: BLE001
+            raise StationError(f"database unreachable: {type(exc).__name__}") from None

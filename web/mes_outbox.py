@@ -1,0 +1,197 @@
+"""Webhook delivery of finished-DUT results to the MES (transactional outbox).
+
+The worker copies every stored result into the db outbox table (enqueue is idempotent on the
+result's idempotency key), then POSTs each due entry to the configured URL with the key in an
+`Idempotency-Key` header and in the payload. Failures (non-2xx, timeout, refused) are retried
+with exponential backoff; the schedule lives in the table, so a restart resumes where it stopped.
+The same result always carries the same key, so a retry after a lost reply is recognisable by the
+MES as the same record, never a second one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import random
+import time
+from dataclasses import dataclass
+
+import httpx
+
+from station.events import DutResult
+from web.repo import WebRepository
+from web.views import clean
+
+log = logging.getLogger("station.web.mes")
+
+
+@dataclass
+class OutboxConfig:
+    url: str
+    timeout_s: float = 10.0
+    base_delay_s: float = 2.0
+    max_delay_s: float = 600.0
+    poll_s: float = 2.0
+    batch: int = 20
+    station_name: str = "station"
+
+    @classmethod
+    def from_config(cls, config) -> "OutboxConfig | None":
+        def get(obj, key):
+            if obj is None:
+                return None
+            return obj.get(key) if isinstance(obj, dict) else getattr(obj, key, None)
+
+        for section in (None, "mes", "web"):
+            sec = config if section is None else get(config, section)
+            url = get(sec, "mes_webhook_url" if section is None else "webhook_url") if sec is not None else None
+            if url:
+                kwargs = {}
+                for k in ("timeout_s", "base_delay_s", "max_delay_s", "poll_s"):
+                    v = get(sec, ("mes_" + k) if section is None else k)
+                    if v is not None:
+                        kwargs[k] = float(v)
+                name = get(get(config, "station"), "name") or get(config, "name")
+                if name:
+                    kwargs["station_name"] = str(name)
+                return cls(url=str(url), **kwargs)
+        return None
+
+
+def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
+    """Delay before the next try after `attempts` failures: base * 2^(n-1), capped, +-20 % jitter."""
+    delay = min(max_s, base_s * (2 ** max(0, attempts - 1)))
+    return delay * random.uniform(0.8, 1.2)
+
+
+def payload_of(result: dict, station_name: str) -> dict:
+    thermal = result.get("thermal") or None
+    axes = thermal.get("axes") if isinstance(thermal, dict) and "axes" in thermal else thermal
+    return clean(
+        {
+            "idempotency_key": result["idempotency_key"],
+            "station": station_name,
+            "result_id": result.get("id"),
+            "serial": result.get("serial"),
+            "run_id": result.get("run_id"),
+            "batch_id": result.get("batch_id"),
+            "slot": result.get("slot"),
+            "created_at": result.get("created_at"),
+            "thermal": axes,
+            "streaming": thermal.get("streaming") if isinstance(thermal, dict) else None,
+            "offline": thermal.get("offline") if isinstance(thermal, dict) else None,
+            "sfem": result.get("sfem"),
+        }
+    )
+
+
+class MesOutbox:
+    def __init__(self, repo: WebRepository, config: OutboxConfig, bus=None) -> None:
+        self.repo = repo
+        self.config = config
+        self.bus = bus
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task | None = None
+        self._bus_task: asyncio.Task | None = None
+        self._high_water = 0  # highest result id already copied to the outbox (this process)
+        self.delivered = 0
+        self.failures = 0
+
+    async def start(self) -> None:
+        try:
+            self._high_water = int(await asyncio.to_thread(self.repo.outbox_high_water))
+        except Exception as exc:  # noqa: BLE001 - then scan everything; enqueue is idempotent
+            log.warning("MES outbox: no high-water mark (%s); scanning all results", exc)
+        self._client = httpx.AsyncClient(timeout=self.config.timeout_s, follow_redirects=False)
+        self._task = asyncio.create_task(self._run(), name="mes-outbox")
+        if self.bus is not None:
+            self._bus_task = asyncio.create_task(self._watch_bus(), name="mes-outbox-bus")
+
+    async def stop(self) -> None:
+        for task in (self._bus_task, self._task):
+            if task is not None:
+                task.cancel()
+                try:
+                    await task
+                except (asyncio.CancelledError, Exception):  # noqa: BLE001
+                    pass
+        await self._client.aclose()
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    async def _watch_bus(self) -> None:
+        q = self.bus.subscribe(maxsize=1000, drop=True)
+        try:
+            while True:
+                ev = await q.get()
+                if isinstance(ev, DutResult):
+                    # the db writer commits in batches; look again shortly after
+                    await asyncio.sleep(0.2)
+                    self.wake()
+        finally:
+            self.bus.unsubscribe(q)
+
+    async def _run(self) -> None:
+        while True:
+            try:
+                await self.run_once()
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - the worker must outlive a db hiccup
+                log.warning("MES outbox pass failed: %s", exc)
+            try:
+                await asyncio.wait_for(self._wake.wait(), timeout=self.config.poll_s)
+            except (asyncio.TimeoutError, TimeoutError):
+                pass
+            self._wake.clear()
+
+    async def enqueue_new(self) -> int:
+        """Copy results not yet in the outbox; idempotent, so a restart re-scan adds nothing twice."""
+        added = 0
+        while True:
+            rows = await asyncio.to_thread(self.repo.results_since, self._high_water, None, 200)
+            if not rows:
+                return added
+            for r in rows:
+                if await asyncio.to_thread(self.repo.outbox_enqueue, r["idempotency_key"], payload_of(r, self.config.station_name)):
+                    added += 1
+                self._high_water = max(self._high_water, int(r["id"]))
+
+    async def run_once(self) -> int:
+        """One pass: enqueue new results (unless the db writer already queues them in the result's
+        own transaction), deliver every due entry. Returns deliveries made."""
+        if not getattr(self.repo, "writes_outbox", False):
+            await self.enqueue_new()
+        done = 0
+        due = await asyncio.to_thread(self.repo.outbox_due, time.time(), self.config.batch)
+        for entry in due:
+            if await self._deliver(entry):
+                done += 1
+        return done
+
+    async def _deliver(self, entry: dict) -> bool:
+        key = entry["idempotency_key"]
+        payload = dict(entry["payload"])
+        payload["idempotency_key"] = key
+        try:
+            resp = await self._client.post(
+                self.config.url,
+                json=payload,
+                headers={"Idempotency-Key": key, "User-Agent": "thermal-cal-station"},
+            )
+            ok = 200 <= resp.status_code < 300
+            error = "" if ok else f"HTTP {resp.status_code}"
+        except httpx.HTTPError as exc:
+            ok, error = False, f"{type(exc).__name__}: {exc}".strip()
+        if ok:
+            await asyncio.to_thread(self.repo.outbox_mark_delivered, entry["id"])
+            self.delivered += 1
+            log.info("MES: delivered %s", key)
+            return True
+        attempts = int(entry.get("attempts") or 0) + 1
+        delay = backoff_s(attempts, self.config.base_delay_s, self.config.max_delay_s)
+        await asyncio.to_thread(self.repo.outbox_mark_failed, entry["id"], error[:500], time.time() + delay)
+        self.failures += 1
+        log.warning("MES: delivery of %s failed (%s), attempt %d, next in %.1f s", key, error, attempts, delay)
+        return False

@@ -1,0 +1,103 @@
+"""What the web needs from storage, as one small interface.
+
+Routes and the MES outbox call these methods only; `DbRepository` maps them onto the db
+package's repository functions. Keeping the mapping here means a change in db/ touches one file.
+Every method is synchronous (SQLite); routes call them from the thread pool.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+from station.logfile import DutLog
+
+
+class WebRepository(abc.ABC):
+    # --- DUT history -------------------------------------------------------------------------
+    @abc.abstractmethod
+    def search_duts(self, serial_like: str | None, limit: int = 50) -> list[dict]:
+        """DUT summaries whose serial contains serial_like (case-insensitive), newest first."""
+
+    @abc.abstractmethod
+    def dut(self, serial: str) -> dict | None:
+        """The DUT with its latest results, or None when the serial was never tested."""
+
+    @abc.abstractmethod
+    def runs_of_dut(self, serial: str) -> list[dict] | None:
+        """Every run of a DUT, newest first, each with its results; None for an unknown serial."""
+
+    @abc.abstractmethod
+    def run(self, run_id: int) -> dict | None: ...
+
+    def batch(self, batch_id: int) -> dict | None:
+        """A stored batch (for batches the daemon no longer holds, e.g. after a restart)."""
+        return None
+
+    @abc.abstractmethod
+    def segments(self, run_id: int) -> list[dict] | None:
+        """Segments logged in a run (None for an unknown run)."""
+
+    @abc.abstractmethod
+    def run_log(self, run_id: int) -> DutLog | None:
+        """The run's sample stream as a design 5.1 log (None for an unknown run)."""
+
+    # --- MES ---------------------------------------------------------------------------------
+    @abc.abstractmethod
+    def results_since(self, after_id: int = 0, since_time: float | None = None, limit: int = 100) -> list[dict]:
+        """Finished-DUT results with id > after_id (and created at/after since_time), oldest first.
+
+        Each: {"id", "idempotency_key", "serial", "run_id", "batch_id", "slot", "created_at",
+        "thermal", "sfem"}.
+        """
+
+    @abc.abstractmethod
+    def outbox_enqueue(self, idempotency_key: str, payload: dict) -> bool:
+        """Queue a webhook delivery; a key already queued is not queued again (returns False)."""
+
+    @abc.abstractmethod
+    def outbox_due(self, now: float, limit: int = 20) -> list[dict]:
+        """Undelivered entries due at `now`: {"id","idempotency_key","payload","attempts"}."""
+
+    @abc.abstractmethod
+    def outbox_mark_delivered(self, entry_id: int) -> None: ...
+
+    @abc.abstractmethod
+    def outbox_mark_failed(self, entry_id: int, error: str, next_attempt_at: float) -> None: ...
+
+    def outbox_high_water(self) -> int:
+        """Highest result id already enqueued (0 = scan everything)."""
+        return 0
+
+    def outbox_list(self, limit: int = 100) -> list[dict]:
+        return []
+
+    def health(self) -> str:
+        return "ok"
+
+
+def result_key(run_id: Any, serial: str) -> str:
+    """Idempotency key of one DUT result: stable across retries and restarts, one per run."""
+    return f"run-{run_id}-{serial}"
+
+
+class NoRepository(WebRepository):
+    """Used when the daemon runs without a database: history and MES answer 503, clearly."""
+
+    def _none(self, *args, **kwargs):
+        from fastapi import HTTPException
+
+        raise HTTPException(status_code=503, detail="this station runs without a database: no history or results")
+
+    search_duts = dut = runs_of_dut = run = segments = run_log = results_since = _none  # type: ignore[assignment]
+    outbox_enqueue = outbox_due = outbox_mark_delivered = outbox_mark_failed = _none  # type: ignore[assignment]
+
+    def outbox_list(self, limit: int = 100) -> list[dict]:
+        self._none()
+        return []
+
+    def batch(self, batch_id: int) -> dict | None:
+        return None
+
+    def health(self) -> str:
+        return "none"

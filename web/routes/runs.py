@@ -1,0 +1,75 @@
+"""One DUT run: details, segments, the log file (design 5.1 CSV) and a plot."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi.concurrency import run_in_threadpool
+
+from station.logfile import format_log
+from web.auth import require_read
+from web.plots import render_run_png
+from web.schemas import RunOut, SegmentOut
+from web.views import clean, dut_view, not_found
+
+router = APIRouter(prefix="/api/runs", tags=["runs"])
+RunId = Path(ge=1, le=2**62, description="run id")
+
+
+@router.get("/{run_id}", response_model=RunOut, dependencies=[Depends(require_read)])
+async def get_run(request: Request, run_id: int = RunId):
+    run = await run_in_threadpool(request.app.state.repo.run, run_id)
+    if run is None:
+        raise not_found(f"run {run_id}")
+    return clean(run)
+
+
+@router.get("/{run_id}/segments", response_model=list[SegmentOut], dependencies=[Depends(require_read)])
+async def run_segments(request: Request, run_id: int = RunId):
+    segs = await run_in_threadpool(request.app.state.repo.segments, run_id)
+    if segs is None:
+        raise not_found(f"run {run_id}")
+    return clean(segs)
+
+
+@router.get(
+    "/{run_id}/log.csv",
+    response_class=Response,
+    responses={200: {"content": {"text/csv": {}}, "description": "the run's log, design 5.1"}},
+    dependencies=[Depends(require_read)],
+)
+async def run_log_csv(request: Request, run_id: int = RunId):
+    log = await run_in_threadpool(request.app.state.repo.run_log, run_id)
+    if log is None:
+        raise not_found(f"run {run_id}")
+    text = await run_in_threadpool(format_log, log)
+    name = f"{log.serial or 'run'}-run{run_id}.csv"
+    return Response(text, media_type="text/csv", headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
+def _plot(repo, run_id: int) -> bytes | None:
+    run = repo.run(run_id)
+    if run is None:
+        return None
+    log = repo.run_log(run_id)
+    segs = repo.segments(run_id) or []
+    axes = dut_view({"serial": run.get("serial") or "", "thermal": run.get("thermal")}).get("thermal")
+    title = f"{run.get('serial') or ''}  run {run_id}  ({run.get('state') or ''})"
+    if log is None:
+        from station.logfile import DutLog
+        import numpy as np
+
+        log = DutLog(np.empty(0), np.empty((0, 3)), np.empty(0))
+    return render_run_png(log, segs, axes, title=title)
+
+
+@router.get(
+    "/{run_id}/plot.png",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}, "description": "raw and compensated acceleration, temperature, segments"}},
+    dependencies=[Depends(require_read)],
+)
+async def run_plot(request: Request, run_id: int = RunId):
+    png = await run_in_threadpool(_plot, request.app.state.repo, run_id)
+    if png is None:
+        raise not_found(f"run {run_id}")
+    return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=5"})

@@ -1,0 +1,134 @@
+"""Shape the daemon's status dicts into the REST schemas (tolerant of extra or missing keys), and
+helpers the routes share, so that route functions stay thin."""
+
+from __future__ import annotations
+
+import inspect
+import math
+from typing import Any
+
+from fastapi import HTTPException
+
+
+async def call(fn, *args, **kwargs):
+    """Call a Station method that may be sync or async; map the facade's errors (contract:
+    unknown batch -> KeyError, bad request -> ValueError) to 404 / 422 with the message."""
+    try:
+        out = fn(*args, **kwargs)
+        if inspect.isawaitable(out):
+            out = await out
+    except KeyError as exc:
+        raise HTTPException(status_code=404, detail=_msg(exc, "not found")) from None
+    except ValueError as exc:
+        raise HTTPException(status_code=422, detail=_msg(exc, "invalid request")) from None
+    return out
+
+
+def _msg(exc: Exception, default: str) -> str:
+    if exc.args and isinstance(exc.args[0], str) and exc.args[0]:
+        return exc.args[0]
+    if exc.args:
+        return f"{default}: {exc.args[0]}"
+    return default
+
+
+def not_found(what: str) -> HTTPException:
+    return HTTPException(status_code=404, detail=f"{what} not found")
+
+
+def clean(value: Any) -> Any:
+    """JSON-safe: NaN/inf -> None, numpy -> python, tuples -> lists."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [clean(v) for v in value]
+    if hasattr(value, "tolist"):
+        return clean(value.tolist())
+    if hasattr(value, "item") and callable(value.item):
+        try:
+            return clean(value.item())
+        except (TypeError, ValueError):
+            return value
+    return value
+
+
+def _first(d: dict, *keys, default=None):
+    for k in keys:
+        if k in d and d[k] is not None:
+            return d[k]
+    return default
+
+
+def slot_view(raw: dict | Any, name: str | None = None) -> dict:
+    d = dict(raw) if isinstance(raw, dict) else {"state": str(raw)}
+    segs = _first(d, "segments", "segments_logged", "n_segments", default=0)
+    if isinstance(segs, (list, tuple)):
+        segs = len(segs)
+    out = dict(d)
+    out.update(
+        slot=str(_first(d, "slot", "name", default=name or "")),
+        serial=_first(d, "serial"),
+        state=_first(d, "state"),
+        segments=int(segs or 0),
+        error=_first(d, "error", "fault_reason", "fault") or None,
+    )
+    return clean(out)
+
+
+def batch_view(raw: dict, batch_id: int) -> dict:
+    d = dict(raw)
+    step = d.get("step")
+    if not isinstance(step, dict):
+        step = {
+            "index": _first(d, "step_index", default=step if isinstance(step, int) else None),
+            "name": _first(d, "step_name", default=step if isinstance(step, str) else None),
+            "count": _first(d, "step_count", "n_steps"),
+        }
+    else:
+        step = {
+            **step,
+            "index": _first(step, "index", "step_index", default=d.get("step_index")),
+            "name": _first(step, "name", "step_name"),
+            "count": _first(step, "count", default=_first(d, "step_count", "n_steps")),
+        }
+    slots = d.get("slots") or []
+    if isinstance(slots, dict):
+        slots = [slot_view(v, k) for k, v in slots.items()]
+    else:
+        slots = [slot_view(s) for s in slots]
+    out = dict(d)
+    out.update(
+        id=int(_first(d, "id", "batch_id", default=batch_id)),
+        state=str(_first(d, "state", default="unknown")),
+        step=step,
+        slots=slots,
+        error=_first(d, "error", "reason", "fault_reason") or None,
+        prompt=prompt_view(d.get("prompt")),
+    )
+    return clean(out)
+
+
+def prompt_view(raw: dict | None) -> dict | None:
+    """The sequencer's prompt ({"id", "text", ...}) as the API's Prompt ({"prompt_id", ...})."""
+    if not raw:
+        return None
+    d = dict(raw)
+    d["prompt_id"] = int(_first(d, "prompt_id", "id"))
+    return clean(d)
+
+
+def dut_view(raw: dict) -> dict:
+    """`thermal` per axis from a stored result, which is the calibrate JSON ({"axes": ...}) or axes."""
+    d = dict(raw)
+    thermal = d.get("thermal")
+    if isinstance(thermal, dict):
+        axes = thermal.get("axes") if "axes" in thermal else thermal
+        if isinstance(axes, dict) and all(k in ("x", "y", "z") for k in axes):
+            d["thermal"] = axes
+        else:
+            d["thermal"] = None
+        d.setdefault("streaming", thermal.get("streaming"))
+        d.setdefault("offline", thermal.get("offline"))
+    return clean(d)
