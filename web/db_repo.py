@@ -70,6 +70,10 @@ class DbRepository(WebRepository):
         if d is None:
             return None
         d["run_id"] = d.get("result_run_id")
+        if d["run_id"] is not None:  # where the results come from: batch and time of that run
+            run = R.run_detail(self.db, int(d["run_id"])) or {}
+            d["batch_id"] = run.get("batch_id")
+            d["finished_at"] = run.get("ended_at")
         return _with_methods(d)
 
     def runs_of_dut(self, serial: str) -> list[dict] | None:
@@ -111,19 +115,12 @@ class DbRepository(WebRepository):
             return None
 
     def results_since(self, after_id: int = 0, since_time: float | None = None, limit: int = 100) -> list[dict]:
-        if since_time is not None:
-            t = datetime.fromtimestamp(since_time, tz=timezone.utc)
-            with self.db.session() as s:
-                first = s.scalar(
-                    select(func.min(DutRun.result_seq)).where(DutRun.result_seq.is_not(None), DutRun.ended_at >= t)
-                )
-            if first is None:
-                return []
-            after_id = max(after_id, int(first) - 1)
-        rows = R.results_since(self.db, after_id, limit)
+        t = None if since_time is None else datetime.fromtimestamp(since_time, tz=timezone.utc)
+        rows = R.results_since(self.db, after_id, limit, since_time=t)
         for r in rows:
             r["idempotency_key"] = result_key(r["run_id"], r["id"])
-            r["created_at"] = r.get("ended_at")
+            if not r.get("created_at"):
+                r["created_at"] = r.get("ended_at")
             _with_methods(r)
         return rows
 

@@ -10,9 +10,12 @@ from typing import Any
 from fastapi import HTTPException
 
 
-async def call(fn, *args, **kwargs):
+async def call(fn, *args, conflict: bool = False, **kwargs):
     """Call a Station method that may be sync or async; map the facade's errors (contract:
-    unknown batch -> KeyError, bad request -> ValueError) to 404 / 422 with the message."""
+    unknown batch -> KeyError, bad request -> ValueError) to 404 / 422 with the message.
+
+    conflict=True: a ValueError means the request does not fit the batch's current state
+    (already ended, no prompt open): 409 Conflict rather than 422."""
     try:
         out = fn(*args, **kwargs)
         if inspect.isawaitable(out):
@@ -20,7 +23,7 @@ async def call(fn, *args, **kwargs):
     except KeyError as exc:
         raise HTTPException(status_code=404, detail=_msg(exc, "not found")) from None
     except ValueError as exc:
-        raise HTTPException(status_code=422, detail=_msg(exc, "invalid request")) from None
+        raise HTTPException(status_code=409 if conflict else 422, detail=_msg(exc, "invalid request")) from None
     return out
 
 
