@@ -75,6 +75,9 @@ class Effect:
     nonlinear: tuple[NonlinearParam, ...] = ()
     # What to run to tell this effect apart when the data cannot (shown for unidentifiable ones).
     identify_hint: str = ""
+    # Effects this one cannot be told apart from unless the data has a feature: {other: feature}.
+    # Features (station.diagnostics.ranking.data_features): "ramp_rates" = >= 2 distinct ramp rates.
+    confusable_with: dict = {}
 
     def columns(self, ctx: Context, nl: dict[str, float]) -> np.ndarray:
         raise NotImplementedError
@@ -138,6 +141,7 @@ class ThermalLag(Effect):
     needs = "temperature ramps; >= 2 ramp rates to tell it from hysteresis"
     identify_hint = "ramp at 2 or more different rates (lamp and chamber, or two lamp powers)"
     nonlinear = (NonlinearParam("tau_s", "s", 60.0, 1.0, 3000.0),)
+    confusable_with = {"hysteresis": "ramp_rates"}
 
     def columns(self, ctx, nl):
         return np.zeros((ctx.time_s.shape[0], 3, 0))
@@ -239,7 +243,7 @@ def smooth_temperature(temp_c: np.ndarray, time_s: np.ndarray, window_s: float =
     return (c[w:] - c[:-w]) / w
 
 
-def play_state(temp_c: np.ndarray, width_c: float, decimate: int = 4, deadband_c: float = 0.1) -> np.ndarray:
+def play_state(temp_c: np.ndarray, width_c: float, decimate: int = 16, deadband_c: float = 0.1) -> np.ndarray:
     """Play-type hysteresis state z(t), z' = (sign(dT/dt) - z) |dT/dt| / width, z(0) = 0.
 
     Exact per step: z <- s + (z - s) exp(-|dT|/width). The input is the smoothed measured

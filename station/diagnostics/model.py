@@ -197,6 +197,49 @@ class _Design:
                        dt_c=self.temp_seen(nl) - T_REF_C, acc0_g=acc0_sample_g,
                        t_power_on_s=d.t_power_on_s, cache=d.cache)
 
+    def names(self) -> list[list[str]]:
+        d = self.d
+        out = []
+        for _ in range(3):
+            nm = [f"acc0_g[{lab}]" for lab in d.pos_labels] + ["tdb_mg_per_c", "tdsf_ppm_per_c"]
+            for e in self.effects:
+                nm += [f"{e.name}.{ln}" for ln in e.linear]
+            out.append(nm)
+        return out
+
+    def block_matrices(self, nl, acc0_g: np.ndarray) -> tuple[list[np.ndarray], list[list[str]]]:
+        """Per axis: the block means of the design (n_blocks, k); same columns as matrices().
+
+        Every fit block lies inside one constant-orientation run, so Acc0 is constant over a
+        block and the orientation indicators and the TDSF column (dT * Acc0) are formed from
+        block means directly; only the dT and effect columns are averaged sample by sample.
+        """
+        d = self.d
+        P = len(d.pos_labels)
+        a0 = np.nan_to_num(acc0_g)
+        if self.effects:
+            ctx = self.context(nl, a0[d.pos])
+            dt_c = ctx.dt_c
+            extra = [e.columns(ctx, nl.get(e.name, {})) for e in self.effects]
+        else:
+            dt_c = d.cache.get("_dt_c")
+            if dt_c is None:
+                dt_c = d.cache["_dt_c"] = self.temp_seen(nl) - T_REF_C
+            extra = []
+        ind = d.cache.get("_block_indicator")
+        if ind is None or ind.shape[1] != P:
+            ind = np.zeros((d.block_starts.shape[0], P))
+            ind[np.arange(ind.shape[0]), d.block_pos] = 1000.0
+            d.cache["_block_indicator"] = ind
+        dtb = d.block_mean(dt_c)
+        a0b = a0[d.block_pos]
+        eff_blocks = [d.block_mean(c.reshape(d.n, -1)).reshape(-1, 3, c.shape[2]) for c in extra if c.shape[2]]
+        mats = []
+        for i in range(3):
+            cols = [ind, dtb[:, None], (dtb * a0b[:, i] * 1e-3)[:, None]] + [eb[:, i, :] for eb in eff_blocks]
+            mats.append(np.hstack(cols))
+        return mats, self.names()
+
     def matrices(self, nl, acc0_g: np.ndarray) -> tuple[list[np.ndarray], list[list[str]]]:
         """Per axis: (n, k) design in mg per unit of parameter, and the parameter names."""
         d = self.d
@@ -219,7 +262,7 @@ class _Design:
         return mats, names
 
 
-def _solve(Xb: np.ndarray, yb: np.ndarray, w: np.ndarray):
+def _solve(Xb: np.ndarray, yb: np.ndarray, w: np.ndarray, want_cov: bool = True):
     """Weighted least squares dropping columns that are zero on the training blocks."""
     sw = np.sqrt(w)
     A = Xb * sw[:, None]
@@ -234,6 +277,8 @@ def _solve(Xb: np.ndarray, yb: np.ndarray, w: np.ndarray):
         scale[scale == 0] = 1.0
         sol, *_ = np.linalg.lstsq(As / scale, yb * sw, rcond=None)
         beta[live] = sol / scale
+        if not want_cov:
+            return beta, cov, live
         try:
             inv = np.linalg.pinv((As / scale).T @ (As / scale))
             cov[np.ix_(live, live)] = inv / np.outer(scale, scale)
@@ -242,20 +287,21 @@ def _solve(Xb: np.ndarray, yb: np.ndarray, w: np.ndarray):
     return beta, cov, live
 
 
-def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray, passes: int = 3):
+def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray, passes: int = 3,
+           want_cov: bool = True):
     """Linear solve with the Acc0 fixed-point iteration; returns betas, covs, acc0, residuals."""
     d = design.d
     P = len(d.pos_labels)
     acc0 = acc0_init.copy()
     w = d.block_count[train_blocks]
     for _ in range(passes):
-        mats, names = design.matrices(nl, acc0)
+        mats, names = design.block_matrices(nl, acc0)
         betas, covs, res = [], [], []
         new_acc0 = np.full((P, 3), np.nan)
         for i in range(3):
-            Xb = d.block_mean(mats[i])[train_blocks]
+            Xb = mats[i][train_blocks]
             yb = d.y_block[train_blocks, i]
-            beta, cov, live = _solve(Xb, yb, w)
+            beta, cov, live = _solve(Xb, yb, w, want_cov=want_cov)
             betas.append(beta)
             covs.append(cov)
             res.append((yb - Xb @ beta) * np.sqrt(w))
@@ -306,7 +352,7 @@ def fit_dut(d: DutData, effect_names: list[str], train_blocks: np.ndarray | None
         state = {"acc0": acc0}
 
         def resid(u):
-            _, _, a0, r, _, _ = _inner(design, unpack(u), train_blocks, state["acc0"], passes=2)
+            _, _, a0, r, _, _ = _inner(design, unpack(u), train_blocks, state["acc0"], passes=2, want_cov=False)
             return r
 
         if nl_start and all(p.name in nl_start.get(name, {}) for name, p in specs):
@@ -377,8 +423,21 @@ def _tau_int(x: np.ndarray) -> float:
 def predict_dut(d: DutData, fit: DutFit) -> np.ndarray:
     """Model prediction per sample (n, 3) in mg; NaN for orientations the fit never saw."""
     design = _Design(d, [get_effect(n) for n in fit.effects])
-    mats, _ = design.matrices(fit.nl, fit.acc0_g)
-    pred = np.column_stack([mats[i] @ fit.beta[i] for i in range(3)])
+    P = len(d.pos_labels)
+    a0 = np.nan_to_num(fit.acc0_g)[d.pos]  # (n, 3)
+    ctx = design.context(fit.nl, a0)
+    pred = np.empty((d.n, 3))
+    for i in range(3):
+        b = fit.beta[i]
+        pred[:, i] = 1000.0 * b[:P][d.pos] + ctx.dt_c * (b[P] + b[P + 1] * a0[:, i] * 1e-3)
+    k = P + 2
+    for e in design.effects:
+        c = e.columns(ctx, fit.nl.get(e.name, {}))
+        m = c.shape[2]
+        for i in range(3):
+            if m:
+                pred[:, i] += c[:, i, :] @ fit.beta[i][k:k + m]
+        k += m
     unseen = np.isnan(fit.acc0_g[d.pos]).any(axis=1)
     pred[unseen] = np.nan
     return pred

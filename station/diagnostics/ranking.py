@@ -20,8 +20,13 @@ structure is shared):
   baseline's (relative residual norm < 1e-3, variance inflation > 1e6), e.g. cross_axis or
   scale_nonlinearity from two orientations; reported with the test that would identify it.
 - confusable: two candidates that both pass the evidence test and whose fitted contributions are
-  nearly collinear (|cos| > 0.9 after the baseline is projected out), e.g. thermal_lag and
-  hysteresis from one ramp rate; both are flagged and neither is admitted automatically.
+  nearly collinear (|cos| > 0.9 after the baseline is projected out); and structural pairs that
+  only a data feature separates (Effect.confusable_with: thermal_lag and hysteresis need >= 2
+  distinct ramp rates, since a lag scales with the rate and hysteresis does not) when the data
+  lack it and either has evidence. Both are flagged and neither is admitted automatically.
+- forward admission: the best candidate with evidence is admitted; each further one must pass the
+  same gate against the model holding the ones before it (a confusable pair's best member stands
+  in for the pair), so an effect that only soaks up part of another is "explained_by" it.
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ HELDOUT_GAIN_GATE = 0.03
 SCORE_P_GATE = 1e-3
 UNIDENTIFIABLE_REL = 1e-3
 CONFUSABLE_COS = 0.9
+MIN_TEMP_SPAN_C = 3.0
 
 
 @dataclass
@@ -75,6 +81,7 @@ class DiagnosisReport:
     confusable: list[dict]
     unidentifiable: list[dict]
     parameters: dict
+    features: dict = field(default_factory=dict)
     data: list[DutData] = field(repr=False, default_factory=list)
     candidates: dict[str, ModelEval] = field(repr=False, default_factory=dict)
 
@@ -89,6 +96,7 @@ class DiagnosisReport:
             "staircase": self.staircase,
             "confusable": self.confusable,
             "unidentifiable": self.unidentifiable,
+            "data_features": self.features,
         }
 
     def models(self) -> list[DiagnosticModel]:
@@ -235,10 +243,15 @@ def score_test(data, base: ModelEval, cand: ModelEval):
             uc, inv = np.unique(clusters, return_inverse=True)
             S = np.zeros((uc.size, Z.shape[1]))
             np.add.at(S, inv, s_blocks)
-            if uc.size > 2 * Z.shape[1]:
+            # cluster-robust variance needs the regressor spread over many clusters; a transient
+            # confined to a few chunks (self_heating) gets the autocorrelation-inflated model-based
+            # variance instead: Var(w_b e_b) = sigma^2 w_b for block means, sigma^2 = mean(w e^2)
+            energy = np.bincount(inv, weights=np.sum(w[:, None] * Zt * Zt, axis=1))
+            n_clusters_eff = energy.sum() ** 2 / max(float(np.sum(energy**2)), 1e-300)
+            if n_clusters_eff >= max(10.0, 4.0 * Z.shape[1]):
                 V = S.T @ S
             else:
-                V = (np.sum(w * e * e) / w.sum()) * (Zt.T * w) @ Zt * tau_int(e)
+                V = (np.sum(w * e * e) / w.size) * ((Zt.T * w) @ Zt) * tau_int(e)
             lm = float(s @ np.linalg.pinv(V) @ s)
             lm_total += lm
             df_total += Z.shape[1]
@@ -338,6 +351,83 @@ def _params_json(data: list[DutData], fits: list[DutFit]) -> dict:
     return out
 
 
+FEATURE_TEXT = {"ramp_rates": "two or more distinct temperature ramp rates"}
+
+
+def ramp_rates(d: DutData) -> list[float]:
+    """Distinct ramp rates (C/min) of a DUT's log: |dT/dt| over 5 min of the smoothed die
+    temperature, histogram in half-octave bins; the bins holding >= 12 % of the ramping time."""
+    t, T = d.time_s, d.temp_smooth_c
+    if t.size < 10:
+        return []
+    dt = float(np.median(np.diff(t)))
+    h = max(1, int(round(150.0 / dt)))
+    if T.size <= 2 * h:
+        return []
+    rate = np.abs(T[2 * h:] - T[:-2 * h]) / (t[2 * h:] - t[:-2 * h]) * 60.0
+    ramp = rate[rate > 0.25]
+    if ramp.size < 0.02 * rate.size or ramp.size == 0:
+        return []
+    edges = np.arange(-2.0, 5.01, 0.5)
+    hist, _ = np.histogram(np.log2(ramp), bins=edges)
+    frac = hist / ramp.size
+    centers = 2.0 ** (0.5 * (edges[:-1] + edges[1:]))
+    return [round(float(c), 3) for c, f in zip(centers, frac) if f >= 0.12]
+
+
+def data_features(data: list[DutData]) -> dict:
+    """What the data contain that some identifications need (pooled over DUTs)."""
+    rates = sorted({r for d in data for r in ramp_rates(d)})
+    spread = math.log2(max(rates) / min(rates)) if rates else 0.0
+    return {"ramp_rates": bool(spread >= 0.9), "ramp_rates_c_per_min": rates,
+            "orientations": max(len(d.pos_labels) for d in data)}
+
+
+def _admit_forward(data, base: ModelEval, rows: list[dict], evals: dict, conf_names: set, basis: str,
+                   n_folds: int) -> list[str]:
+    """Forward admission: the best candidate with evidence is admitted; every further one must pass
+    the same gate against the model that already holds the admitted ones (so a candidate that only
+    soaks up part of an admitted effect, e.g. bias_t3 beside a true bias_t2, is not admitted)."""
+    admitted: list[str] = []
+    cond: list[str] = []  # effects in the model every further candidate is tested against
+    current = base
+    for r in rows:
+        name = r["effect"]
+        if not r["evidence"]:
+            continue
+        if name in conf_names:
+            # not admitted, but its best-ranked member stands in for the pair while the others are
+            # tested, so that a third effect does not get admitted for soaking up the pair's signal
+            if not any(c in conf_names for c in cond):
+                if not cond:
+                    current = evals[name]
+                else:
+                    current = evaluate(data, cond + [name], basis, n_folds)
+                cond.append(name)
+            continue
+        if not cond:
+            admitted.append(name)
+            cond.append(name)
+            current = evals[name]
+            r["admitted"] = True
+            continue
+        cand = evaluate(data, cond + [name], basis, n_folds)
+        _, _, p, _ = score_test(data, current, cand)
+        dbic, _ = delta_bic(data, current, cand)
+        gain = ((current.heldout_rms_mg - cand.heldout_rms_mg) / current.heldout_rms_mg
+                if current.heldout_rms_mg > 0 else 0.0)
+        r["given_admitted"] = {"effects": list(cond), "heldout_rms_mg": _r(cand.heldout_rms_mg),
+                               "delta_bic": _r(dbic, 2), "score_p": float(f"{p:.3g}"), "heldout_gain_rel": _r(gain)}
+        if dbic < BIC_GATE and p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE:
+            admitted.append(name)
+            cond.append(name)
+            current = cand
+            r["admitted"] = True
+        else:
+            r["flags"].append("explained_by:" + ",".join(cond))
+    return admitted
+
+
 def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candidates: list[str] | None = None,
              effects_file: str | None = None, basis: str = "window", seg: Segmentation | None = None,
              ) -> DiagnosisReport:
@@ -357,6 +447,14 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
     if basis not in ("sample", "window"):
         raise StationError(f"unknown RMS basis {basis!r} (sample or window)")
     data = [prepare(lg, seg) for lg in logs]
+    for d in data:
+        span = float(np.max(d.temp_smooth_c) - np.min(d.temp_smooth_c))
+        if span < MIN_TEMP_SPAN_C:
+            raise StationError(f"{d.serial}: the temperature spans only {span:.1f} C; the thermal model needs "
+                               f"at least {MIN_TEMP_SPAN_C:g} C (a ramp or temperature plateaus)")
+        if d.block_starts.shape[0] < 4 * seg.n_folds:
+            raise StationError(f"{d.serial}: only {d.n} samples ({d.time_s[-1] - d.time_s[0]:.0f} s) in usable "
+                               f"runs, too little data for held-out validation")
     names = list(candidates) if candidates is not None else list(REGISTRY)
     base = evaluate(data, [], basis, seg.n_folds)
 
@@ -409,15 +507,33 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
                 confusable.append({"effects": [a, b], "cosine": _r(c, 4),
                                    "reason": "their fitted contributions are nearly collinear on this data",
                                    "to_separate": f"{get_effect(a).identify_hint}; {get_effect(b).identify_hint}"})
+    # structural pairs: told apart only by a feature the data lacks (lag vs hysteresis: ramp rates)
+    feats = data_features(data)
+    by_name = {r["effect"]: r for r in rows}
+    for a in by_name:
+        for b, feature in getattr(get_effect(a), "confusable_with", {}).items():
+            if b not in by_name or feats.get(feature, True):
+                continue
+            if not (by_name[a]["evidence"] or by_name[b]["evidence"]):
+                continue
+            if any(set(c["effects"]) == {a, b} for c in confusable):
+                continue
+            confusable.append({
+                "effects": [a, b], "cosine": _r(_cos(_contribution(data, base, evals[a]),
+                                                     _contribution(data, base, evals[b])), 4),
+                "reason": (f"the data lack {FEATURE_TEXT.get(feature, feature)}, the test that separates them "
+                           f"(held-out {by_name[a]['heldout_rms_mg']} vs {by_name[b]['heldout_rms_mg']} mg: any "
+                           f"difference rests on the exact parametric shapes, not on the physics that tells them apart)"),
+                "to_separate": "; ".join(dict.fromkeys([get_effect(a).identify_hint, get_effect(b).identify_hint]))})
     conf_names = {n for pair in confusable for n in pair["effects"]}
     for r in rows:
         if r["effect"] in conf_names:
             others = [x for pair in confusable if r["effect"] in pair["effects"] for x in pair["effects"] if x != r["effect"]]
             r["flags"].append("confusable_with:" + ",".join(sorted(set(others))))
-        r["admitted"] = bool(r["evidence"] and r["effect"] not in conf_names)
         if not r["evidence"]:
             r["flags"].append("no_evidence")
     rows.sort(key=lambda r: (r["heldout_rms_mg"] if r["heldout_rms_mg"] is not None else 1e300))
+    _admit_forward(data, base, rows, evals, conf_names, basis, seg.n_folds)
 
     # --add: error staircase
     staircase = [{"model": "baseline", "effects": [], "rms_mg": _r(base.rms_mg),
@@ -439,7 +555,8 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
     return DiagnosisReport(
         serials=[d.serial for d in data], rms_basis="per sample" if basis == "sample" else "1-minute means",
         baseline=base, ranking=rows, model=current, staircase=staircase, confusable=confusable,
-        unidentifiable=unident, parameters=_params_json(data, current.fits), data=data, candidates=evals)
+        unidentifiable=unident, parameters=_params_json(data, current.fits), features=feats, data=data,
+        candidates=evals)
 
 
 __all__ = ["diagnose", "DiagnosisReport", "ModelEval", "evaluate", "score_test", "delta_bic", "tau_int",

@@ -1,0 +1,163 @@
+"""`station diagnose LOG.csv [LOG2.csv ...] [--add EFFECT ...] [--json] [--plots DIR]` (design 5.2, 7).
+
+Fits the baseline thermal model (martinez2022 eq. 1) to one DUT's log, or to several DUTs of one
+batch together (each DUT its own parameters, the effect structure shared), ranks the candidate
+effects of the library (station/diagnostics/effects.py) by held-out gain, and with `--add` refits
+with the chosen effects and prints the error staircase baseline -> +effect -> ...
+
+    station diagnose SIM0001.csv                       # ranking of missing effects
+    station diagnose SIM0001.csv --add thermal_lag     # staircase and fitted tau with uncertainty
+    station diagnose *.csv --add bias_t2 --json        # a batch, design 5.2 JSON
+    station diagnose LOG.csv --effects-file my_effect.py --add my_effect --plots out/
+    station diagnose LOG.csv --add bias_t2 --save-model SIM0001.model.json
+
+Residual = measured - model, in mg, always.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from station.types import StationError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("logs", nargs="+", metavar="LOG.csv", help="log file(s) of one DUT or of one batch (CSV, design 5.1)")
+    parser.add_argument("--add", action="append", default=[], metavar="EFFECT",
+                        help="add an effect to the model (repeatable; order = staircase order)")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON (design 5.2)")
+    parser.add_argument("--plots", metavar="DIR", help="write PNG plots to DIR")
+    parser.add_argument("--effects-file", action="append", default=[], metavar="PY",
+                        help="Python file registering user effects (repeatable; see docs/diagnostics.md)")
+    parser.add_argument("--candidates", metavar="LIST",
+                        help="comma-separated effects to rank (default: every registered effect)")
+    parser.add_argument("--basis", choices=("window", "sample"), default="window",
+                        help="RMS of 1-minute residual means (default) or of every sample")
+    parser.add_argument("--save-model", metavar="PATH",
+                        help="save the fitted model (baseline + added effects): a file for one log, "
+                             "a directory (one <serial>.model.json per DUT) for several")
+
+
+def _split(items: list[str]) -> list[str]:
+    return [x.strip() for item in items for x in item.split(",") if x.strip()]
+
+
+def _f(x, fmt: str = ".4f", none: str = "-") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return none
+    return format(x, fmt)
+
+
+def _fmt_value(entry: dict) -> str:
+    v, s = entry.get("value"), entry.get("sigma")
+    if v is None:
+        return "-"
+    if s is None:
+        return f"{v:.6g}"
+    return f"{v:.6g} +- {s:.2g}"
+
+
+def format_report(doc: dict) -> str:
+    """The human-readable report: ranking, flags, staircase, fitted effect parameters."""
+    lines = []
+    lines.append(f"DUT(s): {', '.join(doc['serials'])}   residual = {doc['residual']}   RMS of {doc['rms_basis']}")
+    b = doc["baseline"]
+    lines.append(f"baseline (eq. 1: Acc0 per orientation, TDB, TDSF): in-sample {_f(b['rms_mg'])} mg, "
+                 f"held-out {_f(b['heldout_rms_mg'])} mg")
+    lines.append("")
+    lines.append("candidate effects, best held-out first (held-out = whole 5-min chunks never used in their fit):")
+    lines.append(f"  {'effect':<20}{'held-out mg':>12}{'gain mg':>10}{'delta BIC':>12}{'score p':>10}  {'admitted':<9}flags")
+    for r in doc["ranking"]:
+        lines.append(f"  {r['effect']:<20}{_f(r['heldout_rms_mg']):>12}{_f(r['heldout_gain_mg']):>10}"
+                     f"{_f(r['delta_bic'], '.1f'):>12}{_f(r['score_p'], '.2g'):>10}  "
+                     f"{'yes' if r['admitted'] else 'no':<9}{' '.join(r['flags'])}")
+    for c in doc["confusable"]:
+        lines.append(f"  CONFUSABLE: {' and '.join(c['effects'])} (cos {c['cosine']}): {c['reason']}; "
+                     f"to separate: {c['to_separate']}")
+    for u in doc["unidentifiable"]:
+        lines.append(f"  NOT IDENTIFIABLE: {u['effect']}: {u['reason']}; needs {u['needs']}; "
+                     f"test that would identify it: {u['test_to_identify']}")
+    admitted = [r["effect"] for r in doc["ranking"] if r["admitted"]]
+    lines.append(f"  admitted: {', '.join(admitted) if admitted else 'none (no effect passes the gate)'}")
+    lines.append("")
+    lines.append("error staircase:")
+    lines.append(f"  {'model':<28}{'in-sample mg':>14}{'held-out mg':>13}")
+    for s in doc["staircase"]:
+        lines.append(f"  {s['model']:<28}{_f(s['rms_mg']):>14}{_f(s['heldout_rms_mg']):>13}")
+    if len(doc["staircase"]) == 1:
+        lines.append("  (add effects with --add EFFECT to refit and extend the staircase)")
+    params = doc["model"].get("parameters", {})
+    if doc["model"]["effects"]:
+        lines.append("")
+        lines.append("fitted effect parameters (1-sigma, autocorrelation-corrected):")
+        for serial, p in params.items():
+            for eff, vals in p["effects"].items():
+                for pname, entry in vals.items():
+                    if "value" in entry:
+                        lines.append(f"  {serial}  {eff}.{pname}: {_fmt_value(entry)}")
+                    else:
+                        per = "  ".join(f"{ax} {_fmt_value(e)}" for ax, e in entry.items())
+                        lines.append(f"  {serial}  {eff}.{pname}: {per}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from station.diagnostics.effects import get_effect, load_effects_file
+    from station.diagnostics.ranking import diagnose
+    from station.logfile import read_log
+
+    for f in args.effects_file:
+        load_effects_file(f)
+    add = _split(args.add)
+    for a in add:
+        get_effect(a)
+    candidates = _split([args.candidates]) if args.candidates else None
+    for c in candidates or ():
+        get_effect(c)
+    logs = [read_log(p) for p in args.logs]
+    for path, lg in zip(args.logs, logs):
+        if not lg.meta.get("serial"):
+            lg.meta["serial"] = Path(path).stem
+    serials = [lg.serial for lg in logs]
+    if len(set(serials)) != len(serials):
+        raise StationError(f"the same DUT serial appears twice among the logs ({', '.join(serials)})")
+    report = diagnose(logs, add=add, candidates=candidates, basis=args.basis)
+    doc = report.to_json()
+    if args.plots:
+        from station.diagnostics.plots import write_plots
+
+        doc["plots"] = [str(p) for p in write_plots(report, args.plots)]
+    if args.save_model:
+        doc["saved_models"] = [str(p) for p in _save_models(report, Path(args.save_model))]
+    if args.json:
+        json.dump(doc, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(format_report(doc))
+        for p in doc.get("plots", []):
+            print(f"plot: {p}")
+        for p in doc.get("saved_models", []):
+            print(f"model saved: {p}")
+    return 0
+
+
+def _save_models(report, path: Path) -> list[Path]:
+    models = report.models()
+    try:
+        if len(models) == 1 and not path.is_dir():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            models[0].save(path)
+            return [path]
+        path.mkdir(parents=True, exist_ok=True)
+        out = []
+        for m in models:
+            p = path / f"{m.serial}.model.json"
+            m.save(p)
+            out.append(p)
+        return out
+    except OSError as exc:
+        raise StationError(f"{path}: cannot save model ({exc.strerror or exc})") from None
