@@ -62,12 +62,17 @@ class LiveStation:
 
     def __init__(self, tmp_path: Path, *, n_serial: int = 2, n_can: int = 1, speed: float = 400.0,
                  fixture: bool = False, seed: int = 7, outbox=False, sse_interval_s: float = 0.3,
-                 access_log: bool = False) -> None:
+                 access_log: bool = False, operator_hands: bool = False) -> None:
+        """operator_hands: without a motorized fixture, play the operator's hands: when a "turn the
+        plate" prompt is confirmed, the simulated plate is turned to the prompted position (the
+        operator turns it, then presses Confirm)."""
         self.tmp_path = Path(tmp_path)
         self.n_serial, self.n_can, self.speed = n_serial, n_can, speed
         self.fixture, self.seed, self.outbox = fixture, seed, outbox
         self.sse_interval_s = sse_interval_s
         self.access_log = access_log
+        self.operator_hands = operator_hands
+        self.prompts_answered: list[int] = []
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.db_path = self.tmp_path / "station.db"
@@ -110,6 +115,7 @@ class LiveStation:
             station = Station(cfg, db=db)
             await station.start()
             self.station = station
+            hands = asyncio.create_task(self._hands(station.bus, sim)) if self.operator_hands else None
             self.app = create_app(station, outbox=self.outbox, sse_interval_s=self.sse_interval_s)
             self.server = make_server(self.app, "127.0.0.1", self.port, access_log=self.access_log)
             serve = asyncio.create_task(self.server.serve())
@@ -124,8 +130,28 @@ class LiveStation:
                 await asyncio.wait_for(serve, 10)
             except asyncio.TimeoutError:
                 serve.cancel()
+            if hands is not None:
+                hands.cancel()
             await station.close()
             db.dispose()
+
+    async def _hands(self, bus, sim) -> None:
+        from station.events import PromptAnswered, PromptRaised
+
+        q = bus.subscribe(maxsize=10000, drop=True)
+        wanted: dict[int, int | None] = {}
+        try:
+            while True:
+                ev = await q.get()
+                if isinstance(ev, PromptRaised):
+                    wanted[ev.prompt_id] = ev.position
+                elif isinstance(ev, PromptAnswered) and ev.answer != "abort":
+                    pos = wanted.pop(ev.prompt_id, None)
+                    if pos is not None:
+                        sim.world.position = int(pos)
+                    self.prompts_answered.append(ev.prompt_id)
+        finally:
+            bus.unsubscribe(q)
 
     # --- helpers ------------------------------------------------------------------------------
     def call(self, fn, *args, timeout: float = 30, **kwargs):

@@ -72,4 +72,4 @@ async def run_plot(request: Request, run_id: int = RunId):
     png = await run_in_threadpool(_plot, request.app.state.repo, run_id)
     if png is None:
         raise not_found(f"run {run_id}")
-    return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=5"})
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-cache"})

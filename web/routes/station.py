@@ -39,3 +39,9 @@ async def profiles(request: Request):
     for p in await call(request.app.state.station.profiles):
         out.append({"name": p} if isinstance(p, str) else clean(dict(p)))
     return out
+
+
+@router.get("/me", dependencies=[], response_model=dict)
+async def me(request: Request, principal=Depends(require_read)):
+    """Who the token belongs to (name and role): the page shows it and hides what the role may not do."""
+    return {"name": principal.name, "role": principal.role}

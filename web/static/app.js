@@ -4,13 +4,20 @@
 
 const S = {
   token: localStorage.getItem("station.token") || "",
+  role: null,
   batchId: Number(localStorage.getItem("station.batch")) || null,
-  slots: new Map(),        // slot -> {slot, serial, state, error, segments, temp_c, acc_g, samples, result}
+  batchSlots: null,        // slots of the current batch (null: none yet)
+  stepCount: null,
+  order: [],               // slot names in the station's order
+  slots: new Map(),        // slot -> {slot, serial, state, error, segments, temp_c, acc_g, samples, result, plotUrl}
   prompt: null,
   es: null,
   pollTimer: null,
-  finalBatch: false,
+  finalBatch: true,
 };
+
+const FINAL = new Set(["finished", "aborted", "failed", "interrupted"]);
+const STATE_LABEL = { identified: "ready", disconnected: "no DUT", busy: "running", idle: "idle" };
 
 const $ = (id) => document.getElementById(id);
 
@@ -19,17 +26,17 @@ function el(tag, attrs, ...children) {
   for (const [k, v] of Object.entries(attrs || {})) {
     if (k === "class") e.className = v;
     else if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
-    else if (v !== undefined && v !== null) e.setAttribute(k, v);
+    else if (v !== undefined && v !== null && v !== false) e.setAttribute(k, v);
   }
   for (const c of children) {
-    if (c === null || c === undefined) continue;
+    if (c === null || c === undefined || c === false) continue;
     e.append(c instanceof Node ? c : document.createTextNode(String(c)));
   }
   return e;
 }
 
 function fmt(v, digits) {
-  if (v === null || v === undefined || Number.isNaN(v)) return "–";
+  if (v === null || v === undefined || Number.isNaN(Number(v))) return "–";
   return Number(v).toFixed(digits);
 }
 
@@ -61,11 +68,22 @@ async function blobUrl(path) {
   return URL.createObjectURL(await resp.blob());
 }
 
+const canControl = () => S.role === "operator" || S.role === "admin";
+
 // ---- token -----------------------------------------------------------------------------------
 function saveToken() {
   S.token = $("token").value.trim();
   localStorage.setItem("station.token", S.token);
   $("token").value = "";
+  boot();
+}
+
+function signOut() {
+  S.token = "";
+  S.role = null;
+  localStorage.removeItem("station.token");
+  if (S.es) S.es.close();
+  clearInterval(S.pollTimer);
   boot();
 }
 
@@ -75,9 +93,12 @@ function slotState(name) {
   return S.slots.get(name);
 }
 
+function inBatch(name) { return !S.batchSlots || S.batchSlots.includes(name); }
+
 function renderSlots() {
   const box = $("slots");
-  const names = [...S.slots.keys()].sort((a, b) => a.localeCompare(b, undefined, { numeric: true }));
+  const rank = (n) => (S.order.includes(n) ? S.order.indexOf(n) : 1e6);
+  const names = [...S.slots.keys()].sort((a, b) => rank(a) - rank(b) || a.localeCompare(b, undefined, { numeric: true }));
   for (const name of names) {
     const s = S.slots.get(name);
     let card = box.querySelector(`.slot-card[data-slot="${CSS.escape(name)}"]`);
@@ -88,21 +109,25 @@ function renderSlots() {
     const state = s.state || "idle";
     card.className = "slot-card st-" + state;
     card.dataset.state = state;
-    const acc = Array.isArray(s.acc_g) ? s.acc_g.map((v) => fmt(v, 3)).join(" / ") : "–";
-    card.replaceChildren(
-      el("h2", {}, el("span", {}, name), el("span", { class: "state" }, state)),
-      el("div", { class: "serial" }, s.serial || "no DUT"),
-      el("div", { class: "big" }, s.temp_c === undefined ? "– °C" : fmt(s.temp_c, 1) + " °C"),
-      el("dl", {},
-        el("dt", {}, "Step"), el("dd", {}, s.step_name || (s.step_index ?? "–")),
-        el("dt", {}, "Segments"), el("dd", { class: "segments" }, String(s.segments || 0)),
-        el("dt", {}, "Acc x/y/z g"), el("dd", {}, acc),
-        el("dt", {}, "Samples"), el("dd", {}, s.samples ?? "–"),
-      ),
+    const active = inBatch(name) && S.batchId;
+    const acc = Array.isArray(s.acc_g) ? s.acc_g.map((v) => fmt(v, 3)).join("  ") : "–";
+    const need = S.stepCount || 4;
+    const dots = el("span", { class: "dots", "aria-hidden": "true" });
+    for (let i = 0; i < need; i++) dots.append(el("span", { class: i < (s.segments || 0) ? "dot on" : "dot" }));
+    card.replaceChildren(...[
+      el("header", {}, el("h2", {}, name), el("span", { class: "st" }, STATE_LABEL[state] || state)),
+      el("div", { class: "serial" }, s.serial || "no DUT", s.sensor ? el("span", { class: "muted" }, " · " + s.sensor) : null),
+      active ? el("div", { class: "live" },
+        el("span", { class: "temp" }, s.temp_c === undefined || s.temp_c === null ? "– °C" : fmt(s.temp_c, 1) + " °C"),
+        el("span", { class: "segbox" }, "Segments ", el("b", { class: "segments" }, String(s.segments || 0)), dots)) : null,
+      active ? el("dl", {},
+        el("dt", {}, "Acc x y z (g)"), el("dd", { class: "acc" }, acc),
+        el("dt", {}, "Samples"), el("dd", { class: "samples" }, String(s.samples ?? 0)),
+      ) : el("div", { class: "muted" }, S.batchId && !S.finalBatch ? "not in this batch" : ""),
       s.error ? el("div", { class: "fault" }, "Fault: " + s.error) : null,
-      s.result ? resultTable(s.result) : null,
-      s.plotUrl ? el("img", { class: "plot-thumb", src: s.plotUrl, alt: "plot of " + (s.serial || name), onclick: () => showPlot(s.plotUrl) }) : null,
-    );
+      active && s.result ? resultTable(s.result) : null,
+      active && s.plotUrl ? el("img", { class: "plot-thumb", src: s.plotUrl, alt: "plot of " + (s.serial || name), onclick: () => showPlot(s.plotUrl) }) : null,
+    ].filter((c) => c !== null && c !== undefined && c !== false));
   }
 }
 
@@ -113,33 +138,38 @@ function axesOf(o) {
   return null;
 }
 
+// A result in one shape: {axes: {x,y,z}, method, streaming: {x,y,z} | null, sfem}
+function liveResult(ev) {
+  const th = ev.thermal || {};
+  return { axes: axesOf(th), method: th.axes_method || "offline", streaming: axesOf(th.streaming), sfem: ev.sfem };
+}
+
+function storedResult(run) {
+  const by = run.thermal_by_method || {};
+  return { axes: axesOf(run.thermal), method: run.thermal_method, streaming: axesOf(by.streaming), sfem: run.sfem };
+}
+
 function resultTable(result) {
-  // result.thermal: the daemon's DutResult thermal ({axes, streaming, offline}) or stored per-axis
-  // values ({x, y, z}); result.by_method: stored results per method.
-  const th = result.thermal || {};
-  const by = result.by_method || {};
-  const methods = [];
-  for (const m of ["streaming", "offline"]) {
-    const axes = axesOf(th[m]) || axesOf(by[m]);
-    if (axes) methods.push([m, axes]);
-  }
-  if (!methods.length && axesOf(th)) methods.push(["result", axesOf(th)]);
-  const rows = [];
-  for (const [m, axes] of methods) {
-    for (const ax of ["x", "y", "z"]) {
-      const a = axes[ax] || {};
-      rows.push(el("tr", {}, el("td", {}, m + " " + ax), el("td", {}, fmt(a.tdb_mg_per_c, 3)), el("td", {}, fmt(a.tdsf_ppm_per_c, 1))));
+  const wrap = el("div", { class: "result" });
+  if (result.axes) {
+    const rows = ["x", "y", "z"].map((ax) => {
+      const a = result.axes[ax] || {};
+      return el("tr", { "data-axis": ax }, el("td", {}, ax), el("td", { class: "tdb" }, fmt(a.tdb_mg_per_c, 3)),
+        el("td", { class: "tdsf" }, fmt(a.tdsf_ppm_per_c, 1)));
+    });
+    wrap.append(el("table", { class: "results" },
+      el("thead", {}, el("tr", {}, el("th", {}, "axis"), el("th", {}, "TDB mg/°C"), el("th", {}, "TDSF ppm/°C"))),
+      el("tbody", {}, ...rows)));
+    let note = (result.method || "") + (result.method === "offline" ? " fit" : "");
+    if (result.streaming && result.method !== "streaming") {
+      note += " · streaming TDB " + ["x", "y", "z"].map((ax) => fmt((result.streaming[ax] || {}).tdb_mg_per_c, 3)).join(" / ");
     }
+    wrap.append(el("div", { class: "method" }, note));
   }
-  const table = el("table", { class: "results" },
-    el("thead", {}, el("tr", {}, el("th", {}, "method/axis"), el("th", {}, "TDB mg/°C"), el("th", {}, "TDSF ppm/°C"))),
-    el("tbody", {}, ...rows));
-  const wrap = el("div", { class: "result" }, table);
   if (result.sfem) {
     const sf = result.sfem;
-    const rb = sf.rmse_before_mg ?? (sf.fit && sf.fit.rmse_before_mg);
-    const ra = sf.rmse_after_mg ?? (sf.fit && sf.fit.rmse_after_mg);
-    wrap.append(el("div", { class: "sfem" }, `SFEM: RMSE ${fmt(rb, 2)} → ${fmt(ra, 2)} mg`));
+    const t = (sf.temperatures && sf.temperatures[0] && sf.temperatures[0].fit) || sf.fit || sf;
+    wrap.append(el("div", { class: "sfem" }, `SFEM: RMSE ${fmt(t.rmse_before_mg, 2)} → ${fmt(t.rmse_after_mg, 2)} mg`));
   }
   return wrap;
 }
@@ -151,49 +181,64 @@ function showPlot(url) {
 
 async function loadPlot(slot) {
   const s = slotState(slot);
-  if (!s.serial || s.plotUrl) return;
+  if (!s.serial || s.plotUrl || s.plotLoading) return;
+  s.plotLoading = true;
   try {
     const runs = await api(`/api/duts/${encodeURIComponent(s.serial)}/runs`);
-    const run = runs.find((r) => !S.batchId || r.batch_id === S.batchId) || runs[0];
-    if (!run) return;
+    const run = runs.find((r) => r.batch_id === S.batchId);
+    if (!run || !(run.thermal || run.sfem)) return;  // not stored yet: the next poll retries
     s.runId = run.id;
-    if (run.thermal || run.sfem) s.result = { thermal: run.thermal, sfem: run.sfem, by_method: run.thermal_by_method };
+    s.result = storedResult(run);
     s.plotUrl = await blobUrl(`/api/runs/${run.id}/plot.png`);
     renderSlots();
-  } catch (e) { /* results may not be stored yet; retried on the next poll */ }
+  } catch (e) { /* retried on the next poll */ } finally { s.plotLoading = false; }
 }
 
 // ---- batch -----------------------------------------------------------------------------------
 function setBatch(id) {
   S.batchId = id;
   if (id) localStorage.setItem("station.batch", String(id)); else localStorage.removeItem("station.batch");
+  if (!id) { S.batchSlots = null; S.finalBatch = true; }
   $("batch-panel").classList.toggle("hidden", !id);
-  $("start-panel").classList.toggle("hidden", !!id && !S.finalBatch);
   $("batch-id").textContent = id || "";
+  showControls();
 }
 
-const FINAL = new Set(["finished", "aborted", "failed", "interrupted"]);
+function showControls() {
+  $("start-panel").classList.toggle("hidden", !(S.finalBatch && canControl()));
+  $("abort").classList.toggle("hidden", S.finalBatch || !canControl());
+  $("new-batch").classList.toggle("hidden", !S.finalBatch || !S.batchId || !canControl());
+}
+
+function setLamp(on) {
+  $("lamp").textContent = on ? "ON" : "OFF";
+  $("lamp").className = "chip " + (on ? "lamp-on" : "lamp-off");
+}
 
 function applyBatch(b) {
   $("batch-profile").textContent = b.profile || "";
   $("batch-state").textContent = b.state;
   $("batch-state").dataset.state = b.state;
-  if (b.step) $("batch-step").textContent = [b.step.index, b.step.name].filter((x) => x !== null && x !== undefined).join(" · ");
+  S.stepCount = (b.step && b.step.count) || S.stepCount;
+  if (b.step && b.step.index !== null && b.step.index !== undefined) {
+    $("batch-step").textContent = `${b.step.index + 1} / ${b.step.count ?? "?"} · ${b.step.name ?? ""}`;
+  }
+  if (b.lamp_on !== undefined) setLamp(b.lamp_on);
   $("batch-error").textContent = b.error || "";
+  S.batchSlots = (b.slots || []).map((sl) => sl.slot);
+  const counts = { running: 0, done: 0, faulted: 0 };
   for (const sl of b.slots || []) {
     const s = slotState(sl.slot);
-    for (const k of ["serial", "state", "segments"]) if (sl[k] !== null && sl[k] !== undefined) s[k] = sl[k];
-    s.error = sl.error || s.error;
-    if (b.step) { s.step_index = b.step.index; s.step_name = b.step.name; }
-    if (sl.result && !s.result) s.result = sl.result;
+    for (const k of ["serial", "state", "segments", "samples", "sensor"]) if (sl[k] !== null && sl[k] !== undefined) s[k] = sl[k];
+    s.error = sl.error || "";
+    if (sl.state in counts) counts[sl.state] += 1; else counts.running += 1;
     if (s.state === "done" && !s.plotUrl) loadPlot(sl.slot);
   }
+  $("batch-counts").textContent = `${counts.running} running · ${counts.done} done · ${counts.faulted} faulted`;
   S.finalBatch = FINAL.has(b.state);
-  $("abort").classList.toggle("hidden", S.finalBatch);
-  $("new-batch").classList.toggle("hidden", !S.finalBatch);
-  $("start-panel").classList.toggle("hidden", !S.finalBatch);
+  showControls();
   if (b.prompt && b.prompt.prompt_id !== undefined) showPrompt(b.prompt);
-  else if (S.finalBatch) hidePrompt();
+  else hidePrompt();
   renderSlots();
 }
 
@@ -201,13 +246,13 @@ async function pollBatch() {
   if (!S.batchId) return;
   try {
     applyBatch(await api(`/api/batches/${S.batchId}`));
-    const p = await api(`/api/batches/${S.batchId}/prompt`);
-    if (p) showPrompt(p); else hidePrompt();
   } catch (e) {
-    if (e.status === 404) { setBatch(null); }
+    if (e.status === 404) setBatch(null);
     else message(e.message);
   }
 }
+
+function pickAll(on) { for (const i of document.querySelectorAll("#slot-picks input")) i.checked = on; }
 
 async function startBatch() {
   const picks = [...document.querySelectorAll("#slot-picks input:checked")].map((i) => i.value);
@@ -217,15 +262,19 @@ async function startBatch() {
     operator: $("operator").value.trim() || "operator",
     slots: picks.length === all ? null : picks,
   };
-  localStorage.setItem("station.operator", body.operator);
   if (body.slots && !body.slots.length) { message("Choose at least one slot."); return; }
+  localStorage.setItem("station.operator", body.operator);
   $("start").disabled = true;
   try {
     const r = await api("/api/batches", { method: "POST", body });
-    for (const s of S.slots.values()) { delete s.result; delete s.plotUrl; s.segments = 0; s.error = ""; }
+    for (const s of S.slots.values()) {
+      delete s.result; delete s.plotUrl; delete s.temp_c; delete s.acc_g;
+      s.segments = 0; s.samples = 0; s.error = "";
+    }
+    S.batchSlots = body.slots || [...S.slots.keys()];
     S.finalBatch = false;
     setBatch(r.id);
-    message(`Batch ${r.id} started.`);
+    message("");
     await pollBatch();
   } catch (e) {
     message("Could not start: " + e.message);
@@ -245,10 +294,11 @@ async function abortBatch() {
 
 // ---- prompts ---------------------------------------------------------------------------------
 function showPrompt(p) {
+  if (S.prompt && S.prompt.prompt_id === p.prompt_id && !$("prompt-banner").classList.contains("hidden")) return;
   S.prompt = p;
   $("prompt-text").textContent = p.text;
   $("prompt-banner").classList.remove("hidden");
-  $("prompt-confirm").disabled = false;
+  $("prompt-confirm").disabled = !canControl();
 }
 
 function hidePrompt() {
@@ -260,7 +310,7 @@ async function confirmPrompt() {
   if (!S.prompt || !S.batchId) return;
   $("prompt-confirm").disabled = true;
   try {
-    await api(`/api/batches/${S.prompt.batch_id || S.batchId}/prompt`, {
+    await api(`/api/batches/${S.batchId}/prompt`, {
       method: "POST", body: { prompt_id: S.prompt.prompt_id, answer: "done" },
     });
     hidePrompt();
@@ -272,15 +322,23 @@ async function confirmPrompt() {
 
 // ---- live events -----------------------------------------------------------------------------
 function onEvent(ev) {
-  if (ev.batch_id !== undefined && S.batchId && ev.batch_id !== S.batchId && ev.kind !== "LiveSummary") return;
+  if (ev.kind === "BatchStateChanged" && ev.state === "running" && !S.batchId) { setBatch(ev.batch_id); S.finalBatch = false; pollBatch(); }
+  if (ev.batch_id !== undefined && ev.batch_id !== S.batchId && ev.kind !== "LiveSummary" && ev.kind !== "Snapshot") return;
   switch (ev.kind) {
     case "Snapshot":
-      for (const sl of ev.slots || []) { const s = slotState(sl.slot || sl.name); if (sl.serial) s.serial = sl.serial; if (!s.state && sl.state) s.state = sl.state; }
+      for (const sl of ev.slots || []) {
+        const s = slotState(sl.slot || sl.name);
+        if (sl.serial) s.serial = sl.serial;
+        if (sl.sensor) s.sensor = sl.sensor;
+        if (!S.batchId || !inBatch(sl.slot)) s.state = sl.state;
+      }
       break;
     case "LiveSummary":
       for (const [name, v] of Object.entries(ev.slots || {})) {
-        if (S.batchId && v.batch_id !== S.batchId) continue;
-        Object.assign(slotState(name), { temp_c: v.temp_c, acc_g: v.acc_g, samples: v.samples, serial: v.serial || slotState(name).serial });
+        if (v.batch_id !== S.batchId) continue;
+        const s = slotState(name);
+        s.temp_c = v.temp_c; s.acc_g = v.acc_g;
+        if (v.serial) s.serial = v.serial;
       }
       break;
     case "SlotStateChanged": {
@@ -291,25 +349,25 @@ function onEvent(ev) {
     }
     case "SegmentLogged": {
       const s = slotState(ev.slot);
-      s.segments = (s.segments || 0) + 1;
+      s.segments = Math.max(s.segments || 0, (ev.segment && ev.segment.index + 1) || (s.segments || 0) + 1);
       break;
     }
     case "StepStarted":
-      $("batch-step").textContent = ev.step_index + " · " + ev.step_name;
-      for (const s of S.slots.values()) { s.step_index = ev.step_index; s.step_name = ev.step_name; }
+      $("batch-step").textContent = `${ev.step_index + 1} / ${S.stepCount ?? "?"} · ${ev.step_name}`;
       break;
     case "DutResult": {
       const s = slotState(ev.slot);
-      s.result = { thermal: ev.thermal, sfem: ev.sfem };
+      if (!s.result) s.result = liveResult(ev);
       if (ev.serial) s.serial = ev.serial;
       setTimeout(() => loadPlot(ev.slot), 700);
       break;
     }
     case "PromptRaised": showPrompt(ev); break;
     case "PromptAnswered": if (S.prompt && S.prompt.prompt_id === ev.prompt_id) hidePrompt(); break;
-    case "LampChanged": $("lamp").textContent = ev.on ? "ON" : "off"; break;
+    case "LampChanged": setLamp(ev.on); break;
     case "BatchStateChanged":
       $("batch-state").textContent = ev.state;
+      $("batch-state").dataset.state = ev.state;
       pollBatch();
       break;
     case "Alarm":
@@ -342,29 +400,37 @@ async function search() {
     if (!duts.length) list.append(el("p", { class: "muted" }, "No DUT found."));
     for (const d of duts) {
       list.append(el("button", { type: "button", class: "btn dut", "data-serial": d.serial, onclick: () => showDut(d.serial) },
-        `${d.serial} (${d.runs} run${d.runs === 1 ? "" : "s"})`));
+        `${d.serial} · ${d.runs} run${d.runs === 1 ? "" : "s"}`));
     }
+    if (duts.length === 1) showDut(duts[0].serial);
   } catch (e) { list.append(el("p", { class: "error" }, e.message)); }
 }
+
+function when(iso) { return iso ? new Date(iso).toLocaleString() : "–"; }
 
 async function showDut(serial) {
   const box = $("dut-runs");
   box.replaceChildren(el("h2", {}, serial));
   try {
     const runs = await api(`/api/duts/${encodeURIComponent(serial)}/runs`);
+    if (!runs.length) box.append(el("p", { class: "muted" }, "No run stored."));
     for (const r of runs) {
-      const card = el("article", { class: "run-card", "data-run": r.id },
-        el("h3", {}, `Run ${r.id} · batch ${r.batch_id ?? "–"} · slot ${r.slot ?? "–"} · ${r.state ?? ""}`),
-        el("div", { class: "muted" }, `${r.profile ?? ""} ${r.started_at ?? ""} ${r.fault_reason ? "· " + r.fault_reason : ""}`));
-      if (r.thermal || r.sfem) card.append(resultTable({ thermal: r.thermal, sfem: r.sfem, by_method: r.thermal_by_method }));
-      const actions = el("div", { class: "panel" });
-      actions.append(el("button", { type: "button", class: "btn", onclick: async () => showPlot(await blobUrl(`/api/runs/${r.id}/plot.png`)) }, "Plot"));
-      actions.append(el("button", { type: "button", class: "btn", onclick: async () => {
-        const url = await blobUrl(`/api/runs/${r.id}/log.csv`);
-        const a = el("a", { href: url, download: `${serial}-run${r.id}.csv` }); document.body.append(a); a.click(); a.remove();
-      } }, "Log CSV"));
-      card.append(actions);
-      box.append(card);
+      const plotBox = el("div", { class: "plot-box" });
+      const info = el("div", {},
+        el("h3", {}, `Run ${r.id} · ${r.state ?? ""}`),
+        el("div", { class: "muted" }, `batch ${r.batch_id ?? "–"} · slot ${r.slot ?? "–"} · ${r.profile ?? ""}`),
+        el("div", { class: "muted" }, `${when(r.started_at)} → ${when(r.finished_at)}`),
+        r.fault_reason ? el("div", { class: "fault" }, "Fault: " + r.fault_reason) : null,
+        (r.thermal || r.sfem) ? resultTable(storedResult(r)) : el("div", { class: "muted" }, "no result"),
+        el("div", { class: "actions" },
+          el("button", { type: "button", class: "btn plot", onclick: async () => showPlot(await blobUrl(`/api/runs/${r.id}/plot.png`)) }, "Plot"),
+          el("button", { type: "button", class: "btn csv", onclick: async () => {
+            const url = await blobUrl(`/api/runs/${r.id}/log.csv`);
+            const a = el("a", { href: url, download: `${serial}-run${r.id}.csv` }); document.body.append(a); a.click(); a.remove();
+          } }, "Log CSV")));
+      box.append(el("article", { class: "run-card st-" + (r.state || ""), "data-run": r.id }, info, plotBox));
+      blobUrl(`/api/runs/${r.id}/plot.png`).then((url) => plotBox.append(
+        el("img", { class: "plot-inline", src: url, alt: `plot of run ${r.id}`, onclick: () => showPlot(url) }))).catch(() => {});
     }
   } catch (e) { box.append(el("p", { class: "error" }, e.message)); }
 }
@@ -378,25 +444,43 @@ function showView(name) {
 
 // ---- start-up --------------------------------------------------------------------------------
 async function boot() {
-  $("whoami").textContent = S.token ? "token saved" : "no token: paste one to operate";
-  if (!S.token) return;
+  $("auth").classList.toggle("hidden", !!S.token);
+  $("whoami").replaceChildren();
+  if (!S.token) { $("auth-msg").textContent = "Sign in with your token to operate the station."; return; }
   try {
-    const [profiles, slots] = await Promise.all([api("/api/profiles"), api("/api/slots")]);
+    const me = await api("/api/me");
+    S.role = me.role;
+    $("whoami").replaceChildren(`${me.name} (${me.role})`,
+      el("button", { type: "button", class: "btn small", onclick: signOut }, "Sign out"));
+    const [profiles, slots, batches] = await Promise.all([api("/api/profiles"), api("/api/slots"), api("/api/batches?limit=1")]);
     const sel = $("profile");
     sel.replaceChildren(...profiles.map((p) => el("option", { value: p.name }, p.description ? `${p.name} — ${p.description}` : p.name)));
     const picks = $("slot-picks");
     picks.replaceChildren(...slots.map((s) => el("label", { class: "slot-pick" },
-      el("input", { type: "checkbox", value: s.slot, checked: "checked" }), s.slot)));
-    for (const s of slots) { const st = slotState(s.slot); if (s.serial) st.serial = s.serial; if (!st.state && s.state) st.state = s.state; }
-    renderSlots();
+      el("input", { type: "checkbox", value: s.slot, checked: s.state !== "faulted" && s.state !== "disconnected" ? "checked" : null }), s.slot)));
+    S.order = slots.map((s) => s.slot);
+    for (const s of slots) {
+      const st = slotState(s.slot);
+      if (s.serial) st.serial = s.serial;
+      if (s.sensor) st.sensor = s.sensor;
+      st.state = s.state;
+      st.error = s.fault_reason || "";
+    }
+    if (!S.batchId && batches.length && !FINAL.has(batches[0].state)) S.batchId = batches[0].id;
     message("");
   } catch (e) {
-    message(e.status === 401 ? "Token rejected: " + e.message : e.message);
+    if (e.status === 401) {
+      S.token = "";
+      localStorage.removeItem("station.token");
+      $("auth").classList.remove("hidden");
+      $("auth-msg").textContent = "Token rejected: " + e.message;
+    } else message(e.message);
     return;
   }
   connect();
   setBatch(S.batchId);
   if (S.batchId) await pollBatch();
+  renderSlots();
   clearInterval(S.pollTimer);
   S.pollTimer = setInterval(pollBatch, 2000);
 }
@@ -406,7 +490,13 @@ document.addEventListener("DOMContentLoaded", () => {
   $("token").addEventListener("keydown", (e) => { if (e.key === "Enter") saveToken(); });
   $("start").addEventListener("click", startBatch);
   $("abort").addEventListener("click", abortBatch);
-  $("new-batch").addEventListener("click", () => { setBatch(null); S.finalBatch = true; $("start-panel").classList.remove("hidden"); $("batch-panel").classList.add("hidden"); });
+  $("pick-all").addEventListener("click", () => pickAll(true));
+  $("pick-none").addEventListener("click", () => pickAll(false));
+  $("new-batch").addEventListener("click", () => {
+    setBatch(null);
+    for (const s of S.slots.values()) { delete s.result; delete s.plotUrl; s.segments = 0; s.error = ""; }
+    api("/api/slots").then((slots) => { for (const s of slots) slotState(s.slot).state = s.state; renderSlots(); }).catch(() => {});
+  });
   $("prompt-confirm").addEventListener("click", confirmPrompt);
   $("search-go").addEventListener("click", search);
   $("search").addEventListener("keydown", (e) => { if (e.key === "Enter") search(); });
