@@ -7,6 +7,7 @@ it with uvicorn in its own event loop (`make_server`), so routes call the facade
 from __future__ import annotations
 
 import logging
+import re
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -78,7 +79,7 @@ def create_app(
         if outbox and not isinstance(repo, NoRepository):
             worker = MesOutbox(repo, outbox, bus=getattr(station, "bus", None))
             await worker.start()
-            log.info("MES outbox delivering to %s", outbox.url)
+            log.info("MES outbox delivering to %s", re.sub(r"//[^/@]*@", "//***@", outbox.url))  # no credentials in logs
         app.state.outbox = worker
         try:
             yield
