@@ -90,3 +90,44 @@ def pooled_floor(logs, truths, basis="sample") -> float:
         num += v * v * len(lg)
         den += len(lg)
     return float(np.sqrt(num / den))
+
+
+def compare_params(params: dict, truths: list[DutTruth]) -> list[dict]:
+    """Fitted effect parameters (DiagnosisReport.parameters / JSON "parameters") against the truth.
+
+    One row per DUT, effect parameter and axis (axis None for shared nonlinear parameters):
+    {"serial", "effect", "param", "axis", "fit", "sigma", "true"}.
+    """
+    rows = []
+    for t in truths:
+        fitted = params.get(t.serial, {}).get("effects", {})
+        for name, p in t.effects.items():
+            got = fitted.get(name, {})
+            for key, val in p.items():
+                arr = np.asarray(val, float)
+                if name == "cross_axis":
+                    for i, ax in enumerate("xyz"):
+                        for j in range(3):
+                            if i == j:
+                                continue
+                            e = got.get(f"{key}[{j}]", {}).get(ax, {})
+                            rows.append({"serial": t.serial, "effect": name, "param": f"{key}[{i}][{j}]", "axis": ax,
+                                         "fit": e.get("value"), "sigma": e.get("sigma"), "true": float(arr[i, j])})
+                elif arr.ndim == 1 and arr.size == 3:
+                    for i, ax in enumerate("xyz"):
+                        e = got.get(key, {}).get(ax, {})
+                        rows.append({"serial": t.serial, "effect": name, "param": key, "axis": ax,
+                                     "fit": e.get("value"), "sigma": e.get("sigma"), "true": float(arr[i])})
+                else:
+                    e = got.get(key, {})
+                    rows.append({"serial": t.serial, "effect": name, "param": key, "axis": None,
+                                 "fit": e.get("value"), "sigma": e.get("sigma"), "true": float(arr)})
+    return rows
+
+
+def validation_logs(effects=(), n_duts: int = 1, seed: int = 3) -> tuple[list[DutLog], list[DutTruth]]:
+    """Logs of the simulator's `validation` profile (drivers/sim/profiles.py) and their truth."""
+    from drivers.sim.profiles import run_profile
+
+    truths = draw_population(n_duts, seed, effects=tuple(effects))
+    return run_profile(SimWorld(truths, env=EnvConfig(), seed=seed), "validation"), truths

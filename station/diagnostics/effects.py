@@ -10,7 +10,8 @@ constants, widths) fitted by variable projection. `thermal_lag` is special: it h
 it replaces the temperature every other term sees by a first-order lag of the measured one.
 
 Register your own effect with `register(MyEffect())` in a Python file and pass the file with
-`station diagnose --effects-file FILE` (see docs/diagnostics.md and examples/effects/my_effect.py).
+`station diagnose --effects-file FILE` (see docs/diagnostics.md and the example
+station/diagnostics/examples/my_effect.py).
 """
 
 from __future__ import annotations

@@ -115,6 +115,13 @@ def _r(x, nd=4):
     return round(float(x), nd)
 
 
+def _sig(x, n=6):
+    """Round to n significant digits (parameters span 1e-4 mg/C^3 to 1e3 ppm/C)."""
+    if x is None or not np.isfinite(x):
+        return None
+    return float(f"{float(x):.{n}g}")
+
+
 # ---------------------------------------------------------------------------------------------
 
 
@@ -335,7 +342,7 @@ def _params_json(data: list[DutData], fits: list[DutFit]) -> dict:
         dut: dict = {"baseline": {}, "effects": {}}
         for i, ax in enumerate(AXES):
             for name, b, s in zip(f.col_names[i], f.beta[i], f.beta_sigma[i]):
-                entry = {"value": _r(b, 6), "sigma": _r(s, 6)}
+                entry = {"value": _sig(b), "sigma": _sig(s, 3)}
                 if "." in name:
                     eff, pname = name.split(".", 1)
                     if s == 0 and b == 0:
@@ -346,7 +353,7 @@ def _params_json(data: list[DutData], fits: list[DutFit]) -> dict:
         for eff, vals in f.nl.items():
             for pname, v in vals.items():
                 dut["effects"].setdefault(eff, {})[pname] = {
-                    "value": _r(v, 4), "sigma": _r(f.nl_sigma.get(eff, {}).get(pname, float("nan")), 4)}
+                    "value": _sig(v), "sigma": _sig(f.nl_sigma.get(eff, {}).get(pname, float("nan")), 3)}
         out[d.serial] = dut
     return out
 

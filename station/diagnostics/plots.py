@@ -1,0 +1,236 @@
+"""PNG plots of a diagnosis (design 7), with matplotlib's object API (no pyplot global state).
+
+Per DUT: measured vs model, residual vs temperature (heating and cooling in two colours), residual
+vs time, residual vs dT/dt, residual vs acceleration. Per report: ranking bars, error staircase.
+Sample-level series are drawn as 1-minute means (the report's RMS windows): 940 points for a
+15-hour log instead of 176 000, and the quantity the RMS figures are computed on.
+
+Residual = measured - model, in mg, always; the current model (baseline + added effects) is drawn
+in colour, the baseline's residual in grey behind it when effects were added.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from station.types import AXES, StationError
+
+DUT_PLOTS = ("measured_vs_model", "residual_vs_temperature", "residual_vs_time", "residual_vs_rate",
+             "residual_vs_acceleration")
+REPORT_PLOTS = ("ranking", "staircase")
+PLOTS = DUT_PLOTS + REPORT_PLOTS
+HEAT, COOL, STEADY = "#d62728", "#1f77b4", "#999999"
+RATE_STEADY_C_PER_MIN = 0.05
+
+
+def _wmean(d, x: np.ndarray) -> np.ndarray:
+    """Means of x (n,) or (n, k) over the report's RMS windows, NaN-aware."""
+    x2 = x.reshape(d.n, -1)
+    ok = ~np.isnan(x2).any(axis=1)
+    w = d.window[ok]
+    cnt = np.bincount(w, minlength=int(d.window.max()) + 1).astype(float)
+    out = np.stack([np.bincount(w, weights=x2[ok, k], minlength=cnt.size) for k in range(x2.shape[1])], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = out / cnt[:, None]
+    out[cnt == 0] = np.nan
+    return out if x.ndim > 1 else out[:, 0]
+
+
+def _rate_c_per_min(d) -> np.ndarray:
+    """dT/dt of the smoothed measured temperature, C/min, per sample."""
+    if d.n < 3:
+        return np.zeros(d.n)
+    return np.gradient(d.temp_smooth_c, d.time_s) * 60.0
+
+
+def _series(report, k: int) -> dict:
+    d = report.data[k]
+    fit = report.model.fits[k]
+    acc0_mg = np.nan_to_num(fit.acc0_g)[d.pos] * 1000.0
+    model_mg = d.acc_mg - report.model.resid[k]
+    rate = _rate_c_per_min(d)
+    return {
+        "t_h": _wmean(d, d.time_s) / 3600.0,
+        "temp": _wmean(d, d.temp_smooth_c),
+        "rate": _wmean(d, rate),
+        "acc_g": _wmean(d, d.acc_mg) / 1000.0,
+        "meas_drift": _wmean(d, d.acc_mg - acc0_mg),
+        "model_drift": _wmean(d, model_mg - acc0_mg),
+        "res": _wmean(d, report.model.resid[k]),
+        "res_base": _wmean(d, report.baseline.resid[k]) if report.model.effects else None,
+    }
+
+
+def _model_label(report) -> str:
+    return "baseline" + "".join(f" + {e}" for e in report.model.effects)
+
+
+def _axes3(fig: Figure, sharex: bool = True):
+    return fig.subplots(3, 1, sharex=sharex)
+
+
+def plot_measured_vs_model(report, k: int = 0) -> Figure:
+    s = _series(report, k)
+    fig = Figure(figsize=(9, 7), layout="constrained")
+    for i, ax in enumerate(_axes3(fig)):
+        ax.plot(s["t_h"], s["meas_drift"][:, i], ".", ms=2, color="black", label="measured")
+        ax.plot(s["t_h"], s["model_drift"][:, i], "-", lw=1, color="#ff7f0e", label=f"model ({_model_label(report)})")
+        ax.set_ylabel(f"{AXES[i]}: acc - Acc0 (mg)")
+        ax.grid(alpha=0.3)
+    ax.set_xlabel("time (h)")
+    fig.axes[0].legend(loc="best", fontsize=8)
+    fig.suptitle(f"{report.data[k].serial}: measured vs model (thermal part; 1-min means)")
+    return fig
+
+
+def _residual_panels(report, k: int, x: np.ndarray, xlabel: str, title: str, colour_by_rate: bool = False,
+                     per_axis_x: np.ndarray | None = None) -> Figure:
+    s = _series(report, k)
+    fig = Figure(figsize=(9, 7), layout="constrained")
+    rate = s["rate"]
+    for i, ax in enumerate(_axes3(fig, sharex=per_axis_x is None)):
+        xi = per_axis_x[:, i] if per_axis_x is not None else x
+        if s["res_base"] is not None:
+            ax.plot(xi, s["res_base"][:, i], ".", ms=2, color="#cccccc", label="baseline residual")
+        if colour_by_rate:
+            for mask, col, lab in ((rate > RATE_STEADY_C_PER_MIN, HEAT, "heating"),
+                                   (rate < -RATE_STEADY_C_PER_MIN, COOL, "cooling"),
+                                   (np.abs(rate) <= RATE_STEADY_C_PER_MIN, STEADY, "steady")):
+                ax.plot(xi[mask], s["res"][mask, i], ".", ms=3, color=col, label=lab)
+        else:
+            ax.plot(xi, s["res"][:, i], ".", ms=3, color="#2ca02c", label=f"residual ({_model_label(report)})")
+        ax.axhline(0.0, color="black", lw=0.5)
+        ax.set_ylabel(f"{AXES[i]}: residual (mg)")
+        ax.grid(alpha=0.3)
+        if per_axis_x is not None:
+            ax.set_xlabel(f"{AXES[i]} {xlabel}")
+    if per_axis_x is None:
+        fig.axes[-1].set_xlabel(xlabel)
+    fig.axes[0].legend(loc="best", fontsize=8, markerscale=3)
+    fig.suptitle(f"{report.data[k].serial}: residual = measured - model vs {title} (1-min means)")
+    return fig
+
+
+def plot_residual_vs_temperature(report, k: int = 0) -> Figure:
+    s = _series(report, k)
+    return _residual_panels(report, k, s["temp"], "temperature (C)", "temperature", colour_by_rate=True)
+
+
+def plot_residual_vs_time(report, k: int = 0) -> Figure:
+    s = _series(report, k)
+    return _residual_panels(report, k, s["t_h"], "time (h)", "time")
+
+
+def plot_residual_vs_rate(report, k: int = 0) -> Figure:
+    s = _series(report, k)
+    return _residual_panels(report, k, s["rate"], "dT/dt (C/min)", "dT/dt", colour_by_rate=True)
+
+
+def plot_residual_vs_acceleration(report, k: int = 0) -> Figure:
+    s = _series(report, k)
+    return _residual_panels(report, k, None, "acceleration (g)", "acceleration", per_axis_x=s["acc_g"])
+
+
+def plot_ranking(report) -> Figure:
+    rows = report.ranking
+    fig = Figure(figsize=(8, 0.45 * max(len(rows), 2) + 1.6), layout="constrained")
+    ax = fig.add_subplot()
+    names = [r["effect"] for r in rows][::-1]
+    vals = [r["heldout_rms_mg"] or 0.0 for r in rows][::-1]
+    cols = []
+    for r in rows[::-1]:
+        if r["admitted"]:
+            cols.append("#2ca02c")
+        elif any(f.startswith("confusable") for f in r["flags"]):
+            cols.append("#ff7f0e")
+        else:
+            cols.append("#aaaaaa")
+    ax.barh(names, vals, color=cols)
+    ax.axvline(report.baseline.heldout_rms_mg, color="black", ls="--", lw=1, label="baseline held-out")
+    for y, r in enumerate(rows[::-1]):
+        tag = "admitted" if r["admitted"] else ", ".join(r["flags"])
+        ax.text(vals[y], y, f"  {tag}", va="center", fontsize=7)
+    ax.set_xlabel("held-out RMS with the candidate added (mg)")
+    ax.set_title("candidate effects (green admitted, orange confusable, grey no evidence)")
+    ax.legend(loc="lower right", fontsize=8)
+    return fig
+
+
+def plot_staircase(report) -> Figure:
+    st = report.staircase
+    fig = Figure(figsize=(8, 4.5), layout="constrained")
+    ax = fig.add_subplot()
+    x = np.arange(len(st))
+    ins = [s["rms_mg"] or np.nan for s in st]
+    ho = [s["heldout_rms_mg"] or np.nan for s in st]
+    ax.step(x, ins, where="mid", color="#1f77b4", label="in-sample")
+    ax.step(x, ho, where="mid", color="#d62728", label="held-out")
+    ax.plot(x, ins, "o", color="#1f77b4")
+    ax.plot(x, ho, "s", color="#d62728")
+    ax.set_xticks(x, [s["model"] for s in st], rotation=20, ha="right")
+    ax.set_yscale("log")
+    ax.set_ylabel(f"RMS of {report.rms_basis} (mg)")
+    ax.set_title("error staircase: baseline -> + effect -> ...")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend()
+    return fig
+
+
+_DUT_FUNCS = {
+    "measured_vs_model": plot_measured_vs_model,
+    "residual_vs_temperature": plot_residual_vs_temperature,
+    "residual_vs_time": plot_residual_vs_time,
+    "residual_vs_rate": plot_residual_vs_rate,
+    "residual_vs_acceleration": plot_residual_vs_acceleration,
+}
+
+
+def figure(report, name: str, dut: int = 0) -> Figure:
+    if name in _DUT_FUNCS:
+        if not 0 <= dut < len(report.data):
+            raise StationError(f"no DUT {dut} in this diagnosis")
+        return _DUT_FUNCS[name](report, dut)
+    if name == "ranking":
+        return plot_ranking(report)
+    if name == "staircase":
+        return plot_staircase(report)
+    raise StationError(f"unknown plot {name!r} (known: {', '.join(PLOTS)})")
+
+
+def png_bytes(fig: Figure, dpi: int = 100) -> bytes:
+    buf = io.BytesIO()
+    FigureCanvasAgg(fig)
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def render_png(report, name: str, dut: int = 0) -> bytes:
+    return png_bytes(figure(report, name, dut))
+
+
+def write_plots(report, out_dir: str | Path) -> list[Path]:
+    """Every plot as PNG in out_dir: <serial>_<plot>.png per DUT, ranking.png, staircase.png."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StationError(f"{out}: cannot create plot directory ({exc.strerror or exc})") from None
+    paths = []
+    for k, d in enumerate(report.data):
+        for name in DUT_PLOTS:
+            p = out / f"{d.serial}_{name}.png"
+            p.write_bytes(render_png(report, name, k))
+            paths.append(p)
+    for name in REPORT_PLOTS:
+        p = out / f"{name}.png"
+        p.write_bytes(render_png(report, name))
+        paths.append(p)
+    return paths
+
+
+__all__ = ["PLOTS", "DUT_PLOTS", "REPORT_PLOTS", "figure", "render_png", "write_plots", "png_bytes"]
