@@ -22,6 +22,7 @@ from web.auth import TokenStore, install_log_redaction
 from web.mes_outbox import MesOutbox, OutboxConfig
 from web.repo import NoRepository, WebRepository
 from web.routes import batches, duts, events, results, runs, station as station_routes
+from web.routes import diagnostics as diagnostics_routes
 
 STATIC_DIR = Path(__file__).parent / "static"
 log = logging.getLogger("station.web")
@@ -120,6 +121,7 @@ def create_app(
 
     for module in (station_routes, batches, duts, runs, results, events):
         app.include_router(module.router)
+    app.include_router(diagnostics_routes.router)  # model diagnostics of stored runs (issue 6)
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 

@@ -427,7 +427,8 @@ async function showDut(serial) {
           el("button", { type: "button", class: "btn csv", onclick: async () => {
             const url = await blobUrl(`/api/runs/${r.id}/log.csv`);
             const a = el("a", { href: url, download: `${serial}-run${r.id}.csv` }); document.body.append(a); a.click(); a.remove();
-          } }, "Log CSV")));
+          } }, "Log CSV"),
+          window.diagnoseRun ? el("button", { type: "button", class: "btn diag", onclick: () => window.diagnoseRun(r.id, serial) }, "Diagnose") : null));
       box.append(el("article", { class: "run-card st-" + (r.state || ""), "data-run": r.id }, info, plotBox));
       blobUrl(`/api/runs/${r.id}/plot.png`).then((url) => plotBox.append(
         el("img", { class: "plot-inline", src: url, alt: `plot of run ${r.id}`, onclick: () => showPlot(url) }))).catch(() => {});

@@ -1,0 +1,78 @@
+"""Model diagnostics of a stored run (design 7) for the page: JSON, plots and the fitted model.
+
+    GET /api/runs/{id}/diagnosis?add=EFFECT&add=...       design 5.2 JSON (+ staircase, flags)
+    GET /api/runs/{id}/diagnosis/{plot}.png?add=...       one plot (station.diagnostics.plots.PLOTS)
+    GET /api/runs/{id}/diagnosis/model.json?add=...       the fitted model (baseline + added effects)
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+
+from station.types import StationError
+from web.auth import require_read
+from web.diag_plots import PLOTS, DiagnosisCache, check_effects, plot_png, report_json
+from web.views import not_found
+
+router = APIRouter(prefix="/api/runs", tags=["diagnostics"])
+RunId = Path(ge=1, le=2**62, description="run id")
+Add = Query(default=[], description="effect to add to the model (repeatable, in staircase order)")
+
+
+def _cache(request: Request) -> DiagnosisCache:
+    cache = getattr(request.app.state, "diagnosis_cache", None)
+    if cache is None:
+        cache = request.app.state.diagnosis_cache = DiagnosisCache()
+    return cache
+
+
+async def _report(request: Request, run_id: int, add: list[str]):
+    try:
+        effects = check_effects(add)
+    except StationError as exc:
+        raise HTTPException(status_code=422, detail=str(exc)) from None
+    repo = request.app.state.repo
+    try:
+        rep = await run_in_threadpool(_cache(request).get, run_id, effects, lambda: repo.run_log(run_id))
+    except StationError as exc:  # the log cannot be diagnosed (too short, no temperature swing)
+        raise HTTPException(status_code=409, detail=f"run {run_id}: {exc}") from None
+    if rep is None:
+        raise not_found(f"run {run_id} (or its log)")
+    return rep
+
+
+@router.get("/{run_id}/diagnosis", dependencies=[Depends(require_read)])
+async def run_diagnosis(request: Request, run_id: int = RunId, add: list[str] = Add):
+    rep = await _report(request, run_id, add)
+    return await run_in_threadpool(report_json, rep)
+
+
+@router.get("/{run_id}/diagnosis/model.json", dependencies=[Depends(require_read)])
+async def run_diagnosis_model(request: Request, run_id: int = RunId, add: list[str] = Add):
+    rep = await _report(request, run_id, add)
+    model = rep.models()[0]
+    return Response(
+        _dumps(model.to_json()), media_type="application/json",
+        headers={"Content-Disposition": f'attachment; filename="{model.serial or "run"}-run{run_id}.model.json"'},
+    )
+
+
+@router.get(
+    "/{run_id}/diagnosis/{plot}.png",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}, "description": "a diagnosis plot"}},
+    dependencies=[Depends(require_read)],
+)
+async def run_diagnosis_plot(request: Request, run_id: int = RunId, plot: str = Path(), add: list[str] = Add):
+    if plot not in PLOTS:
+        raise not_found(f"plot {plot!r} (known: {', '.join(PLOTS)})")
+    rep = await _report(request, run_id, add)
+    png = await run_in_threadpool(plot_png, rep, plot)
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-cache"})
+
+
+def _dumps(obj) -> str:
+    import json
+
+    return json.dumps(obj, indent=2) + "\n"
