@@ -357,3 +357,12 @@ def test_batch_of_8_single_rate_lag_is_confusable():
     doc = diagnose(logs).to_json()
     assert {"thermal_lag", "hysteresis"} in [set(c["effects"]) for c in doc["confusable"]]
     assert not any(r["admitted"] for r in doc["ranking"])
+
+
+def test_adding_an_unidentifiable_effect_is_warned_not_trusted():
+    logs, _ = H.sim_logs(("cross_axis",), profile=H.SINGLE_RATE)  # two orientations only
+    doc = diagnose(logs, add=["cross_axis"], candidates=["bias_t2"]).to_json()
+    assert [u["effect"] for u in doc["unidentifiable"]] == ["cross_axis"]
+    step = doc["staircase"][-1]
+    assert step["model"] == "+cross_axis" and "not identifiable" in step["warning"]
+    assert "orientation" in step["warning"]

@@ -87,7 +87,8 @@ def format_report(doc: dict) -> str:
     lines.append("error staircase:")
     lines.append(f"  {'model':<28}{'in-sample mg':>14}{'held-out mg':>13}")
     for s in doc["staircase"]:
-        lines.append(f"  {s['model']:<28}{_f(s['rms_mg']):>14}{_f(s['heldout_rms_mg']):>13}")
+        lines.append(f"  {s['model']:<28}{_f(s['rms_mg']):>14}{_f(s['heldout_rms_mg']):>13}"
+                     + (f"  WARNING: {s['warning']}" if s.get("warning") else ""))
     if len(doc["staircase"]) == 1:
         lines.append("  (add effects with --add EFFECT to refit and extend the staircase)")
     params = doc["model"].get("parameters", {})

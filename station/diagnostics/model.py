@@ -349,10 +349,14 @@ def fit_dut(d: DutData, effect_names: list[str], train_blocks: np.ndarray | None
 
         lo = np.array([math.log(p.lower) if p.log else p.lower for _, p in specs])
         hi = np.array([math.log(p.upper) if p.log else p.upper for _, p in specs])
-        state = {"acc0": acc0}
+        # The Acc0 fixed point is solved once per stage (baseline, then at the start values) and held
+        # during the search: one linear pass per evaluation, a deterministic objective for the
+        # finite-difference Jacobian. The final solve below iterates Acc0 to convergence again.
+        base_acc0 = _inner(_Design(d, []), {}, train_blocks, acc0, passes=2, want_cov=False)[2]
+        state = {"acc0": base_acc0}
 
         def resid(u):
-            _, _, a0, r, _, _ = _inner(design, unpack(u), train_blocks, state["acc0"], passes=2, want_cov=False)
+            _, _, a0, r, _, _ = _inner(design, unpack(u), train_blocks, state["acc0"], passes=1, want_cov=False)
             return r
 
         if nl_start and all(p.name in nl_start.get(name, {}) for name, p in specs):
@@ -368,6 +372,7 @@ def fit_dut(d: DutData, effect_names: list[str], train_blocks: np.ndarray | None
                     u[k] = g
                     costs.append(float(np.sum(resid(u) ** 2)))
                 u0[k] = grid[int(np.argmin(costs))]
+        state["acc0"] = _inner(design, unpack(u0), train_blocks, base_acc0, passes=2, want_cov=False)[2]
         sol = least_squares(resid, u0, bounds=(lo, hi), diff_step=1e-3, x_scale=1.0, max_nfev=max_nfev)
         nl = unpack(sol.x)
         # nonlinear uncertainty from the projected Jacobian (white-noise scaling; see ranking)

@@ -467,7 +467,7 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
 
     # identifiability first: a candidate the data cannot identify is not ranked
     unident, ident = [], []
-    for name in names:
+    for name in names + [a for a in add if a not in names]:  # added effects are checked too
         rel = identifiability(data, base, name)
         if rel < UNIDENTIFIABLE_REL:
             e = get_effect(name)
@@ -479,6 +479,7 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
 
     evals: dict[str, ModelEval] = {}
     rows = []
+    ident = [n for n in ident if n in names]
     for name in ident:
         cand = evaluate(data, [name], basis, seg.n_folds)
         evals[name] = cand
@@ -552,13 +553,17 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
         if len(effs) == 1 and effs[0] in evals:
             current = evals[effs[0]]
         else:
-            starts = [{**f.nl} for f in current.fits]
-            current = evaluate(data, effs, basis, seg.n_folds, nl_start=None if not starts else None)
-        staircase.append({"model": "+" + effs[-1], "effects": list(effs), "rms_mg": _r(current.rms_mg),
-                          "heldout_rms_mg": _r(current.heldout_rms_mg),
-                          "rms_per_sample_mg": _r(current.rms_sample_mg),
-                          "heldout_rms_per_sample_mg": _r(current.heldout_rms_sample_mg),
-                          "parameters": _params_json(data, current.fits)})
+            current = evaluate(data, effs, basis, seg.n_folds)
+        step = {"model": "+" + effs[-1], "effects": list(effs), "rms_mg": _r(current.rms_mg),
+                "heldout_rms_mg": _r(current.heldout_rms_mg),
+                "rms_per_sample_mg": _r(current.rms_sample_mg),
+                "heldout_rms_per_sample_mg": _r(current.heldout_rms_sample_mg),
+                "parameters": _params_json(data, current.fits)}
+        warn = [u for u in unident if u["effect"] == effs[-1]]
+        if warn:
+            step["warning"] = (f"{effs[-1]} is not identifiable from this data (its parameters are arbitrary); "
+                               f"{warn[0]['test_to_identify']}")
+        staircase.append(step)
     return DiagnosisReport(
         serials=[d.serial for d in data], rms_basis="per sample" if basis == "sample" else "1-minute means",
         baseline=base, ranking=rows, model=current, staircase=staircase, confusable=confusable,
