@@ -98,6 +98,9 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
                 page.wait_for_function(
                     f"() => {{ const i = document.querySelector('.slot-card[data-slot=\"{slot}\"] img.plot-thumb');"
                     " return i && i.complete && i.naturalWidth > 0; }")
+            page.wait_for_function(
+                "() => " + " && ".join(f"document.querySelector('.slot-card[data-slot=\"{s}\"]').dataset.state === 'done'"
+                                       for s in SELECTED))
             assert len(live.prompts_answered) == 2
             with httpx.Client(base_url=live.url, timeout=10) as api:
                 st = api.get(f"/api/batches/{batch_id}", headers=auth("operator")).json()

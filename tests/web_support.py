@@ -49,6 +49,10 @@ def sim_config(sim, *, speed: float, fixture: bool = False, webhook_url: str | N
         "timing": {"speed": speed},
         "limits": {"lamp_max_on_s": 7200},
         "tokens": [{"token": t, "role": r, "name": f"test-{r}"} for r, t in TOKENS.items()],
+        # a batch that runs until it is aborted (abort/prompt tests need one that is surely running)
+        "profiles": {"hold": {"description": "test: hold the plate at P until aborted", "analysis": "none",
+                              "steps": [{"name": "hold", "position": "P", "lamp": False, "require": "none",
+                                         "dwell_s": 1e6, "timeout_s": 2e6}]}},
     }
     if fixture:
         data["fixture"] = {"tcp": modbus, "unit": 3}
@@ -62,16 +66,22 @@ class LiveStation:
 
     def __init__(self, tmp_path: Path, *, n_serial: int = 2, n_can: int = 1, speed: float = 400.0,
                  fixture: bool = False, seed: int = 7, outbox=False, sse_interval_s: float = 0.3,
-                 access_log: bool = False, operator_hands: bool = False) -> None:
+                 access_log: bool = False, operator_hands: bool = False, sim_process: bool = False) -> None:
         """operator_hands: without a motorized fixture, play the operator's hands: when a "turn the
         plate" prompt is confirmed, the simulated plate is turned to the prompted position (the
-        operator turns it, then presses Confirm)."""
+        operator turns it, then presses Confirm).
+
+        sim_process: run the simulated boards in a child process (`python tests/web_support.py
+        sim ...`), like real hardware outside the daemon, so that the simulator does not share the
+        daemon's event loop and GIL (benchmarks); then `self.sim` only describes the links."""
         self.tmp_path = Path(tmp_path)
         self.n_serial, self.n_can, self.speed = n_serial, n_can, speed
         self.fixture, self.seed, self.outbox = fixture, seed, outbox
         self.sse_interval_s = sse_interval_s
         self.access_log = access_log
         self.operator_hands = operator_hands
+        self.sim_process = sim_process
+        self._child = None
         self.prompts_answered: list[int] = []
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -108,7 +118,11 @@ class LiveStation:
 
         self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        async with SimStation(n_serial=self.n_serial, n_can=self.n_can, seed=self.seed, speed=self.speed) as sim:
+        if self.sim_process:
+            sim_cm = _SimChild(self.n_serial, self.n_can, self.seed, self.speed)
+        else:
+            sim_cm = SimStation(n_serial=self.n_serial, n_can=self.n_can, seed=self.seed, speed=self.speed)
+        async with sim_cm as sim:
             self.sim = sim
             cfg = sim_config(sim, speed=self.speed, fixture=self.fixture, db_url=f"sqlite:///{self.db_path}")
             db = open_database(cfg.database_url)
@@ -167,6 +181,50 @@ class LiveStation:
 
     def flush_db(self) -> None:
         self.call(self.station.flush_db, timeout=60)
+
+
+class _SimChild:
+    """SimStation in a child process; an async context manager giving its links like SimStation."""
+
+    def __init__(self, n_serial: int, n_can: int, seed: int, speed: float) -> None:
+        self.args = [str(n_serial), str(n_can), str(seed), str(speed)]
+        self.proc = None
+
+    async def __aenter__(self):
+        import json
+        import sys
+        from types import SimpleNamespace
+
+        self.proc = await asyncio.create_subprocess_exec(
+            sys.executable, str(Path(__file__).resolve()), "sim", *self.args,
+            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE)
+        line = await asyncio.wait_for(self.proc.stdout.readline(), 60)
+        if not line:
+            raise RuntimeError("simulated station child exited before it was ready")
+        return SimpleNamespace(**json.loads(line))
+
+    async def __aexit__(self, *exc) -> None:
+        if self.proc is not None and self.proc.returncode is None:
+            self.proc.stdin.close()  # the child ends when its stdin closes
+            try:
+                await asyncio.wait_for(self.proc.wait(), 10)
+            except asyncio.TimeoutError:
+                self.proc.kill()
+                await self.proc.wait()
+
+
+async def _sim_child_main(n_serial: int, n_can: int, seed: int, speed: float) -> None:
+    import json
+    import sys
+
+    from drivers.sim.station_sim import SimStation
+
+    async with SimStation(n_serial=n_serial, n_can=n_can, seed=seed, speed=speed) as sim:
+        links = {"serial_ports": list(sim.serial_ports), "slcan_port": sim.slcan_port,
+                 "can_node_ids": list(sim.can_node_ids), "modbus_host": sim.modbus_host,
+                 "modbus_port": sim.modbus_port, "odr_hz": float(sim.world.odr_hz)}
+        print(json.dumps(links), flush=True)
+        await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)  # until the parent closes it
 
 
 def wait_for(predicate, timeout_s: float, interval_s: float = 0.1, what: str = "condition"):
@@ -237,3 +295,13 @@ def seed_results(db, n_duts: int = 5, *, batch_profile: str = "fast-thermal", se
         writer.close()
     db.set_batch_state(batch_id, "finished")
     return truth
+
+
+if __name__ == "__main__":  # `python tests/web_support.py sim N_SERIAL N_CAN SEED SPEED` (see _SimChild)
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    if len(sys.argv) == 6 and sys.argv[1] == "sim":
+        asyncio.run(_sim_child_main(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), float(sys.argv[5])))
+    else:
+        raise SystemExit("usage: web_support.py sim N_SERIAL N_CAN SEED SPEED")

@@ -43,6 +43,31 @@ def _validation_message(exc: RequestValidationError) -> str:
     return "; ".join(parts) or "invalid request"
 
 
+class SecurityHeaders:
+    """Pure ASGI middleware (no per-request task as with @app.middleware("http"), and it leaves SSE
+    streams alone): adds the CSP and nosniff headers to every HTTP response that has none."""
+
+    _ADD = ((b"content-security-policy", CSP.encode()), (b"x-content-type-options", b"nosniff"))
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_headers(message) -> None:
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers") or [])
+                present = {k.lower() for k, _ in headers}
+                headers += [(k, v) for k, v in self._ADD if k not in present]
+                message = {**message, "headers": headers}
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
 def default_repository(station) -> WebRepository:
     db = getattr(station, "db", None)
     if db is None or not hasattr(db, "engine"):  # no db, or the daemon's in-memory stand-in
@@ -112,12 +137,7 @@ def create_app(
     async def _on_station_error(request: Request, exc: StationError):
         return JSONResponse(status_code=409, content={"detail": str(exc)})
 
-    @app.middleware("http")
-    async def _headers(request: Request, call_next):
-        response = await call_next(request)
-        response.headers.setdefault("Content-Security-Policy", CSP)
-        response.headers.setdefault("X-Content-Type-Options", "nosniff")
-        return response
+    app.add_middleware(SecurityHeaders)
 
     for module in (station_routes, batches, duts, runs, results, events):
         app.include_router(module.router)

@@ -132,7 +132,7 @@ def authenticate(request: Request, allow_query_token: bool = False) -> Principal
 def require(roles: frozenset[str], *, allow_query_token: bool = False):
     """FastAPI dependency factory: authenticate, then check the role."""
 
-    def dependency(request: Request) -> Principal:
+    async def dependency(request: Request) -> Principal:  # async: no thread-pool hop per request
         principal = authenticate(request, allow_query_token=allow_query_token)
         if principal.role not in roles:
             raise HTTPException(

@@ -40,7 +40,18 @@ def not_found(what: str) -> HTTPException:
 
 
 def clean(value: Any) -> Any:
-    """JSON-safe: NaN/inf -> None, numpy -> python, tuples -> lists."""
+    """JSON-safe: NaN/inf -> None, numpy -> python, tuples -> lists.
+
+    Hot path (every status poll walks the whole batch): exact builtin types first, by identity."""
+    t = type(value)
+    if t is str or t is int or t is bool or value is None:
+        return value
+    if t is float:
+        return value if math.isfinite(value) else None
+    if t is dict:
+        return {k if type(k) is str else str(k): clean(v) for k, v in value.items()}
+    if t is list or t is tuple:
+        return [clean(v) for v in value]
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
@@ -64,7 +75,7 @@ def _first(d: dict, *keys, default=None):
     return default
 
 
-def slot_view(raw: dict | Any, name: str | None = None) -> dict:
+def slot_view(raw: dict | Any, name: str | None = None, *, cleaned: bool = True) -> dict:
     d = dict(raw) if isinstance(raw, dict) else {"state": str(raw)}
     segs = _first(d, "segments", "segments_logged", "n_segments", default=0)
     if isinstance(segs, (list, tuple)):
@@ -77,7 +88,7 @@ def slot_view(raw: dict | Any, name: str | None = None) -> dict:
         segments=int(segs or 0),
         error=_first(d, "error", "fault_reason", "fault") or None,
     )
-    return clean(out)
+    return clean(out) if cleaned else out
 
 
 def batch_view(raw: dict, batch_id: int) -> dict:
@@ -97,10 +108,10 @@ def batch_view(raw: dict, batch_id: int) -> dict:
             "count": _first(step, "count", default=_first(d, "step_count", "n_steps")),
         }
     slots = d.get("slots") or []
-    if isinstance(slots, dict):
-        slots = [slot_view(v, k) for k, v in slots.items()]
+    if isinstance(slots, dict):  # cleaned once below, with the rest
+        slots = [slot_view(v, k, cleaned=False) for k, v in slots.items()]
     else:
-        slots = [slot_view(s) for s in slots]
+        slots = [slot_view(s, cleaned=False) for s in slots]
     out = dict(d)
     out.update(
         id=int(_first(d, "id", "batch_id", default=batch_id)),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
@@ -35,23 +37,48 @@ async def list_batches(request: Request, limit: int = Query(default=20, ge=1, le
     return [batch_view(await call(station.batch_status, i), i) for i in ids]
 
 
+# Many clients poll the status of the running batch (every page, the MES): the answer of a batch
+# (64 slots, ~25 KiB) is rendered at most once per STATUS_TTL_S and served as bytes meanwhile. Any
+# change made through the API (abort, prompt answer) drops it at once; the live page gets its
+# events by SSE anyway.
+STATUS_TTL_S = 0.1
+
+
+def _status_cache(request: Request) -> dict[int, tuple[float, bytes]]:
+    cache = getattr(request.app.state, "batch_status_cache", None)
+    if cache is None:
+        cache = request.app.state.batch_status_cache = {}
+    return cache
+
+
 @router.get("/{batch_id}", response_model=BatchStatus, dependencies=[Depends(require_read)])
 async def get_batch(request: Request, batch_id: int = BatchId):
     """Live status from the daemon; a batch it no longer holds (ended before a restart) from the db."""
+    cache = _status_cache(request)
+    now = time.monotonic()
+    hit = cache.get(batch_id)
+    if hit is not None and now - hit[0] < STATUS_TTL_S:
+        return Response(hit[1], media_type="application/json")
     try:
-        return batch_view(await call(request.app.state.station.batch_status, batch_id), batch_id)
+        view = batch_view(await call(request.app.state.station.batch_status, batch_id), batch_id)
     except HTTPException as exc:
         if exc.status_code != 404:
             raise
         stored = await run_in_threadpool(request.app.state.repo.batch, batch_id)
         if stored is None:
             raise
-        return batch_view(stored, batch_id)
+        view = batch_view(stored, batch_id)
+    body = BatchStatus.model_validate(view).model_dump_json().encode()
+    if len(cache) > 64:
+        cache.clear()
+    cache[batch_id] = (now, body)
+    return Response(body, media_type="application/json")
 
 
 @router.post("/{batch_id}/abort", response_model=Ack, dependencies=[Depends(require_control)])
 async def abort_batch(request: Request, batch_id: int = BatchId):
     await call(request.app.state.station.abort, batch_id, reason="operator", conflict=True)
+    _status_cache(request).pop(batch_id, None)
     return {"ok": True, "detail": f"batch {batch_id} aborted"}
 
 
@@ -64,4 +91,5 @@ async def get_prompt(request: Request, batch_id: int = BatchId):
 @router.post("/{batch_id}/prompt", response_model=Ack, dependencies=[Depends(require_control)])
 async def answer_prompt(body: PromptAnswer, request: Request, batch_id: int = BatchId):
     await call(request.app.state.station.answer_prompt, batch_id, body.prompt_id, body.answer, conflict=True)
+    _status_cache(request).pop(batch_id, None)
     return {"ok": True, "detail": f"prompt {body.prompt_id} answered"}

@@ -408,11 +408,16 @@ async function search() {
 
 function when(iso) { return iso ? new Date(iso).toLocaleString() : "–"; }
 
+let showDutSeq = 0;
+
 async function showDut(serial) {
+  const seq = ++showDutSeq;  // a later call (another tap) wins; an earlier one drops its answer
   const box = $("dut-runs");
   box.replaceChildren(el("h2", {}, serial));
   try {
     const runs = await api(`/api/duts/${encodeURIComponent(serial)}/runs`);
+    if (seq !== showDutSeq) return;
+    box.replaceChildren(el("h2", {}, serial));
     if (!runs.length) box.append(el("p", { class: "muted" }, "No run stored."));
     for (const r of runs) {
       const plotBox = el("div", { class: "plot-box" });
@@ -433,7 +438,7 @@ async function showDut(serial) {
       blobUrl(`/api/runs/${r.id}/plot.png`).then((url) => plotBox.append(
         el("img", { class: "plot-inline", src: url, alt: `plot of run ${r.id}`, onclick: () => showPlot(url) }))).catch(() => {});
     }
-  } catch (e) { box.append(el("p", { class: "error" }, e.message)); }
+  } catch (e) { if (seq === showDutSeq) box.append(el("p", { class: "error" }, e.message)); }
 }
 
 function showView(name) {
