@@ -309,6 +309,7 @@ def test_page_and_assets_are_served_by_the_station_with_no_cdn(client):
     for asset in ("/static/app.js", "/static/app.css"):
         a = client.get(asset)
         assert a.status_code == 200 and len(a.content) > 1000
+        assert a.headers["cache-control"] == "no-cache" and a.headers["x-content-type-options"] == "nosniff"
     static = Path(__file__).resolve().parents[1] / "web" / "static"
     for f in static.iterdir():
         text = f.read_text()
@@ -328,7 +329,7 @@ def test_openapi_documents_every_contract_path(client):
 # --- auth -----------------------------------------------------------------------------------------
 
 PROTECTED = [
-    ("GET", "/api/slots", None), ("GET", "/api/profiles", None), ("GET", "/api/batches", None),
+    ("GET", "/api/me", None), ("GET", "/api/slots", None), ("GET", "/api/profiles", None), ("GET", "/api/batches", None),
     ("POST", "/api/batches", {"profile": "fast-thermal", "operator": "x"}),
     ("GET", "/api/batches/1", None), ("POST", "/api/batches/1/abort", None),
     ("GET", "/api/batches/1/prompt", None), ("POST", "/api/batches/1/prompt", {"prompt_id": 1}),
@@ -366,6 +367,21 @@ def test_wrong_role_is_403(client, role, method, path, body):
     r = client.request(method, path, json=body, headers=auth(role))
     assert r.status_code == 403
     assert f"role '{role}' may not do this" in r.json()["detail"]
+
+
+@pytest.mark.parametrize("role", ["operator", "mes", "admin"])
+def test_me_names_the_token_owner_and_role_never_the_token(client, role):
+    r = get(client, "/api/me", role)
+    assert r.status_code == 200 and r.json() == {"name": f"test-{role}", "role": role}
+    assert TOKENS[role] not in r.text
+
+
+def test_profiles_and_slots_describe_the_station(client):
+    profiles = {p["name"] for p in get(client, "/api/profiles", "mes").json()}
+    assert {"fast-thermal", "hold"} <= profiles
+    slots = get(client, "/api/slots", "mes").json()
+    assert [s["slot"] for s in slots] == ["s1", "s2", "c1"]
+    assert all(s["serial"] and s["serial"].startswith("SIM") for s in slots)
 
 
 def test_admin_may_read_the_outbox(client):

@@ -57,11 +57,15 @@ class SecurityHeaders:
             await self.app(scope, receive, send)
             return
 
+        static = scope.get("path", "").startswith("/static/")
+
         async def send_with_headers(message) -> None:
             if message["type"] == "http.response.start":
                 headers = list(message.get("headers") or [])
                 present = {k.lower() for k, _ in headers}
                 headers += [(k, v) for k, v in self._ADD if k not in present]
+                if static and b"cache-control" not in present:  # revalidate (ETag): a kiosk page
+                    headers.append((b"cache-control", b"no-cache"))  # picks up an upgrade at once
                 message = {**message, "headers": headers}
             await send(message)
 
