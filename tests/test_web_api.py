@@ -281,9 +281,14 @@ def test_second_batch_prompt_abort_and_conflicts(live, client, batch):
     finally:
         ra = client.post(f"/api/batches/{bid}/abort", headers=auth("operator"))
     assert ra.status_code == 200 and ra.json()["ok"] is True
-    st = wait_for(lambda: (s := get(client, f"/api/batches/{bid}", "operator").json())["state"] in TERMINAL and s,
-                  30, what="abort")
+    def ended():  # the batch, then (a moment later, see the batch fixture) its DUTs
+        s = get(client, f"/api/batches/{bid}", "operator").json()
+        return s if s["state"] in TERMINAL and all(x["state"] not in ("connecting", "identified", "running")
+                                                   for x in s["slots"]) else None
+
+    st = wait_for(ended, 30, what="abort")
     assert st["state"] == "aborted" and st["error"]
+    assert {s["state"] for s in st["slots"]} == {"interrupted"}
     again = client.post(f"/api/batches/{bid}/abort", headers=auth("operator"))
     assert again.status_code == 409 and "already ended" in again.json()["detail"]
     # the aborted runs are stored as such
