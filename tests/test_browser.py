@@ -138,6 +138,12 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
                                    " return i && i.complete && i.naturalWidth > 500; }")
             page.screenshot(path=str(ARTIFACTS / "browser-plot.png"))
 
+            # the API reference is the station's own page too (no Swagger UI from a CDN)
+            page.goto(live.url + "/docs")
+            page.wait_for_function("() => document.querySelectorAll('.api-op').length >= 15")
+            assert "/api/batches/{batch_id}/prompt" in page.inner_text("#api-paths")
+            page.screenshot(path=str(ARTIFACTS / "browser-api-docs.png"))
+
             assert not foreign, f"the page loaded assets from elsewhere: {foreign}"
             assert not errors, errors
         except BaseException:

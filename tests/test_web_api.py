@@ -321,6 +321,12 @@ def test_page_and_assets_are_served_by_the_station_with_no_cdn(client):
         assert "http://" not in text and "https://" not in text and "//cdn" not in text, f
 
 
+def test_api_reference_is_served_by_the_station(client):
+    r = client.get("/docs")
+    assert r.status_code == 200 and '<script src="/static/api.js"' in r.text
+    assert client.get("/redoc").status_code == 404
+
+
 def test_openapi_documents_every_contract_path(client):
     paths = client.get("/openapi.json").json()["paths"]
     for p in ("/api/batches", "/api/batches/{batch_id}", "/api/batches/{batch_id}/abort",

@@ -123,6 +123,8 @@ def create_app(
         description="REST API of the MEMS accelerometer thermal calibration station (design 5.3). "
         "Send `Authorization: Bearer <token>`; roles: operator, mes, admin.",
         lifespan=lifespan,
+        docs_url=None,  # FastAPI's Swagger UI and ReDoc load from a CDN: /docs is served below instead
+        redoc_url=None,
     )
     app.state.station = station
     app.state.repo = repo
@@ -152,6 +154,11 @@ def create_app(
     @app.get("/", include_in_schema=False)
     async def index():
         return FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-cache"})
+
+    @app.get("/docs", include_in_schema=False)
+    async def api_docs():
+        """The API reference, rendered from /openapi.json by the station's own script."""
+        return FileResponse(STATIC_DIR / "api.html", headers={"Cache-Control": "no-cache"})
 
     return app
 

@@ -1,5 +1,5 @@
 """Pydantic models of the REST API (design 5.3): they validate input (422 with a message) and make
-the OpenAPI document at /docs and /openapi.json describe every route.
+the OpenAPI document (/openapi.json, rendered at /docs) describe every route.
 
 Response models allow extra fields so that the daemon and the database may add information without
 breaking the contract; the fields named here are the ones clients may rely on.
@@ -198,3 +198,15 @@ class OutboxEntry(_Out):
     state: str | None = None
     attempts: int = 0
     last_error: str | None = None
+
+
+class ErrorOut(BaseModel):
+    detail: str = Field(description="what went wrong, one line for a person")
+
+
+def error_responses(*codes: int) -> dict:
+    """OpenAPI `responses=` for a router: the error answers its routes give, all {"detail": "..."}."""
+    what = {401: "missing, malformed or invalid token", 403: "the token's role may not do this",
+            404: "unknown id", 409: "not possible in the batch's current state", 422: "invalid input",
+            503: "no database"}
+    return {c: {"model": ErrorOut, "description": what.get(c, "error")} for c in codes}

@@ -8,10 +8,10 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Res
 from fastapi.concurrency import run_in_threadpool
 
 from web.auth import require_control, require_read
-from web.schemas import Ack, BatchCreate, BatchCreated, BatchStatus, Prompt, PromptAnswer
+from web.schemas import Ack, BatchCreate, BatchCreated, BatchStatus, Prompt, PromptAnswer, error_responses
 from web.views import batch_view, call, prompt_view
 
-router = APIRouter(prefix="/api/batches", tags=["batches"])
+router = APIRouter(prefix="/api/batches", tags=["batches"], responses=error_responses(401, 403, 404, 409))
 FINAL_STATES = frozenset({"finished", "aborted", "failed", "interrupted"})
 BatchId = Path(ge=1, le=2**62, description="batch id")
 

@@ -6,10 +6,10 @@ from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 
 from web.auth import require_read
-from web.schemas import DutOut, DutSummary, RunOut
+from web.schemas import DutOut, DutSummary, RunOut, error_responses
 from web.views import clean, dut_view, not_found
 
-router = APIRouter(prefix="/api/duts", tags=["duts"])
+router = APIRouter(prefix="/api/duts", tags=["duts"], responses=error_responses(401, 403, 404, 503))
 Serial = Path(min_length=1, max_length=64, pattern=r"^[\x21-\x7e]+$", description="DUT serial number")
 
 

@@ -7,9 +7,10 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import StreamingResponse
 
 from web.auth import require_read_sse
+from web.schemas import error_responses
 from web.sse import event_stream
 
-router = APIRouter(prefix="/api", tags=["events"])
+router = APIRouter(prefix="/api", tags=["events"], responses=error_responses(401, 403))
 
 
 @router.get(

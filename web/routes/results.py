@@ -8,10 +8,10 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
 
 from web.auth import require_admin, require_results
-from web.schemas import OutboxEntry, ResultsPage
+from web.schemas import OutboxEntry, ResultsPage, error_responses
 from web.views import clean, dut_view
 
-router = APIRouter(prefix="/api", tags=["mes"])
+router = APIRouter(prefix="/api", tags=["mes"], responses=error_responses(401, 403, 503))
 
 
 def parse_since(since: str | None) -> tuple[int, float | None]:

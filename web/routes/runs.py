@@ -8,10 +8,10 @@ from fastapi.concurrency import run_in_threadpool
 from station.logfile import format_log
 from web.auth import require_read
 from web.plots import render_run_png
-from web.schemas import RunOut, SegmentOut
+from web.schemas import RunOut, SegmentOut, error_responses
 from web.views import clean, dut_view, not_found
 
-router = APIRouter(prefix="/api/runs", tags=["runs"])
+router = APIRouter(prefix="/api/runs", tags=["runs"], responses=error_responses(401, 403, 404, 503))
 RunId = Path(ge=1, le=2**62, description="run id")
 
 
