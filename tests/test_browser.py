@@ -9,6 +9,7 @@ Screenshots go to artifacts/ (CI keeps them).
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -138,6 +139,24 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
                                    " return i && i.complete && i.naturalWidth > 500; }")
             page.screenshot(path=str(ARTIFACTS / "browser-plot.png"))
 
+            # a second batch, aborted from the page (two taps) while it waits for the operator
+            page.click("#plot-dialog button")
+            page.click("#tab-live")
+            page.click("#new-batch")
+            page.click("#start")
+            page.wait_for_function(f"() => Number(document.querySelector('#batch-id').textContent) > {batch_id}")
+            second = int(page.inner_text("#batch-id"))
+            page.wait_for_selector("#prompt-banner:not(.hidden)")
+            page.click("#abort")
+            assert page.inner_text("#abort") == "Tap again to abort"
+            page.click("#abort")
+            page.wait_for_function("() => document.querySelector('#batch-state').textContent === 'aborted'")
+            page.wait_for_selector("#prompt-banner.hidden", state="attached")
+            with httpx.Client(base_url=live.url, timeout=10) as api:
+                st2 = api.get(f"/api/batches/{second}", headers=auth("operator")).json()
+            assert st2["state"] == "aborted" and st2["lamp_on"] is False
+            assert page.is_visible("#start")  # ready for the next batch
+
             # the API reference is the station's own page too (no Swagger UI from a CDN)
             page.goto(live.url + "/docs")
             page.wait_for_function("() => document.querySelectorAll('.api-op').length >= 15")
@@ -150,6 +169,10 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
             try:  # what the page showed when it failed, for the CI artifacts
                 page.screenshot(path=str(ARTIFACTS / "browser-failure.png"), full_page=True)
                 (ARTIFACTS / "browser-failure.html").write_text(page.content())
+                with httpx.Client(base_url=live.url, timeout=10) as api:
+                    ids = [b["id"] for b in api.get("/api/batches", headers=auth("operator")).json()]
+                    status = [api.get(f"/api/batches/{i}", headers=auth("operator")).json() for i in ids]
+                (ARTIFACTS / "browser-failure-status.json").write_text(json.dumps(status, indent=1))
             except Exception:  # noqa: BLE001
                 pass
             raise

@@ -283,8 +283,25 @@ async function startBatch() {
   }
 }
 
+// Abort takes two taps (no blocking browser dialog on a kiosk): the first arms the button for 4 s.
+let abortArmed = null;
+
+function disarmAbort() {
+  clearTimeout(abortArmed);
+  abortArmed = null;
+  $("abort").classList.remove("armed");
+  $("abort").textContent = "Abort";
+}
+
 async function abortBatch() {
-  if (!S.batchId || !confirm("Abort batch " + S.batchId + "? The lamp is switched off.")) return;
+  if (!S.batchId) return;
+  if (!abortArmed) {
+    $("abort").classList.add("armed");
+    $("abort").textContent = "Tap again to abort";
+    abortArmed = setTimeout(disarmAbort, 4000);
+    return;
+  }
+  disarmAbort();
   try {
     await api(`/api/batches/${S.batchId}/abort`, { method: "POST" });
     message(`Batch ${S.batchId} aborted.`);
