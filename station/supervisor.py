@@ -335,13 +335,15 @@ class Station:
         if bus is None:
             kwargs: dict[str, Any] = {"sleep_after_open": 0} if c.interface == "slcan" else {}
             bus = CanBus(c.interface, c.channel, c.bitrate, **kwargs)
-            try:
-                await bus.open()
-            except DriverError:
-                raise
-            except Exception as exc:
-                raise DriverError(f"cannot open CAN {c.interface}:{c.channel}: {exc}") from exc
+            # Registered before the first await: slots connect concurrently and must share
+            # one bus per channel (two python-can handles on one adapter steal each other's bytes).
             self._can_buses[key] = bus
+        try:
+            await bus.open()  # idempotent and locked: the first slot opens, the rest wait
+        except DriverError:
+            raise
+        except Exception as exc:
+            raise DriverError(f"cannot open CAN {c.interface}:{c.channel}: {exc}") from exc
         return CanBoard(bus, c.node)
 
     async def _connect_slot(self, rt: SlotRuntime, batch_id: int = 0) -> bool:
@@ -415,6 +417,80 @@ class Station:
         log.info("batch %d: profile %s on %d slot(s) by %r", batch_id, profile, len(names), operator)
         return batch_id
 
+    def resume_batch(self, batch_id: int, operator: str = "") -> int:
+        """Resume an interrupted batch (crash, restart) at the step after its last completed one.
+
+        Each DUT run that was interrupted goes on as the SAME run: its stored sample stream is
+        replayed through a fresh calibrator (pure science: same state as before the crash), the
+        live stream is appended after it, and the board must answer with the same serial.
+        Faulted or finished runs stay as they are. Returns the batch id.
+        """
+        if not self._started or self._closed:
+            raise ValueError("the station is not running")
+        if isinstance(self.db, MemoryDb):
+            raise ValueError("resume needs a database (nothing was stored)")
+        if any(rt.seq.state not in TERMINAL for rt in self.batches.values()):
+            raise ValueError("a batch is already running on this station (one plate, one lamp)")
+        rp = self.db.resume_point(int(batch_id))  # KeyError for an unknown batch
+        if rp.state != "interrupted":
+            raise ValueError(f"batch {batch_id} is {rp.state}: only an interrupted batch can be resumed")
+        prof = self._profiles.get(rp.profile)
+        if prof is None:
+            raise ValueError(f"batch {batch_id} ran profile {rp.profile!r}, which this config does not have")
+        if any(s.chamber_setpoint_c is not None for s in prof.steps) and self.chamber is None:
+            raise ValueError(f"profile {rp.profile!r} needs a thermal chamber and none is configured")
+        runs = [r for r in rp.runs if r.state == "interrupted"]
+        missing = [r.slot for r in runs if r.slot not in self.slots]
+        if missing:
+            raise ValueError(f"batch {batch_id}: slot(s) {', '.join(missing)} are not in this config")
+        if not runs:
+            raise ValueError(f"batch {batch_id} has no interrupted DUT run to resume")
+        duts = [self._restored_dut(r, rp) for r in runs]
+        seq = Sequencer(batch_id, prof, duts, self, self.bus, operator=operator or rp.operator,
+                        start_step=min(rp.next_step, len(prof.steps)))
+        for d in duts:
+            self.slots[d.slot].batch_id = batch_id
+        self.batches[batch_id] = _BatchRt(seq)
+        self.lamp.reset(batch_id)  # type: ignore[union-attr]
+        seq.start()
+        log.info("batch %d: resumed at step %d of %s with %d DUT(s)", batch_id, rp.next_step, rp.profile, len(duts))
+        return batch_id
+
+    def _restored_dut(self, r: Any, rp: Any) -> DutRun:
+        """A DutRun carrying what the stored run already holds: samples, calibrator state, segments."""
+        from db.export import run_log
+        from db.repository import segments_of_run
+
+        d = DutRun(slot=r.slot, link=self.slots[r.slot].cfg.link, run_id=r.run_id, expected_serial=r.serial)
+        for step, windows in (rp.step_windows or {}).items():
+            w = windows.get(r.slot)
+            if w and None not in w:
+                d.step_windows[int(step)] = (float(w[0]), float(w[1]))
+        stored = run_log(self.db, r.run_id)
+        if len(stored) == 0:
+            return d
+        block = SampleBlock(stored.time_s, stored.acc_g, stored.temp_c)
+        d.blocks, d.block_steps = [block], [max(rp.next_step - 1, 0)]
+        d.t0, d.last_t, d.resume_t = float(block.time_s[0]), float(block.time_s[-1]), float(block.time_s[-1])
+        d.n_samples = len(block)
+        d.calibrator = self.calibrator_factory()
+        replayed = d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c)
+        steps = {g["index"]: (g["step_index"], g["position"]) for g in (segments_of_run(self.db, r.run_id) or [])}
+        for seg in replayed:
+            if seg.index in steps:
+                step, pos = steps[seg.index]
+                d.segments.append(annotate_segment(seg, pos))
+                d.segment_steps.append(step)
+            else:
+                # Logged from samples whose segment event the crash did not let commit: it belongs
+                # to the interrupted step (a completed step's segments commit before its end) and
+                # to the position the stored samples were taken at.
+                k = min(int(np.searchsorted(stored.time_s, seg.t_end_s)), len(stored) - 1)
+                pos = int(stored.position[k]) if stored.position is not None and stored.position[k] >= 0 else None
+                d.unstored_segments.append((annotate_segment(seg, pos), rp.next_step))
+        d.hold_calibrator = True  # fed again once the resumed step is logging (see _ingest)
+        return d
+
     def _batch(self, batch_id: int) -> _BatchRt:
         try:
             return self.batches[int(batch_id)]
@@ -485,13 +561,26 @@ class Station:
                 return
             slot.state = "busy"
             d.identity = slot.identity
-            d.state = "identified"
             ident = d.identity
-            d.run_id = int(self.db.create_run(seq.batch_id, d.slot, ident.serial, ident.sensor, _identity_dict(ident)))
+            if d.expected_serial is not None and ident.serial != d.expected_serial:
+                self.fault_dut(seq, d, f"{d.link}: found serial {ident.serial}, the interrupted run was "
+                                       f"{d.expected_serial} (board swapped?)")
+                return
+            d.state = "identified"
+            if d.run_id is None:
+                d.run_id = int(self.db.create_run(seq.batch_id, d.slot, ident.serial, ident.sensor,
+                                                  _identity_dict(ident)))
             if self.writer is not None:
                 self.writer.bind_run(seq.batch_id, d.slot, d.run_id)
             self._publish_dut(seq, d)
-            d.calibrator = self.calibrator_factory()
+            for seg, step in d.unstored_segments:
+                d.segments.append(seg)
+                d.segment_steps.append(step)
+                self.bus.publish(SegmentLogged(seq.batch_id, slot=d.slot, serial=ident.serial, step_index=step,
+                                               segment=seg))
+            d.unstored_segments.clear()
+            if d.calibrator is None:
+                d.calibrator = self.calibrator_factory()
             try:
                 await slot.driver.start()  # type: ignore[union-attr]
             except DriverError as exc:
@@ -591,6 +680,15 @@ class Station:
 
     def _ingest(self, seq: Sequencer, d: DutRun, block: SampleBlock, now: float) -> None:
         d.last_wall = now
+        if d.resume_t is not None:
+            # First block after a resume: a board whose clock restarted (CAN time is sample index /
+            # ODR from our own count) is joined on one sample period after the stored stream.
+            if block.time_s[0] <= d.resume_t:
+                odr = d.identity.odr_hz if d.identity and d.identity.odr_hz else 1.0
+                d.time_offset_s = d.resume_t + 1.0 / odr - float(block.time_s[0])
+            d.resume_t = None
+        if d.time_offset_s:
+            block = SampleBlock(block.time_s + d.time_offset_s, block.acc_g, block.temp_c, block.lost_samples)
         if d.t0 is None:
             d.t0 = float(block.time_s[0])
         d.last_t = float(block.time_s[-1])
@@ -601,7 +699,13 @@ class Station:
         assert lamp is not None
         self.bus.publish(SamplesReceived(seq.batch_id, slot=d.slot, serial=d.serial or "", step_index=seq.step_index,
                                          block=block, lamp_on=lamp.is_on, position=seq.position))
-        if d.calibrator is not None:
+        if d.hold_calibrator and seq.state == "logging":
+            # Resumed: the plate is where the step wants it now. No average may span the time the
+            # daemon was down or the reconnect, so the calibrator's window starts over here.
+            d.hold_calibrator = False
+            if hasattr(d.calibrator, "restart_window"):
+                d.calibrator.restart_window()
+        if d.calibrator is not None and not d.hold_calibrator:
             segs = d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c)
             for seg in segs:
                 seg = annotate_segment(seg, seq.position)

@@ -57,7 +57,10 @@ async def wait_for(pred, timeout_s, what):
     loop = asyncio.get_running_loop()
     end = loop.time() + timeout_s
     while loop.time() < end:
-        if await pred() if asyncio.iscoroutinefunction(pred) else pred():
+        value = pred()
+        if asyncio.iscoroutine(value):
+            value = await value
+        if value:
             return
         await asyncio.sleep(0.05)
     raise AssertionError(f"timed out waiting for {what}")

@@ -9,6 +9,7 @@ SIGTERM switch the lamp off before anything else, interrupt a running batch and 
 from __future__ import annotations
 
 import argparse
+import logging
 import asyncio
 import sys
 
@@ -24,17 +25,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start-batch", metavar="PROFILE", default=None, help="start a batch of PROFILE at once")
     p.add_argument("--slots", default=None, help="with --start-batch: comma separated slot names (default all)")
     p.add_argument("--once", action="store_true", help="with --start-batch: exit when the batch ends (0 = finished)")
+    p.add_argument("--resume", default=None, metavar="BATCH",
+                   help="resume an interrupted batch (an id, or 'latest') at the step after its last completed one")
     p.add_argument("--check", action="store_true", help="check the config and the links, then exit")
     p.add_argument("--verbose", "-v", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
+    if args.check and not args.verbose:
+        # --check prints each faulted slot itself, one line each; no second copy from the log.
+        logging.getLogger("station.supervisor").setLevel(logging.ERROR)
     from station.config import load_config
 
     cfg = load_config(args.config)
-    if args.once and not args.start_batch:
-        raise StationError("--once needs --start-batch PROFILE")
+    if args.once and not (args.start_batch or args.resume):
+        raise StationError("--once needs --start-batch PROFILE or --resume BATCH")
+    if args.start_batch and args.resume:
+        raise StationError("--start-batch and --resume exclude each other")
     return asyncio.run(_main(args, cfg))
 
 
@@ -78,6 +86,9 @@ async def _main(args: argparse.Namespace, cfg) -> int:
             except ValueError as exc:
                 raise StationError(str(exc)) from None
             print(f"station serve: batch {batch_id} ({args.start_batch}) started", flush=True)
+        if args.resume:
+            batch_id = _resume(station, db, args.resume)
+            print(f"station serve: batch {batch_id} resumed", flush=True)
         if args.once and batch_id is not None:
             done = asyncio.create_task(station.wait_batch(batch_id))
             stopper = asyncio.create_task(stop.wait())
@@ -101,3 +112,23 @@ async def _main(args: argparse.Namespace, cfg) -> int:
         if hasattr(db, "dispose"):
             db.dispose()
     return rc
+
+
+def _resume(station, db, which: str) -> int:
+    """--resume BATCH|latest: one clear line when there is nothing (or nothing valid) to resume."""
+    if which == "latest":
+        ids = db.interrupted_batches() if hasattr(db, "interrupted_batches") else []
+        if not ids:
+            raise StationError("--resume latest: no interrupted batch in the database")
+        batch_id = ids[-1]
+    else:
+        try:
+            batch_id = int(which)
+        except ValueError:
+            raise StationError(f"--resume: {which!r} is neither a batch id nor 'latest'") from None
+    try:
+        return station.resume_batch(batch_id, "serve --resume")
+    except KeyError:
+        raise StationError(f"--resume: no batch {batch_id} in the database") from None
+    except ValueError as exc:
+        raise StationError(f"--resume: {exc}") from None
