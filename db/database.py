@@ -66,6 +66,7 @@ class ResumePoint:
     last_completed_step: int | None
     config_snapshot: dict
     runs: list[RunPoint] = field(default_factory=list)
+    step_windows: dict = field(default_factory=dict)  # {"<step>": {"<slot>": [from_s, to_s]}}
 
     @property
     def next_step(self) -> int:
@@ -323,6 +324,7 @@ class Database:
                 last_completed_step=b.last_completed_step,
                 config_snapshot=dict(b.config_snapshot or {}),
                 runs=runs,
+                step_windows=dict(b.step_windows or {}),
             )
 
     def interrupted_batches(self) -> list[int]:

@@ -29,7 +29,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 # The revision of the newest schema this code knows (db/migrations/versions/).
-SCHEMA_REVISION = "0001"
+SCHEMA_REVISION = "0002"
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -102,6 +102,8 @@ class Batch(Base):
     step_index: Mapped[int | None] = mapped_column(Integer)
     last_completed_step: Mapped[int | None] = mapped_column(Integer)
     config_snapshot: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    # {"<step index>": {"<slot>": [t_from_s, t_to_s]}} of every completed step (resume, SFEM windows)
+    step_windows: Mapped[dict[str, Any]] = mapped_column(default=dict, server_default="{}")
     schema_version: Mapped[str] = mapped_column(String(32), default=SCHEMA_REVISION)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column()

@@ -37,7 +37,16 @@ from sqlalchemy.exc import OperationalError
 from db import codec
 from db.database import BATCH_END_STATES, RUN_END_STATES, Database
 from db.models import Batch, DutRun, Outbox, SampleChunk, SegmentRow, SfemResultRow, ThermalResultRow, utcnow
-from station.events import BatchStateChanged, DutResult, Event, SamplesReceived, SegmentLogged, SlotStateChanged
+from station.events import (
+    BatchStateChanged,
+    DutResult,
+    Event,
+    SamplesReceived,
+    SegmentLogged,
+    SlotStateChanged,
+    StepCompleted,
+    StepStarted,
+)
 from station.types import AXES
 
 log = logging.getLogger(__name__)
@@ -140,7 +149,8 @@ def sfem_rows(sfem: dict | None) -> list[dict]:
     ]
 
 
-_STORED = (SamplesReceived, SegmentLogged, DutResult, SlotStateChanged, BatchStateChanged)
+_STORED = (SamplesReceived, SegmentLogged, DutResult, SlotStateChanged, BatchStateChanged, StepStarted, StepCompleted)
+_BATCH_LEVEL = (BatchStateChanged, StepStarted, StepCompleted)
 
 
 @dataclass
@@ -313,7 +323,9 @@ class DbWriter:
                 for ev in events:
                     if not isinstance(ev, _STORED):
                         continue  # prompts, lamp, alarms, steps: not stored
-                    run_id = None if isinstance(ev, BatchStateChanged) else self._run_id(conn, ev)
+                    if isinstance(ev, SlotStateChanged) and not ev.batch_id:
+                        continue  # a slot's state between batches (connect, identify): no run to store it in
+                    run_id = None if isinstance(ev, _BATCH_LEVEL) else self._run_id(conn, ev)
                     if isinstance(ev, SamplesReceived):
                         if run_id is not None:
                             samples.setdefault(run_id, []).append(ev)
@@ -330,6 +342,10 @@ class DbWriter:
                                 seal.add(run_id)
                     elif isinstance(ev, BatchStateChanged):
                         seal.update(self._batch_state(conn, ev))
+                    elif isinstance(ev, StepStarted):
+                        conn.execute(update(Batch).where(Batch.id == ev.batch_id).values(step_index=ev.step_index))
+                    elif isinstance(ev, StepCompleted):
+                        self._step_completed(conn, ev)
                 for run_id, evs in samples.items():
                     info.n_samples += self._samples(conn, run_id, evs, force_seal=run_id in seal)
                     seal.discard(run_id)
@@ -412,16 +428,28 @@ class DbWriter:
 
     def _slot_state(self, conn: Connection, run_id: int, ev: SlotStateChanged) -> None:
         values: dict[str, Any] = {"state": ev.state, "fault_reason": ev.fault_reason}
-        if ev.state in RUN_END_STATES:
-            values["ended_at"] = utcnow()
+        values["ended_at"] = utcnow() if ev.state in RUN_END_STATES else None  # None: resumed
         conn.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
+
+    def _step_completed(self, conn: Connection, ev: StepCompleted) -> None:
+        """The resume point: committed after (or with) every sample and segment of the step."""
+        windows = conn.execute(select(Batch.step_windows).where(Batch.id == ev.batch_id)).scalar()
+        windows = dict(windows or {})
+        windows[str(ev.step_index)] = {
+            slot: [float(a) if math.isfinite(a) else None, float(b) if math.isfinite(b) else None]
+            for slot, (a, b) in ev.windows.items()
+        }
+        conn.execute(
+            update(Batch)
+            .where(Batch.id == ev.batch_id)
+            .values(last_completed_step=ev.step_index, step_windows=windows)
+        )
 
     def _batch_state(self, conn: Connection, ev: BatchStateChanged) -> set[int]:
         values: dict[str, Any] = {"state": ev.state}
         if ev.reason:
             values["reason"] = ev.reason
-        if ev.state in BATCH_END_STATES:
-            values["ended_at"] = utcnow()
+        values["ended_at"] = utcnow() if ev.state in BATCH_END_STATES else None  # None: resumed
         conn.execute(update(Batch).where(Batch.id == ev.batch_id).values(**values))
         if ev.state not in BATCH_END_STATES:
             return set()

@@ -58,6 +58,16 @@ class StepStarted(Event):
 
 
 @dataclass(frozen=True)
+class StepCompleted(Event):
+    """A profile step ended; windows = each DUT's board-time span of the step (slot -> (from, to)).
+
+    Stored as the batch's last completed step: a batch interrupted later resumes after it."""
+
+    step_index: int
+    windows: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class SlotStateChanged(Event):
     slot: str
     serial: str | None

@@ -34,6 +34,7 @@ from station.events import (
     PromptAnswered,
     PromptRaised,
     SlotStateChanged,
+    StepCompleted,
     StepStarted,
 )
 from station.positions import POSITION_NAMES
@@ -46,7 +47,7 @@ log = logging.getLogger("station.sequencer")
 # state -> states it may go to. Terminal states go nowhere.
 TRANSITIONS: dict[str, tuple[str, ...]] = {
     "created": ("connecting",),
-    "connecting": ("step_setup",),
+    "connecting": ("step_setup", "analysing"),  # analysing: a resumed batch whose steps were all done
     "step_setup": ("positioning",),
     "positioning": ("moving", "waiting_operator", "logging"),
     "moving": ("logging",),
@@ -98,6 +99,13 @@ class DutRun:
     step_windows: dict[int, tuple[float, float]] = field(default_factory=dict)  # step -> board time span
     result: dict | None = None
     link_stats: dict = field(default_factory=dict)
+    # Resume of an interrupted batch: the serial the stored run belongs to, the board time its
+    # stored stream ended at (the live stream is joined on after it) and the offset applied.
+    expected_serial: str | None = None
+    resume_t: float | None = None
+    time_offset_s: float = 0.0
+    hold_calibrator: bool = False  # resumed: samples are stored but not calibrated until logging
+    unstored_segments: list[tuple[Segment, int]] = field(default_factory=list)
 
     @property
     def serial(self) -> str | None:
@@ -158,7 +166,9 @@ class Sequencer:
         bus: EventBus,
         operator: str = "",
         poll_s: float = 0.2,
+        start_step: int = 0,
     ) -> None:
+        """start_step > 0 resumes an interrupted batch after its last completed step."""
         self.batch_id = batch_id
         self.profile = profile
         self.duts = duts
@@ -168,7 +178,10 @@ class Sequencer:
         self.poll_s = poll_s
         self.state = "created"
         self.history: list[tuple[float, str, str]] = []  # (wall, from, to)
-        self.step_index = -1
+        if not 0 <= start_step <= len(profile.steps):
+            raise ValueError(f"profile {profile.name!r} has no step {start_step}")
+        self.start_step = start_step
+        self.step_index = start_step - 1
         self.position: int | None = None  # where the plate is (confirmed), None = unknown
         self.step_clock_start = 0.0  # batch sample clock when the step began logging
         self.error = ""
@@ -293,7 +306,7 @@ class Sequencer:
     async def _state_connecting(self) -> str:
         await self.hw.connect_duts(self)
         self._ensure_live()
-        return "step_setup"
+        return "step_setup" if self.step_index + 1 < len(self.profile.steps) else "analysing"
 
     async def _state_step_setup(self) -> str:
         self.step_index += 1
@@ -363,8 +376,12 @@ class Sequencer:
         # Lamp per step, once the plate is where the step wants it.
         await self.hw.lamp.set_lamp(step.lamp, f"step {self.step_index} {step.name}")
         self.step_clock_start = self.clock_s()
+        resumed_step = self.step_index == self.start_step and self.start_step > 0
         for d in self.duts:
             d.step_t_start = d.last_t if d.last_t is not None else -math.inf
+            if resumed_step and step.require == "segment":
+                # The step was interrupted: a segment it logged (at its position) before the crash counts.
+                d.step_t_start = -math.inf
         while True:
             self._ensure_live()
             pending = [d for d in self.live_duts if not self.dut_step_done(d, step)]
@@ -383,6 +400,11 @@ class Sequencer:
         for d in self.duts:
             if d.last_t is not None:
                 d.step_windows[self.step_index] = (d.step_t_start, d.last_t)
+        self.bus.publish(StepCompleted(
+            self.batch_id, step_index=self.step_index,
+            windows={d.slot: d.step_windows[self.step_index] for d in self.live_duts
+                     if self.step_index in d.step_windows},
+        ))
         return "step_done"
 
     def dut_step_done(self, d: DutRun, step: Step) -> bool:

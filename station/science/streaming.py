@@ -159,6 +159,14 @@ class StreamingCalibrator:
     def orientation(self) -> int:
         return self._orientation
 
+    def restart_window(self) -> None:
+        """The stream was interrupted (daemon restart, link gap): samples from both sides of the
+        gap must not share one average, so discarding and averaging start over, as when the gate
+        closes. Saved segments, the orientation and the filters are kept; a saved segment that is
+        waiting for the next temperature or orientation change keeps waiting."""
+        if not self._waiting:
+            self._reset_counters()
+
     # ------------------------------------------------------------------ shared steps
     def _reset_counters(self) -> None:
         self._n_disc = 0
