@@ -76,6 +76,11 @@ class BatchFailed(Exception):
     """The batch cannot go on (no live DUT, fixture fault, lamp trip)."""
 
 
+class _StopRequested(Exception):
+    """stop() was called but its task cancellation was swallowed (asyncio.wait_for inside a
+    Modbus client can eat a cancel on Python 3.11): the machine checks for it at every turn."""
+
+
 @dataclass
 class DutRun:
     """One DUT in one batch: what the supervisor has received and the sequencer judges."""
@@ -149,7 +154,9 @@ class Hardware(Protocol):
 
     async def connect_duts(self, seq: "Sequencer") -> None: ...
 
-    async def release_duts(self, seq: "Sequencer") -> None: ...
+    async def release_duts(self, seq: "Sequencer") -> None:
+        """Stop the DUTs' streams; live DUTs end 'done' if seq.ending == 'finished', else
+        'interrupted'. Called before the batch's terminal state is published."""
 
     def fault_dut(self, seq: "Sequencer", dut: DutRun, reason: str) -> None: ...
 
@@ -194,6 +201,7 @@ class Sequencer:
         self._stop: tuple[str, str] | None = None
         self.task: asyncio.Task | None = None
         self.done = asyncio.Event()
+        self.ending: str | None = None  # the terminal state being entered (set before cleanup)
 
     # ------------------------------------------------------------ helpers
     @property
@@ -230,6 +238,7 @@ class Sequencer:
         self.bus.publish(BatchStateChanged(self.batch_id, state=BATCH_STATE[new], reason=reason or f"{old} -> {new}"))
 
     def _ensure_live(self) -> None:
+        self._check_stop()
         if not self.live_duts:
             raise BatchFailed("no DUT left: every slot is faulted")
 
@@ -264,10 +273,17 @@ class Sequencer:
     async def run(self) -> str:
         try:
             while self.state not in TERMINAL:
+                self._check_stop()
                 handler = getattr(self, f"_state_{self.state}")
                 nxt = await handler()
+                self._check_stop()
+                if nxt in TERMINAL:
+                    # DUTs are released (marked done) and the lamp is off before the batch says so.
+                    await self._cleanup(nxt)
+                    self._transition(nxt)
+                    break
                 self._transition(nxt)
-        except asyncio.CancelledError:
+        except (asyncio.CancelledError, _StopRequested):
             state, reason = self._stop or ("aborted", "cancelled")
             self.error = reason
             await self._end(state, reason)
@@ -278,22 +294,28 @@ class Sequencer:
             log.exception("batch %d crashed", self.batch_id)
             self.error = f"internal error: {exc!r}"
             await self._end("failed", self.error)
-        else:
-            await self._cleanup()
         finally:
             self.ended_wall = time.time()
             self.done.set()
         return self.state
 
     async def _end(self, state: str, reason: str) -> None:
-        if self.state not in TERMINAL:
-            self._transition(state, reason)
-        await self._cleanup()
+        if self.state in TERMINAL:
+            return
+        await self._cleanup(state)
+        self._transition(state, reason)
 
-    async def _cleanup(self) -> None:
+    def _check_stop(self) -> None:
+        if self._stop is not None:
+            raise _StopRequested(self._stop[1])
+
+    async def _cleanup(self, final_state: str) -> None:
+        """Lamp off, then release the DUTs (done or interrupted by `ending`); before the batch's
+        own end is published, so a client that sees the batch ended sees its DUTs ended too."""
+        self.ending = final_state
         self.prompt = None
         # The lamp goes off on ANY batch end (design 3.3), before anything else can fail.
-        await asyncio.shield(self.hw.lamp.off(f"batch {self.batch_id} {self.state}"))
+        await asyncio.shield(self.hw.lamp.off(f"batch {self.batch_id} {final_state}"))
         try:
             await asyncio.shield(self.hw.release_duts(self))
         except Exception:

@@ -609,7 +609,7 @@ class Station:
                     pass
                 d.link_stats = slot.driver.stats.as_dict() if hasattr(slot.driver, "stats") else {}
             if d.live:
-                d.state = "done" if seq.state == "finished" else "interrupted"
+                d.state = "done" if (seq.ending or seq.state) == "finished" else "interrupted"
                 self._publish_dut(seq, d)
             if slot.state == "busy":
                 slot.state = "identified"

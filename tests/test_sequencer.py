@@ -73,7 +73,7 @@ class Hw:
         self.released = True
         for d in seq.duts:
             if d.live:
-                d.state = "done" if seq.state == "finished" else "interrupted"
+                d.state = "done" if seq.ending == "finished" else "interrupted"
 
     def fault_dut(self, seq, d, reason):
         d.state, d.fault_reason = "faulted", reason
@@ -112,12 +112,12 @@ async def feed(seq, slow=(), dt=10.0, log_after_s=60.0):
         await asyncio.sleep(0.001)
 
 
-def _make(profile, n=3, fixture=True, **limits):
+def _make(profile, n=3, fixture=True, start_step=0, **limits):
     bus = EventBus()
     q = bus.subscribe(maxsize=100000)
     hw = Hw(bus, MemFixture() if fixture else None, **limits)
     duts = [DutRun(slot=f"s{i}") for i in range(n)]
-    seq = Sequencer(7, profile, duts, hw, bus, poll_s=0.01)
+    seq = Sequencer(7, profile, duts, hw, bus, poll_s=0.01, start_step=start_step)
     hw.seq = seq
     hw.lamp.reset(7)
     return seq, hw, q
@@ -314,3 +314,40 @@ async def test_failed_off_write_is_retried_and_alarmed():
     assert relay.coil is False
     assert any(isinstance(e, LampChanged) and not e.on for e in _drain(q))
     await g.close()
+
+
+async def test_abort_holds_even_when_a_device_call_swallows_the_cancel():
+    """asyncio.wait_for inside a Modbus client can eat the task's cancel (Python 3.11): the
+    sequencer must still end 'aborted' at its next turn, lamp off, instead of running on."""
+    seq, hw, q = _make(BUILTIN_PROFILES["fast-thermal"])
+    entered = asyncio.Event()
+    inner = hw.connect_duts
+
+    async def swallowing_connect(s):
+        await inner(s)
+        entered.set()
+        try:
+            await asyncio.sleep(0.5)
+        except asyncio.CancelledError:
+            pass  # what a swallowing wait_for looks like from here
+
+    hw.connect_duts = swallowing_connect
+    seq.start()
+    await asyncio.wait_for(entered.wait(), 5)
+    seq.stop("aborted", "operator pressed abort")
+    assert await asyncio.wait_for(seq.task, 5) == "aborted"
+    assert seq.error == "operator pressed abort"
+    assert not hw.lamp.is_on and hw.released
+    assert all(d.state == "interrupted" for d in seq.duts)
+    assert "logging" not in [b for _, _, b in seq.history]
+
+
+async def test_resumed_sequencer_starts_after_the_last_completed_step():
+    seq, hw, q = _make(BUILTIN_PROFILES["fast-thermal"], start_step=2)
+    seq.start()
+    feeder = asyncio.create_task(feed(seq))
+    assert await asyncio.wait_for(seq.task, 10) == "finished"
+    feeder.cancel()
+    started = [e.step_index for e in _drain(q) if e.kind == "StepStarted"]
+    assert started == [2, 3]
+    assert all(d.state == "done" for d in seq.duts)

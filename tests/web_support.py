@@ -150,22 +150,9 @@ class LiveStation:
             db.dispose()
 
     async def _hands(self, bus, sim) -> None:
-        from station.events import PromptAnswered, PromptRaised
+        from drivers.sim.operator import operator_hands
 
-        q = bus.subscribe(maxsize=10000, drop=True)
-        wanted: dict[int, int | None] = {}
-        try:
-            while True:
-                ev = await q.get()
-                if isinstance(ev, PromptRaised):
-                    wanted[ev.prompt_id] = ev.position
-                elif isinstance(ev, PromptAnswered) and ev.answer != "abort":
-                    pos = wanted.pop(ev.prompt_id, None)
-                    if pos is not None:
-                        sim.world.position = int(pos)
-                    self.prompts_answered.append(ev.prompt_id)
-        finally:
-            bus.unsubscribe(q)
+        await operator_hands(bus, sim.world, self.prompts_answered)
 
     # --- helpers ------------------------------------------------------------------------------
     def call(self, fn, *args, timeout: float = 30, **kwargs):

@@ -199,6 +199,11 @@ async def _main(args: argparse.Namespace) -> int:
         station = Station(cfg, db=db)
         server = task = None
         rc = 0
+        hands = None
+        if args.no_fixture:  # the simulated operator turns the plate when a prompt is confirmed
+            from drivers.sim.operator import operator_hands
+
+            hands = asyncio.get_running_loop().create_task(operator_hands(station.bus, sim.world))
         try:
             await station.start()
             faulted = [s for s in station.slots_status() if s["state"] == "faulted"]
@@ -242,6 +247,8 @@ async def _main(args: argparse.Namespace) -> int:
             else:
                 await stop.wait()
         finally:
+            if hands is not None:
+                hands.cancel()
             await stop_web(server, task)
             await station.close("daemon shutdown")
             if hasattr(db, "dispose"):
