@@ -10,4 +10,4 @@ if ! command -v chromium >/dev/null 2>&1; then
 fi
 bash scripts/setup.sh test
 mkdir -p artifacts
-exec .venv/bin/python -m pytest -q -p no:cacheprovider "$@"
+exec .venv/bin/python -m pytest -q -p no:cacheprovider --tb=native --durations=25 "$@"
