@@ -342,7 +342,7 @@ def test_openapi_documents_every_contract_path(client):
 PROTECTED = [
     ("GET", "/api/me", None), ("GET", "/api/slots", None), ("GET", "/api/profiles", None), ("GET", "/api/batches", None),
     ("POST", "/api/batches", {"profile": "fast-thermal", "operator": "x"}),
-    ("GET", "/api/batches/1", None), ("POST", "/api/batches/1/abort", None),
+    ("GET", "/api/batches/1", None), ("POST", "/api/batches/1/abort", None), ("POST", "/api/batches/1/resume", None),
     ("GET", "/api/batches/1/prompt", None), ("POST", "/api/batches/1/prompt", {"prompt_id": 1}),
     ("GET", "/api/duts", None), ("GET", "/api/duts/SIM0001", None), ("GET", "/api/duts/SIM0001/runs", None),
     ("GET", "/api/runs/1", None), ("GET", "/api/runs/1/segments", None), ("GET", "/api/runs/1/log.csv", None),
@@ -366,6 +366,7 @@ def test_missing_or_invalid_token_is_401(client, method, path, body):
 FORBIDDEN = [
     ("mes", "POST", "/api/batches", {"profile": "fast-thermal", "operator": "x"}),
     ("mes", "POST", "/api/batches/1/abort", None),
+    ("mes", "POST", "/api/batches/1/resume", None),
     ("mes", "POST", "/api/batches/1/prompt", {"prompt_id": 1}),
     ("operator", "GET", "/api/results", None),
     ("operator", "GET", "/api/outbox", None),
@@ -484,6 +485,7 @@ def test_bad_input_is_422_with_a_message(client, method, path, body, needle):
 
 NOT_FOUND = [
     ("GET", "/api/batches/987654", None), ("POST", "/api/batches/987654/abort", None),
+    ("POST", "/api/batches/987654/resume", None),
     ("GET", "/api/batches/987654/prompt", None), ("POST", "/api/batches/987654/prompt", {"prompt_id": 1}),
     ("GET", "/api/duts/NO-SUCH-DUT", None), ("GET", "/api/duts/NO-SUCH-DUT/runs", None),
     ("GET", "/api/runs/987654", None), ("GET", "/api/runs/987654/segments", None),
@@ -496,3 +498,10 @@ def test_unknown_ids_are_404(client, method, path, body):
     r = client.request(method, path, json=body, headers=auth("admin"))
     assert r.status_code == 404
     assert "987654" in r.json()["detail"] or "NO-SUCH-DUT" in r.json()["detail"]
+
+
+def test_resume_of_a_batch_that_was_not_interrupted_is_409(client, batch):
+    """The success path (SIGKILL mid-batch, restart, resume) is tests/test_resume_after_sigkill.py."""
+    r = client.post(f"/api/batches/{batch['id']}/resume", headers=auth("operator"))
+    assert r.status_code == 409
+    assert "only an interrupted batch can be resumed" in r.json()["detail"]

@@ -93,3 +93,13 @@ async def answer_prompt(body: PromptAnswer, request: Request, batch_id: int = Ba
     await call(request.app.state.station.answer_prompt, batch_id, body.prompt_id, body.answer, conflict=True)
     _status_cache(request).pop(batch_id, None)
     return {"ok": True, "detail": f"prompt {body.prompt_id} answered"}
+
+
+@router.post("/{batch_id}/resume", response_model=BatchCreated, dependencies=[Depends(require_control)])
+async def resume_batch(request: Request, batch_id: int = BatchId):
+    """Resume a batch that a crash or restart interrupted, at the step after its last completed
+    one: the same DUT runs go on (their stored samples and segments are kept). 409 when the batch
+    is not interrupted or another batch is running."""
+    bid = await call(request.app.state.station.resume_batch, batch_id, "operator (resume)", conflict=True)
+    _status_cache(request).pop(batch_id, None)
+    return {"id": int(bid)}
