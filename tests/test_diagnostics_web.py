@@ -109,3 +109,60 @@ def test_page_has_the_panel_and_its_script(client):
     js = client.get("/static/diagnose.js").text
     assert "/diagnosis" in js and "diagnoseRun" in js
     assert "diagnoseRun" in client.get("/static/app.js").text
+
+
+@pytest.mark.browser
+def test_page_panel_adds_an_effect_with_a_click_and_the_staircase_updates(client):
+    """Headless Chromium: open the panel for run 1, click bias_t2, see the staircase grow."""
+    import shutil
+    import threading
+    import time
+
+    sync_api = pytest.importorskip("playwright.sync_api")
+    chromium = shutil.which("chromium")
+    if chromium is None:
+        pytest.skip("chromium is not installed")
+    import uvicorn
+
+    from web_support import free_port
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(client.app, host="127.0.0.1", port=port, log_level="critical"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        for _ in range(100):
+            if server.started:
+                break
+            time.sleep(0.05)
+        url = f"http://127.0.0.1:{port}/"
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=chromium, headless=True,
+                                         args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+            try:
+                page = browser.new_page(viewport={"width": 1200, "height": 1600})
+                errors = []
+                page.on("pageerror", lambda e: errors.append(str(e)))
+                page.goto(url)
+                page.evaluate(f"localStorage.setItem('station.token', '{TOKEN}')")
+                page.goto(url)
+                page.click("#tab-history")
+                page.evaluate("diagnoseRun(1, 'SIM0001')")  # what the run card's Diagnose button calls
+                page.wait_for_selector("button[data-effect=bias_t2]", timeout=60_000)
+                assert page.locator("#diag-staircase tr").count() == 2  # header + baseline
+                page.click("button[data-effect=bias_t2]")
+                for _ in range(240):
+                    if page.locator("#diag-staircase tr").count() == 3:
+                        break
+                    page.wait_for_timeout(250)
+                text = page.inner_text("#diag-staircase")
+                assert "+bias_t2" in text, text
+                assert "bias_t2.c2_mg_per_c2" in page.inner_text("#diag-params")
+                assert "✓ bias_t2" in page.inner_text("#diag-effects")
+                page.wait_for_selector("#diag-plots img", timeout=30_000)
+                assert errors == []
+            finally:
+                browser.close()
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
