@@ -409,15 +409,17 @@ class Sequencer:
             pending = [d for d in self.live_duts if not self.dut_step_done(d, step)]
             if not pending:
                 break
-            elapsed = self.clock_s() - self.step_clock_start
-            if elapsed >= step.timeout_s:
+            # Each DUT's timeout runs on its own board clock: a link that delivers late (a busy
+            # CAN adapter) is not judged by the fastest board's clock. A silent board is the
+            # stall watchdog's (wall time) to fault.
+            late = [(d, e) for d in pending if (e := self._step_elapsed_s(d)) >= step.timeout_s]
+            if late:
                 need = {"segment": "a segment", "static": f"{step.dwell_s:g} s static", "none": "its dwell"}[step.require]
-                for d in pending:
+                for d, elapsed in late:
                     self.hw.fault_dut(
                         self, d, f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {need}"
                     )
-                self._ensure_live()
-                break
+                continue
             await self._wait()
         for d in self.duts:
             if d.last_t is not None:
@@ -428,6 +430,12 @@ class Sequencer:
                      if self.step_index in d.step_windows},
         ))
         return "step_done"
+
+    def _step_elapsed_s(self, d: DutRun) -> float:
+        """Sample time this DUT has spent in the current step (its own board clock)."""
+        if d.last_t is not None and math.isfinite(d.step_t_start):
+            return d.last_t - d.step_t_start
+        return self.clock_s() - self.step_clock_start  # no sample before the step (or resumed step)
 
     def dut_step_done(self, d: DutRun, step: Step) -> bool:
         if step.require == "segment":

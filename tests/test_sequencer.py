@@ -351,3 +351,35 @@ async def test_resumed_sequencer_starts_after_the_last_completed_step():
     started = [e.step_index for e in _drain(q) if e.kind == "StepStarted"]
     assert started == [2, 3]
     assert all(d.state == "done" for d in seq.duts)
+
+
+async def test_timeout_runs_on_each_dut_own_clock_not_the_fastest_board():
+    """A DUT whose link delivers at a third of the others' pace (a busy CAN adapter) logs its
+    segment 300 s into the step on its own clock, when the fastest board is already 900 s in; with
+    a 500 s timeout it must not be faulted."""
+    prof = Profile("t", (Step("a", 0, require="segment", timeout_s=500.0),))
+    seq, hw, q = _make(prof, n=2)
+    for d in seq.duts:  # both boards streaming before the step begins
+        d.t0 = d.last_t = 0.0
+    seq.start()
+    t = {"s0": 0.0, "s1": 0.0}
+    logged = set()
+
+    async def uneven_feed():
+        while not seq.done.is_set():
+            for d, dt in ((seq.duts[0], 30.0), (seq.duts[1], 10.0)):
+                t[d.slot] += dt
+                if d.t0 is None:
+                    d.t0 = t[d.slot]
+                d.last_t = t[d.slot]
+                if seq.state == "logging" and d.slot not in logged and d.last_t - d.step_t_start > 300.0:
+                    logged.add(d.slot)
+                    d.segments.append(_seg(len(d.segments), d.last_t, seq.position))
+                    d.segment_steps.append(seq.step_index)
+            seq.notify()
+            await asyncio.sleep(0.001)
+
+    feeder = asyncio.create_task(uneven_feed())
+    assert await asyncio.wait_for(seq.task, 10) == "finished"
+    feeder.cancel()
+    assert [d.state for d in seq.duts] == ["done", "done"], [d.fault_reason for d in seq.duts]
