@@ -432,6 +432,35 @@ def _admit_forward(data, base: ModelEval, rows: list[dict], evals: dict, conf_na
             r["admitted"] = True
         else:
             r["flags"].append("explained_by:" + ",".join(cond))
+    # Masking: two effects of opposite sign can hide each other, so a candidate with no evidence on
+    # its own is score-tested again against the current model (cheap); only if that is significant
+    # is it refitted with the admitted ones and put through the same gate.
+    changed = bool(cond)
+    while changed:
+        changed = False
+        for r in rows:
+            name = r["effect"]
+            if r["evidence"] or r["admitted"] or name in conf_names or name in cond or r.get("given_admitted"):
+                continue
+            _, _, p0, _ = score_test(data, current, evals[name])
+            if not p0 < SCORE_P_GATE:
+                continue
+            cand = evaluate(data, cond + [name], basis, n_folds)
+            _, _, p, _ = score_test(data, current, cand)
+            dbic, _ = delta_bic(data, current, cand)
+            gain = ((current.heldout_rms_mg - cand.heldout_rms_mg) / current.heldout_rms_mg
+                    if current.heldout_rms_mg > 0 else 0.0)
+            r["given_admitted"] = {"effects": list(cond), "heldout_rms_mg": _r(cand.heldout_rms_mg),
+                                   "delta_bic": _r(dbic, 2), "score_p": float(f"{p:.3g}"),
+                                   "heldout_gain_rel": _r(gain)}
+            if dbic < BIC_GATE and p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE:
+                admitted.append(name)
+                cond.append(name)
+                current = cand
+                r["admitted"] = True
+                r["flags"] = [f for f in r["flags"] if f != "no_evidence"] + ["masked:evidence_given:" + ",".join(cond[:-1])]
+                changed = True
+                break
     return admitted
 
 
