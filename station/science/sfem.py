@@ -518,6 +518,7 @@ def group_static_positions(
     temp_window_s: float = 120.0,
     max_temp_rate_c_per_min: float = 0.3,
     temp_tol_c: float = 0.5,
+    equalize_positions: bool = True,
 ) -> list[PositionSet]:
     """Static intervals -> averaged positions, split into temperature steps (coldest first).
 
@@ -530,6 +531,13 @@ def group_static_positions(
     count only where the temperature, smoothed over temp_window_s, changes by at most
     max_temp_rate_c_per_min and lies within temp_tol_c of its step's median. Steps are
     temperature clusters separated by more than temp_gap_c.
+    equalize_positions (with temperature and time): within a step, a position keeps at most the
+    step's median sample count, taken from the end of its longest span. The position a DUT rests
+    in while the chamber settles is static for many times the plan's hold; its extra samples are
+    the soak's tail, where the die still converges by tenths of a degree that a 1 C thermometer
+    cannot resolve (x TDB ~1 mg/C: ~0.1 mg), and their number would make that position's noise
+    sigma the smallest, so the fit would trust the most biased position most. The end of the
+    soak is its most settled part, and every position then weighs as the plan intends.
     """
     cfg = config or StaticDetectConfig()
     a = np.asarray(acc, dtype=np.float64).reshape(-1, 3)
@@ -609,6 +617,12 @@ def group_static_positions(
                 groups[hit].append((s, e))
         if not groups:
             continue
+        if equalize_positions and temp_c is not None and time_s is not None and len(groups) > 1:
+            cap = max(cfg.min_samples, int(np.median([sum(e - s for s, e in g) for g in groups])))
+            for gi, spans in enumerate(groups):
+                if sum(e - s for s, e in spans) > cap:
+                    s, e = max(spans, key=lambda se: se[1] - se[0])
+                    groups[gi] = [(max(s, e - cap), e)]
         means, noise, counts, tmeans, rlist, plist = [], [], [], [], [], []
         for spans in groups:
             idx = np.concatenate([np.arange(s, e) for s, e in spans])
