@@ -366,3 +366,18 @@ def test_adding_an_unidentifiable_effect_is_warned_not_trusted():
     step = doc["staircase"][-1]
     assert step["model"] == "+cross_axis" and "not identifiable" in step["warning"]
     assert "orientation" in step["warning"]
+
+
+@pytest.mark.slow
+def test_two_masking_effects_are_both_admitted_and_reach_the_floor():
+    """Lag and hysteresis hidden together (multi-rate data): their signatures partly cancel, so one
+    of them shows no evidence on its own; it is admitted once the other is in the model."""
+    logs, truths = H.validation_logs(("thermal_lag", "hysteresis"))
+    doc = diagnose(logs, add=["thermal_lag", "hysteresis"]).to_json()
+    rows = {r["effect"]: r for r in doc["ranking"]}
+    assert rows["thermal_lag"]["admitted"] and rows["hysteresis"]["admitted"]
+    assert doc["confusable"] == []
+    floor = H.pooled_floor(logs, truths, "window")
+    assert doc["staircase"][-1]["heldout_rms_mg"] <= FLOOR_FACTOR * floor
+    tau = doc["model"]["parameters"][truths[0].serial]["effects"]["thermal_lag"]["tau_s"]["value"]
+    assert abs(tau - truths[0].effects["thermal_lag"]["tau_s"]) < 0.02 * truths[0].effects["thermal_lag"]["tau_s"]
