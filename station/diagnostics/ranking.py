@@ -26,7 +26,9 @@ structure is shared):
   lack it and either has evidence. Both are flagged and neither is admitted automatically.
 - forward admission: the best candidate with evidence is admitted; each further one must pass the
   same gate against the model holding the ones before it (a confusable pair's best member stands
-  in for the pair), so an effect that only soaks up part of another is "explained_by" it.
+  in for the pair), so an effect that only soaks up part of another is "explained_by" it. A
+  candidate with no evidence of its own (masked by an effect of opposite sign) is score-tested
+  again against the model holding the admitted ones and, if significant, refitted and gated.
 """
 
 from __future__ import annotations
