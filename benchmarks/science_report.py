@@ -122,6 +122,10 @@ def main() -> None:
     gap = fig["rmse_dir_station_mg"] - fig["rmse_dir_reference_mg"]
     print(f"  station - reference direction RMSE: {gap:+.4f} mg ({gap / fig['rmse_dir_reference_mg']:+.2%})")
     print(f"  direction residual per position (deg): {np.round(fig['direction_residual_deg'], 3).tolist()}")
+    s = fig["session"]
+    for name, res in (("station", fig["fit"].apply(s.means) - imu.REFS), ("reference", fig["reference"].apply_g(s.means) - imu.REFS)):
+        print(f"  {name:<9} calibrated - reference direction (mg), {'/'.join(imu.PARTS)}: {np.round(res * 1e3, 2).tolist()}")
+    print("  (antipodal pairs leave the same vector: an even-order term / fixture wedge no affine calibration removes)")
     f = fig["fit"]
     print(f"  bias (counts) {np.round(f.b, 2).tolist()} +- {np.round(f.sigma['b'], 2).tolist()}; antipodal-pair midpoints {np.round(fig['pair_midpoint_bias_counts'], 2).tolist()}")
     ref = fig["reference"]

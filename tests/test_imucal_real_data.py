@@ -177,10 +177,11 @@ def test_gravity_norm_error_below_1mg(fig):
 @pytest.mark.xfail(
     strict=True,
     reason=(
-        "station 7.348 mg vs reference 7.336 mg (+0.013 mg, +0.17 %): the RMSE is dominated by the "
-        "fixture's ~0.7 deg error of the z positions; the station's ML fit keeps the norm at the noise "
-        "limit (0.0003 mg vs 0.067 mg) instead of trading it for direction residual. Reaching <= needs "
-        "trusting the directions to ~0.15 deg, which the data (0.42 deg residual) do not support."
+        "station 7.348 mg vs reference 7.336 mg (+0.013 mg, +0.17 %, < 0.1 sigma of a position mean). "
+        "Both calibrations leave the same ~12 mg residual, identical on z_p and z_a (an even-order term "
+        "or a fixture wedge that no affine calibration removes); they differ only in how the bias, "
+        "within its own 0.16-0.49 count sigma, shares it. Reaching <= needs trusting the directions to "
+        "~0.15 deg (norm error then 0.013 mg), which the 0.42 deg direction residual does not support."
     ),
 )
 def test_direction_rmse_not_worse_than_reference_strict(fig):
@@ -191,11 +192,20 @@ def test_direction_rmse_matches_reference_within_noise(fig):
     """The measured gap is far below what one position mean can resolve (~0.1 mg), and at equal
     norm error the station's fit beats the reference (Pareto): shown by relaxing the norm weight."""
     st, ref = fig["rmse_dir_station_mg"], fig["rmse_dir_reference_mg"]
+    # what sets both figures: each antipodal pair leaves the SAME residual vector in both positions
+    # (even in gravity, ~12 mg on the z pair), and both calibrations leave it alike
+    s = fig["session"]
+    res_st = fig["fit"].apply(s.means) - REFS
+    res_ref = fig["reference"].apply_g(s.means) - REFS
+    for res in (res_st, res_ref):
+        odd = (res[0::2] - res[1::2]) / 2 * 1e3
+        assert np.all(np.linalg.norm(odd, axis=1) < 0.2), odd
+    assert np.all(np.abs(res_st - res_ref) * 1e3 < 0.3)
+    assert np.linalg.norm(res_ref[4]) * 1e3 > 10
     print(f"direction RMSE: station {st:.4f} mg, reference {ref:.4f} mg; norm {fig['norm_station_mg']:.4f} vs {fig['norm_reference_mg']:.4f} mg")
     assert st - ref < 0.25 * float(np.min(fig["sigma_mean_mg"]))
     # Pareto: one point of the same fit's own trade-off curve (norm weighted as if the means were 5x
     # noisier, directions at the 0.42 deg their residuals show) beats the reference on BOTH figures
-    s = fig["session"]
     raw_per_g = float(np.median(np.linalg.norm(s.means, axis=1)))
     relaxed = fit_sfem(s.means, REFS, noise_g=5 * s.sigma_mean_counts / raw_per_g, raw_per_g=raw_per_g, ref_sigma_deg=0.42)
     m = relaxed.apply(s.means)
