@@ -130,6 +130,7 @@ def _default_calibrator_factory():
 class _BatchRt:
     seq: Sequencer
     pumps: dict[str, asyncio.Task] = field(default_factory=dict)
+    releasing: bool = False  # pumps end at their next turn (a cancel alone can be swallowed)
 
 
 class Station:
@@ -595,9 +596,15 @@ class Station:
 
     async def release_duts(self, seq: Sequencer) -> None:
         rt = self.batches[seq.batch_id]
+        rt.releasing = True
         for t in rt.pumps.values():
             t.cancel()
-        await asyncio.gather(*rt.pumps.values(), return_exceptions=True)
+        if rt.pumps:
+            # Python 3.11's asyncio.wait_for (inside read_block) can swallow a cancel that lands as
+            # its wait completes: the pump then ends on `releasing` at its next read instead.
+            _, late = await asyncio.wait(rt.pumps.values(), timeout=10.0)
+            for t in late:
+                log.error("batch %d: pump %s did not stop within 10 s", seq.batch_id, t.get_name())
         rt.pumps.clear()
 
         async def stop_one(d: DutRun) -> None:
@@ -649,7 +656,8 @@ class Station:
         bad0 = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped
         ok0 = stats.frames_ok
         try:
-            while d.live:
+            rt = self.batches.get(seq.batch_id)
+            while d.live and not (rt is not None and rt.releasing):
                 t_read = time.monotonic()
                 try:
                     block = await drv.read_block(timeout_s=max(period, 0.25))
