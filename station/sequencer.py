@@ -284,6 +284,10 @@ class Sequencer:
                     break
                 self._transition(nxt)
         except (asyncio.CancelledError, _StopRequested):
+            task = asyncio.current_task()
+            if task is not None:
+                while task.cancelling():  # handled here: later timeouts in cleanup must work normally
+                    task.uncancel()
             state, reason = self._stop or ("aborted", "cancelled")
             self.error = reason
             await self._end(state, reason)

@@ -520,6 +520,12 @@ class Station:
                 s["link_stats"] = drv.stats.as_dict()
         return st
 
+    def batch_marker(self, batch_id: int) -> tuple:
+        """Cheap fingerprint of a batch's state (cache validation): changes with every
+        transition, step and DUT state change."""
+        seq = self._batch(batch_id).seq
+        return (seq.state, len(seq.history), seq.step_index, tuple(d.state for d in seq.duts))
+
     def batch_ids(self) -> list[int]:
         return sorted(self.batches)
 

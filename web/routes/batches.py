@@ -56,8 +56,15 @@ async def get_batch(request: Request, batch_id: int = BatchId):
     """Live status from the daemon; a batch it no longer holds (ended before a restart) from the db."""
     cache = _status_cache(request)
     now = time.monotonic()
+    marker_fn = getattr(request.app.state.station, "batch_marker", None)
+    try:
+        marker = marker_fn(batch_id) if marker_fn is not None else None
+    except KeyError:
+        marker = None
     hit = cache.get(batch_id)
-    if hit is not None and now - hit[0] < STATUS_TTL_S:
+    # Served from the cache only while the batch has not changed state (a stale 'paused' after an
+    # abort would otherwise stick on a page that got its last event inside the TTL).
+    if hit is not None and now - hit[0] < STATUS_TTL_S and hit[2] == marker and marker is not None:
         return Response(hit[1], media_type="application/json")
     try:
         view = batch_view(await call(request.app.state.station.batch_status, batch_id), batch_id)
@@ -71,7 +78,7 @@ async def get_batch(request: Request, batch_id: int = BatchId):
     body = BatchStatus.model_validate(view).model_dump_json().encode()
     if len(cache) > 64:
         cache.clear()
-    cache[batch_id] = (now, body)
+    cache[batch_id] = (now, body, marker)
     return Response(body, media_type="application/json")
 
 
