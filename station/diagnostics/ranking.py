@@ -392,6 +392,19 @@ def data_features(data: list[DutData]) -> dict:
             "orientations": max(len(d.pos_labels) for d in data)}
 
 
+
+def _gate_given(data, current: ModelEval, cond: list[str], name: str, basis: str, n_folds: int):
+    """Refit with `name` added to the admitted effects `cond` and put it through the admission gate
+    (information criterion, score test, held-out gain). Returns (eval, record, passed)."""
+    cand = evaluate(data, cond + [name], basis, n_folds)
+    _, _, p, _ = score_test(data, current, cand)
+    dbic, _ = delta_bic(data, current, cand)
+    gain = ((current.heldout_rms_mg - cand.heldout_rms_mg) / current.heldout_rms_mg
+            if current.heldout_rms_mg > 0 else 0.0)
+    record = {"effects": list(cond), "heldout_rms_mg": _r(cand.heldout_rms_mg), "delta_bic": _r(dbic, 2),
+              "score_p": float(f"{p:.3g}"), "heldout_gain_rel": _r(gain)}
+    return cand, record, bool(dbic < BIC_GATE and p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE)
+
 def _admit_forward(data, base: ModelEval, rows: list[dict], evals: dict, conf_names: set, basis: str,
                    n_folds: int) -> list[str]:
     """Forward admission: the best candidate with evidence is admitted; every further one must pass
@@ -420,14 +433,8 @@ def _admit_forward(data, base: ModelEval, rows: list[dict], evals: dict, conf_na
             current = evals[name]
             r["admitted"] = True
             continue
-        cand = evaluate(data, cond + [name], basis, n_folds)
-        _, _, p, _ = score_test(data, current, cand)
-        dbic, _ = delta_bic(data, current, cand)
-        gain = ((current.heldout_rms_mg - cand.heldout_rms_mg) / current.heldout_rms_mg
-                if current.heldout_rms_mg > 0 else 0.0)
-        r["given_admitted"] = {"effects": list(cond), "heldout_rms_mg": _r(cand.heldout_rms_mg),
-                               "delta_bic": _r(dbic, 2), "score_p": float(f"{p:.3g}"), "heldout_gain_rel": _r(gain)}
-        if dbic < BIC_GATE and p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE:
+        cand, r["given_admitted"], passed = _gate_given(data, current, cond, name, basis, n_folds)
+        if passed:
             admitted.append(name)
             cond.append(name)
             current = cand
@@ -447,15 +454,8 @@ def _admit_forward(data, base: ModelEval, rows: list[dict], evals: dict, conf_na
             _, _, p0, _ = score_test(data, current, evals[name])
             if not p0 < SCORE_P_GATE:
                 continue
-            cand = evaluate(data, cond + [name], basis, n_folds)
-            _, _, p, _ = score_test(data, current, cand)
-            dbic, _ = delta_bic(data, current, cand)
-            gain = ((current.heldout_rms_mg - cand.heldout_rms_mg) / current.heldout_rms_mg
-                    if current.heldout_rms_mg > 0 else 0.0)
-            r["given_admitted"] = {"effects": list(cond), "heldout_rms_mg": _r(cand.heldout_rms_mg),
-                                   "delta_bic": _r(dbic, 2), "score_p": float(f"{p:.3g}"),
-                                   "heldout_gain_rel": _r(gain)}
-            if dbic < BIC_GATE and p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE:
+            cand, r["given_admitted"], passed = _gate_given(data, current, cond, name, basis, n_folds)
+            if passed:
                 admitted.append(name)
                 cond.append(name)
                 current = cand
