@@ -278,9 +278,7 @@ class Sequencer:
                 nxt = await handler()
                 self._check_stop()
                 if nxt in TERMINAL:
-                    # DUTs are released (marked done) and the lamp is off before the batch says so.
-                    await self._cleanup(nxt)
-                    self._transition(nxt)
+                    await self._end(nxt, "")  # DUTs released and lamp off before the batch says so
                     break
                 self._transition(nxt)
         except (asyncio.CancelledError, _StopRequested):
