@@ -99,8 +99,11 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
 class Database:
     """The station database: `Database(url)`, then `.upgrade()` (or `.check()`) before use."""
 
-    def __init__(self, url: str, echo: bool = False) -> None:
+    def __init__(self, url: str, echo: bool = False, station: str = "") -> None:
         self.url = url
+        # this station's name (config `name`): stamped on its batches, runs and results; the
+        # restart bookkeeping (mark_interrupted, interrupted_batches) touches only its own batches
+        self.station = station
         self.engine = make_engine(url, echo=echo)
         self.Session = sessionmaker(self.engine, expire_on_commit=False)
 
@@ -162,10 +165,35 @@ class Database:
                 f"{self.head_revision()!r}: upgrade the software or point it at another database"
             )
 
+    def integrity(self) -> str:
+        """'ok', or what SQLite's quick_check found (PostgreSQL checks itself: always 'ok')."""
+        if not self.is_sqlite:
+            return "ok"
+        from sqlalchemy import text
+        from sqlalchemy.exc import DatabaseError
+
+        try:
+            with self.engine.connect() as conn:
+                rows = [str(r[0]) for r in conn.execute(text("PRAGMA quick_check(5)"))]
+        except OperationalError as exc:  # a directory, no permission: not a corruption
+            raise StationError(f"cannot open database {self.url}: {exc.orig}") from None
+        except DatabaseError as exc:  # "file is not a database", "database disk image is malformed"
+            return str(getattr(exc, "orig", exc))
+        return "ok" if rows == ["ok"] else "; ".join(rows)
+
+    def check_integrity(self) -> None:
+        """Refuse a corrupted database at start, in one line (it once passed `serve --check` and
+        then answered 500 on most read routes)."""
+        found = self.integrity()
+        if found != "ok":
+            raise StationError(f"database {self.url} is corrupted ({found[:200]}): restore it from a "
+                               "backup or move it away to start with a new one")
+
     def upgrade(self) -> str:
         """Migrate to the newest schema this code knows; refuse a database from newer code."""
         from alembic import command
 
+        self.check_integrity()
         self._refuse_unknown(self.current_revision())
         with self.engine.begin() as conn:
             command.upgrade(self._alembic_config(conn), "head")
@@ -189,6 +217,7 @@ class Database:
     def create_batch(self, profile: str, operator: str, config_snapshot: dict, state: str = "created") -> int:
         with self.session() as s:
             b = Batch(
+                station=self.station,
                 profile=profile,
                 operator=operator,
                 state=state,
@@ -243,10 +272,21 @@ class Database:
     ) -> int:
         with self.session() as s:
             dut = self.upsert_dut(s, serial, sensor)
-            run = DutRun(batch_id=batch_id, slot=slot, dut_id=dut.id, state=state, identity=dict(identity or {}))
+            # a serial seen again is a retest: its attempt number counts every earlier run
+            attempt = int(s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id)) or 0) + 1
+            run = DutRun(batch_id=batch_id, station=self.station, slot=slot, dut_id=dut.id, state=state, identity=dict(identity or {}),
+                         attempt=attempt)
             s.add(run)
             s.flush()
             return run.id
+
+    def run_attempt(self, run_id: int) -> int:
+        """The attempt number of a run (1 = first test of its serial)."""
+        with self.session() as s:
+            a = s.scalar(select(DutRun.attempt).where(DutRun.id == run_id))
+            if a is None:
+                raise KeyError(f"no run {run_id}")
+            return int(a)
 
     def set_run_state(self, run_id: int, state: str, fault_reason: str = "") -> None:
         values: dict[str, Any] = {"state": state, "fault_reason": fault_reason}
@@ -260,18 +300,20 @@ class Database:
     # ---- resume ----------------------------------------------------------------------------
     def mark_interrupted(self, reason: str = "station restarted") -> list[int]:
         """At daemon start: whatever was running when the last process died is interrupted.
-        Only states change; every committed sample, segment and result stays. Returns the ids of
+        Only this station's states change (other stations may be running batches in the same
+        database); every committed sample, segment and result stays. Returns the ids of
         the interrupted batches."""
         now = utcnow()
         with self.session() as s:
-            ids = list(s.scalars(select(Batch.id).where(Batch.state.in_(BATCH_ACTIVE_STATES)).order_by(Batch.id)))
+            ids = list(s.scalars(select(Batch.id).where(Batch.state.in_(BATCH_ACTIVE_STATES), self._mine(Batch))
+                                 .order_by(Batch.id)))
             if ids:
                 s.execute(
                     update(Batch).where(Batch.id.in_(ids)).values(state="interrupted", reason=reason, ended_at=now)
                 )
             s.execute(
                 update(DutRun)
-                .where(DutRun.state.in_(RUN_ACTIVE_STATES))
+                .where(DutRun.state.in_(RUN_ACTIVE_STATES), self._mine(DutRun))
                 .values(state="interrupted", fault_reason=reason, ended_at=now)
             )
         return ids
@@ -329,7 +371,13 @@ class Database:
 
     def interrupted_batches(self) -> list[int]:
         with self.session() as s:
-            return list(s.scalars(select(Batch.id).where(Batch.state == "interrupted").order_by(Batch.id)))
+            return list(s.scalars(select(Batch.id).where(Batch.state == "interrupted", self._mine(Batch))
+                                  .order_by(Batch.id)))
+
+    def _mine(self, model: Any) -> Any:
+        """Rows of this station; rows from before migration 0005 (station '') count as anyone's,
+        so a single station upgraded in place still resumes its old batch."""
+        return model.station.in_([self.station, ""])
 
     def sqlite_integrity_check(self) -> str:
         """`PRAGMA integrity_check` ('ok' when sound); 'n/a' on other databases."""

@@ -29,7 +29,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 # The revision of the newest schema this code knows (db/migrations/versions/).
-SCHEMA_REVISION = "0002"
+SCHEMA_REVISION = "0005"
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -96,6 +96,8 @@ class Batch(Base):
 
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     profile: Mapped[str] = mapped_column(String(64))
+    # the station that ran it (config `name`): many stations may share one database
+    station: Mapped[str] = mapped_column(String(64), default="", server_default="", index=True)
     operator: Mapped[str] = mapped_column(String(128), default="")
     state: Mapped[str] = mapped_column(String(32), default="created", index=True)
     reason: Mapped[str] = mapped_column(Text, default="")
@@ -120,6 +122,7 @@ class DutRun(Base):
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     batch_id: Mapped[int] = mapped_column(ForeignKey("batch.id", ondelete="CASCADE"), index=True)
     slot: Mapped[str] = mapped_column(String(64))
+    station: Mapped[str] = mapped_column(String(64), default="", server_default="", index=True)
     dut_id: Mapped[int] = mapped_column(ForeignKey("dut.id"), index=True)
     state: Mapped[str] = mapped_column(String(32), default="connecting")
     fault_reason: Mapped[str] = mapped_column(Text, default="")
@@ -130,6 +133,16 @@ class DutRun(Base):
     result_seq: Mapped[int | None] = mapped_column(BigInteger, unique=True)
     started_at: Mapped[datetime] = mapped_column(default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column(index=True)
+    # the serial's attempt number (retests: 2, 3, ...) and the station's decision (station/verdicts.py)
+    attempt: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    verdict: Mapped[str | None] = mapped_column(String(16), index=True)  # pass, marginal, fail, error
+    grade: Mapped[str | None] = mapped_column(String(16))
+    tray: Mapped[str | None] = mapped_column(String(64))
+    verdict_reason: Mapped[str] = mapped_column(Text, default="", server_default="")
+    verdict_detail: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    limits_name: Mapped[str | None] = mapped_column(String(64))
+    limits_version: Mapped[str | None] = mapped_column(String(32))
+    judged_at: Mapped[datetime | None] = mapped_column()
 
     batch: Mapped[Batch] = relationship(back_populates="runs")
     dut: Mapped[Dut] = relationship(back_populates="runs")
@@ -168,6 +181,7 @@ class ThermalResultRow(Base):
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     run_id: Mapped[int] = mapped_column(ForeignKey("dut_run.id", ondelete="CASCADE"), index=True)
     method: Mapped[str] = mapped_column(String(16))
+    station: Mapped[str] = mapped_column(String(64), default="", server_default="")
     tdb_x_mg_per_c: Mapped[float | None] = mapped_column(Float)
     tdb_y_mg_per_c: Mapped[float | None] = mapped_column(Float)
     tdb_z_mg_per_c: Mapped[float | None] = mapped_column(Float)
@@ -196,6 +210,7 @@ class SfemResultRow(Base):
 
     id: Mapped[int] = mapped_column(BigId, primary_key=True)
     run_id: Mapped[int] = mapped_column(ForeignKey("dut_run.id", ondelete="CASCADE"), index=True)
+    station: Mapped[str] = mapped_column(String(64), default="", server_default="")
     temperature_step: Mapped[int | None] = mapped_column(Integer)
     temp_c: Mapped[float | None] = mapped_column(Float)
     rmse_before_mg: Mapped[float | None] = mapped_column(Float)
@@ -203,6 +218,66 @@ class SfemResultRow(Base):
     parameters: Mapped[dict[str, Any]] = mapped_column(default=dict)
     polynomial_coefficients: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class ProgramVerifyRow(Base):
+    """Program and verify of one run (design 4): what was written and read back (CRC, compensation
+    on), and the verified drift error E before (uncompensated, first pass) and after (compensated
+    output during the verification heat), per axis in mg (martinez2022 eq. 10, 70 C range)."""
+
+    __tablename__ = "program_verify"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("dut_run.id", ondelete="CASCADE"), unique=True)
+    station: Mapped[str] = mapped_column(String(64), default="", server_default="")
+    programmed: Mapped[bool] = mapped_column(Boolean, default=False)
+    crc: Mapped[str | None] = mapped_column(String(8))
+    readback_crc: Mapped[str | None] = mapped_column(String(8))
+    comp_on: Mapped[bool] = mapped_column(Boolean, default=False)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    error_kind: Mapped[str] = mapped_column(String(32), default="")
+    error: Mapped[str] = mapped_column(Text, default="")
+    verified: Mapped[bool | None] = mapped_column(Boolean)  # None: not verified (yet)
+    e_before_x_mg: Mapped[float | None] = mapped_column(Float)
+    e_before_y_mg: Mapped[float | None] = mapped_column(Float)
+    e_before_z_mg: Mapped[float | None] = mapped_column(Float)
+    e_after_x_mg: Mapped[float | None] = mapped_column(Float)
+    e_after_y_mg: Mapped[float | None] = mapped_column(Float)
+    e_after_z_mg: Mapped[float | None] = mapped_column(Float)
+    flags: Mapped[list[Any]] = mapped_column(JSON, default=list)
+    program: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    verification: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class ResultCounter(Base):
+    """The MES cursor's counter (one row, id 1): a result takes `value + 1` with an UPDATE in the
+    transaction that stores it. The UPDATE row-locks the counter until that transaction commits, so
+    a second writer (another station on the same database) waits and takes the next number only
+    after the first commit: result_seq order is commit order, and `results since N` never skips a
+    result that commits late. (A PostgreSQL sequence would give unique numbers but hand them out at
+    nextval, not at commit: a reader could see 11 before 10 commits and step over 10 for ever.)"""
+
+    __tablename__ = "result_counter"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    value: Mapped[int] = mapped_column(BigInteger)
+
+
+class AuditRow(Base):
+    """Who did what through the REST API (batch start, abort, prompt answers, resume, limit-set
+    changes): actor is the token's name, detail what the request carried."""
+
+    __tablename__ = "audit"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+    station: Mapped[str] = mapped_column(String(64), default="")
+    actor: Mapped[str] = mapped_column(String(128), default="")
+    action: Mapped[str] = mapped_column(String(64))
+    target: Mapped[str] = mapped_column(String(128), default="")
+    detail: Mapped[dict[str, Any]] = mapped_column(default=dict)
 
 
 class SampleChunk(Base):
@@ -247,8 +322,11 @@ __all__ = [
     "SegmentRow",
     "ThermalResultRow",
     "SfemResultRow",
+    "ProgramVerifyRow",
     "SampleChunk",
     "Outbox",
+    "ResultCounter",
+    "AuditRow",
     "SCHEMA_REVISION",
     "utcnow",
 ]

@@ -13,7 +13,18 @@ from sqlalchemy import func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 
 from db.database import Database
-from db.models import Batch, Dut, DutRun, Outbox, SampleChunk, SegmentRow, SfemResultRow, ThermalResultRow, utcnow
+from db.models import (
+    Batch,
+    Dut,
+    DutRun,
+    Outbox,
+    ProgramVerifyRow,
+    SampleChunk,
+    SegmentRow,
+    SfemResultRow,
+    ThermalResultRow,
+    utcnow,
+)
 from station.types import AXES
 
 PREFERRED_THERMAL = ("offline", "streaming")  # the offline fit is the better estimate when both exist
@@ -66,13 +77,53 @@ def _run_results(s: Any, run_id: int) -> dict:
     thermal = None
     if preferred is not None:
         thermal = {ax: by_method[preferred][ax] for ax in AXES}
-    return {"thermal": thermal, "thermal_method": preferred, "thermal_by_method": by_method, "sfem": sfem_json(sfem_rows)}
+    pv = s.scalars(select(ProgramVerifyRow).where(ProgramVerifyRow.run_id == run_id)).one_or_none()
+    return {"thermal": thermal, "thermal_method": preferred, "thermal_by_method": by_method, "sfem": sfem_json(sfem_rows),
+            "program_verify": None if pv is None else program_verify_json(pv)}
+
+
+def program_verify_json(row: ProgramVerifyRow) -> dict:
+    """Program and verify of one run: programmed (CRC written = read back), compensation on, and
+    the verified drift error E before/after per axis (mg)."""
+    return {
+        "programmed": row.programmed,
+        "crc": row.crc,
+        "readback_crc": row.readback_crc,
+        "readback_identical": bool(row.programmed and row.crc is not None and row.crc == row.readback_crc),
+        "comp_on": row.comp_on,
+        "attempts": row.attempts,
+        "error_kind": row.error_kind or None,
+        "error": row.error or None,
+        "verified": row.verified,
+        "e_before_mg": {ax: getattr(row, f"e_before_{ax}_mg") for ax in AXES},
+        "e_after_mg": {ax: getattr(row, f"e_after_{ax}_mg") for ax in AXES},
+        "flags": list(row.flags or []),
+        "updated_at": _iso(row.updated_at),
+    }
+
+
+VALID_VERDICTS = ("pass", "marginal", "fail")  # an attempt that ended in error is not a valid result
+
+
+def verdict_json(r: DutRun) -> dict:
+    """The station's decision on a run (None fields while it is not judged)."""
+    return {
+        "attempt": r.attempt,
+        "verdict": r.verdict,
+        "grade": r.grade,
+        "tray": r.tray,
+        "reason": r.verdict_reason or None,
+        "limits_name": r.limits_name,
+        "limits_version": r.limits_version,
+        "judged_at": _iso(r.judged_at),
+    }
 
 
 def _run_json(r: DutRun, serial: str, n_segments: int | None = None) -> dict:
     out = {
         "id": r.id,
         "batch_id": r.batch_id,
+        "station": r.station,
         "slot": r.slot,
         "serial": serial,
         "state": r.state,
@@ -84,6 +135,7 @@ def _run_json(r: DutRun, serial: str, n_segments: int | None = None) -> dict:
         "result_seq": r.result_seq,
         "started_at": _iso(r.started_at),
         "ended_at": _iso(r.ended_at),
+        **verdict_json(r),
     }
     if n_segments is not None:
         out["n_segments"] = n_segments
@@ -101,9 +153,16 @@ def dut_by_serial(db: Database, serial: str) -> dict | None:
         if dut is None:
             return None
         n_runs = s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id)) or 0
+        # the DUT's result is its latest VALID attempt (judged pass/marginal/fail); a retest that
+        # faulted does not hide the attempt before it. Never judged: the latest run with results.
         latest = s.scalars(
-            select(DutRun).where(DutRun.dut_id == dut.id, DutRun.result_seq.is_not(None)).order_by(DutRun.result_seq.desc())
+            select(DutRun).where(DutRun.dut_id == dut.id, DutRun.verdict.in_(VALID_VERDICTS)).order_by(DutRun.id.desc())
         ).first()
+        if latest is None:
+            latest = s.scalars(
+                select(DutRun).where(DutRun.dut_id == dut.id, DutRun.result_seq.is_not(None))
+                .order_by(DutRun.result_seq.desc())
+            ).first()
         out = {
             "serial": dut.serial,
             "sensor": dut.sensor,
@@ -115,9 +174,11 @@ def dut_by_serial(db: Database, serial: str) -> dict | None:
             "thermal_method": None,
             "thermal_by_method": {},
             "sfem": None,
+            "attempts": n_runs,
         }
         if latest is not None:
             out.update(_run_results(s, latest.id))
+            out.update(verdict_json(latest))
         return out
 
 
@@ -165,6 +226,7 @@ def run_detail(db: Database, run_id: int) -> dict | None:
         n = s.scalar(select(func.count(SegmentRow.id)).where(SegmentRow.run_id == run_id)) or 0
         out = _run_json(r, serial, int(n))
         out["profile"] = profile
+        out["verdict_detail"] = r.verdict_detail  # every check: value, sigma, limits, outcome
         out.update(_run_results(s, run_id))
         return out
 
@@ -202,9 +264,12 @@ def result_key(run_id: int, result_seq: int) -> str:
     return f"run-{run_id}-result-{result_seq}"
 
 
-def results_since(db: Database, since: int = 0, limit: int = 100, since_time: datetime | None = None) -> list[dict]:
+def results_since(db: Database, since: int = 0, limit: int = 100, since_time: datetime | None = None,
+                  station: str | None = None) -> list[dict]:
     """Runs whose result was stored after cursor `since`, in increasing `id` (= the run's
     result_seq, which is bumped whenever a run gets a new result). Page on with since=last id.
+    Safe with many stations writing: result_seq is taken in commit order (db.writer.take_result_seq),
+    so a result committed after this read gets a number above every one returned here.
     since_time (optional) also requires the run's latest result to be at/after that time."""
     limit = max(1, min(int(limit), 1000))
     with db.session() as s:
@@ -216,9 +281,12 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
             .order_by(DutRun.result_seq)
             .limit(limit)
         )
+        if station:
+            q = q.where(DutRun.station == station)
         if since_time is not None:
             recent = select(ThermalResultRow.run_id).where(ThermalResultRow.created_at >= since_time).union(
-                select(SfemResultRow.run_id).where(SfemResultRow.created_at >= since_time)
+                select(SfemResultRow.run_id).where(SfemResultRow.created_at >= since_time),
+                select(ProgramVerifyRow.run_id).where(ProgramVerifyRow.updated_at >= since_time),
             )
             q = q.where(DutRun.id.in_(recent))
         rows = s.execute(q).all()
@@ -226,23 +294,61 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
         for r, serial, profile in rows:
             t_th = s.scalar(select(func.max(ThermalResultRow.created_at)).where(ThermalResultRow.run_id == r.id))
             t_sf = s.scalar(select(func.max(SfemResultRow.created_at)).where(SfemResultRow.run_id == r.id))
-            times = [t for t in (t_th, t_sf) if t is not None]
+            t_pv = s.scalar(select(ProgramVerifyRow.updated_at).where(ProgramVerifyRow.run_id == r.id))
+            times = [t for t in (t_th, t_sf, t_pv) if t is not None]
             item = {
                 "id": r.result_seq,
                 "idempotency_key": result_key(r.id, r.result_seq),
                 "created_at": _iso(max(times)) if times else None,
                 "run_id": r.id,
                 "batch_id": r.batch_id,
+                "station": r.station,
                 "slot": r.slot,
                 "serial": serial,
                 "sensor": (r.identity or {}).get("sensor"),
                 "profile": profile,
                 "state": r.state,
                 "ended_at": _iso(r.ended_at),
+                **verdict_json(r),
             }
             item.update(_run_results(s, r.id))
             out.append(item)
         return out
+
+
+def yields(db: Database, batch_id: int | None = None) -> dict:
+    """First-pass and final yield over the DUTs judged at least once (those with a run in
+    `batch_id` when given), counting every attempt of each DUT.
+
+    first pass: the DUT's first judged attempt is `pass` (an error, marginal or fail on the first
+    attempt is not first pass). final: its latest VALID attempt (pass/marginal/fail; errors are
+    skipped) is `pass`; a DUT with errors only is not a final pass. Runs not judged yet
+    (running, interrupted) are left out."""
+    with db.session() as s:
+        q = select(DutRun.dut_id, DutRun.id, DutRun.verdict).where(DutRun.verdict.is_not(None)).order_by(DutRun.id)
+        if batch_id is not None:
+            q = q.where(DutRun.dut_id.in_(select(DutRun.dut_id).where(DutRun.batch_id == batch_id)))
+        per: dict[int, list[str]] = {}
+        for dut_id, _run_id, verdict in s.execute(q).all():
+            per.setdefault(dut_id, []).append(verdict)
+    n = len(per)
+    first = sum(1 for v in per.values() if v[0] == "pass")
+    final = 0
+    retested = 0
+    for v in per.values():
+        valid = [x for x in v if x in VALID_VERDICTS]
+        final += bool(valid) and valid[-1] == "pass"
+        retested += len(v) > 1
+    return {
+        "batch_id": batch_id,
+        "duts": n,
+        "attempts": sum(len(v) for v in per.values()),
+        "retested": retested,
+        "first_pass": first,
+        "final_pass": final,
+        "first_pass_yield": first / n if n else None,
+        "final_yield": final / n if n else None,
+    }
 
 
 def batch_detail(db: Database, batch_id: int) -> dict | None:
@@ -258,8 +364,9 @@ def batch_detail(db: Database, batch_id: int) -> dict | None:
             .where(DutRun.batch_id == batch_id)
             .order_by(DutRun.id)
         ).all()
-        return {
+        out = {
             "id": b.id,
+            "station": b.station,
             "profile": b.profile,
             "operator": b.operator,
             "state": b.state,
@@ -272,6 +379,11 @@ def batch_detail(db: Database, batch_id: int) -> dict | None:
             "ended_at": _iso(b.ended_at),
             "runs": [_run_json(r, serial, int(n or 0)) for r, serial, n in rows],
         }
+        pv = {row.run_id: program_verify_json(row) for row in s.scalars(
+            select(ProgramVerifyRow).where(ProgramVerifyRow.run_id.in_([r.id for r, _, _ in rows]))).all()}
+        for run in out["runs"]:
+            run["program_verify"] = pv.get(run["id"])
+        return out
 
 
 def list_batches(db: Database, limit: int = 50, before_id: int | None = None) -> list[dict]:
@@ -280,7 +392,7 @@ def list_batches(db: Database, limit: int = 50, before_id: int | None = None) ->
         if before_id is not None:
             q = q.where(Batch.id < before_id)
         return [
-            {"id": b.id, "profile": b.profile, "operator": b.operator, "state": b.state, "step_index": b.step_index,
+            {"id": b.id, "station": b.station, "profile": b.profile, "operator": b.operator, "state": b.state, "step_index": b.step_index,
              "last_completed_step": b.last_completed_step, "created_at": _iso(b.created_at), "ended_at": _iso(b.ended_at)}
             for b in s.scalars(q)
         ]
@@ -290,6 +402,53 @@ def run_sample_bytes(db: Database, run_id: int) -> int:
     """Stored bytes of a run's compressed sample stream."""
     with db.session() as s:
         return int(s.scalar(select(func.coalesce(func.sum(func.length(SampleChunk.data)), 0)).where(SampleChunk.run_id == run_id)))
+
+
+# ---- yield and SPC ----------------------------------------------------------------------------
+def judged_runs(db: Database, limit: int = 5000, station: str | None = None) -> list[dict]:
+    """The newest `limit` judged runs, oldest first, with their verdict checks (each judged
+    measurement with its value and the limits it was judged by): the input of station/spc.py."""
+    with db.session() as s:
+        q = (select(DutRun, Dut.serial).join(Dut, Dut.id == DutRun.dut_id).where(DutRun.verdict.is_not(None))
+             .order_by(DutRun.judged_at.desc(), DutRun.id.desc()).limit(max(1, min(int(limit), 100_000))))
+        if station:
+            q = q.where(DutRun.station == station)
+        rows = s.execute(q).all()
+        out = [{"run_id": r.id, "batch_id": r.batch_id, "station": r.station, "slot": r.slot, "serial": serial,
+                "judged_at": _iso(r.judged_at), "verdict": r.verdict, "grade": r.grade, "limits_name": r.limits_name,
+                "limits_version": r.limits_version, "checks": list((r.verdict_detail or {}).get("checks") or [])}
+               for r, serial in rows]
+    out.reverse()
+    return out
+
+
+# ---- audit trail ------------------------------------------------------------------------------
+def audit_append(db: Database, actor: str, action: str, target: str = "", detail: dict | None = None,
+                 station: str | None = None) -> int:
+    """One audit row (who did what through the REST API); station defaults to the database's."""
+    from db.models import AuditRow
+    from db.writer import plain_json
+
+    with db.session() as s:
+        row = AuditRow(at=utcnow(), station=(station if station is not None else getattr(db, "station", "")) or "",
+                       actor=actor[:128], action=action[:64], target=target[:128], detail=plain_json(detail or {}))
+        s.add(row)
+        s.flush()
+        return int(row.id)
+
+
+def audit_list(db: Database, limit: int = 100, before_id: int | None = None, station: str | None = None) -> list[dict]:
+    """Audit rows, newest first; page back with before_id = the last id of a page."""
+    from db.models import AuditRow
+
+    with db.session() as s:
+        q = select(AuditRow).order_by(AuditRow.id.desc()).limit(max(1, min(int(limit), 1000)))
+        if before_id is not None:
+            q = q.where(AuditRow.id < int(before_id))
+        if station:
+            q = q.where(AuditRow.station == station)
+        return [{"id": a.id, "at": _iso(a.at), "station": a.station, "actor": a.actor, "action": a.action,
+                 "target": a.target, "detail": a.detail or {}} for a in s.scalars(q)]
 
 
 # ---- MES outbox --------------------------------------------------------------------------------
@@ -371,7 +530,12 @@ __all__ = [
     "run_detail",
     "segments_of_run",
     "results_since",
+    "audit_append",
+    "judged_runs",
+    "audit_list",
     "batch_detail",
+    "yields",
+    "verdict_json",
     "list_batches",
     "run_sample_bytes",
     "outbox_enqueue",

@@ -12,7 +12,15 @@ transaction, by one sealed chunk, which compresses far better. A crash at any po
 the small chunks or the sealed one, never both and never neither. After a restart the writer picks
 up a run's unsealed chunks and goes on compacting them.
 
-Every stored result bumps its run's result_seq, the MES cursor of repository.results_since. With
+Storage failures (disk full, an I/O error, a read-only file, a lost PostgreSQL connection) drop
+nothing: the writer keeps the events and retries with backoff for as long as it takes, reports the
+failure at once through `on_storage` (the daemon raises a critical alarm, health says so, and a
+batch whose results are not stored cannot end 'finished'), and reports the recovery. Only an event
+the database refuses for itself (a constraint, a bad value) is dropped, counted and logged.
+
+Every stored result bumps its run's result_seq, the MES cursor of repository.results_since, taken
+from a row-locked counter so that its order is the commit order even with several stations (and
+writers) on one database (take_result_seq). With
 outbox=True the writer also puts the result's MES message in the outbox table in the same
 transaction; off by default because the web's MES worker copies results_since into the outbox
 itself (two copies would reach the MES under two keys).
@@ -36,10 +44,24 @@ from sqlalchemy.exc import OperationalError
 
 from db import codec
 from db.database import BATCH_END_STATES, RUN_END_STATES, Database
-from db.models import Batch, DutRun, Outbox, SampleChunk, SegmentRow, SfemResultRow, ThermalResultRow, utcnow
+from db.models import (
+    Batch,
+    DutRun,
+    Outbox,
+    ProgramVerifyRow,
+    ResultCounter,
+    SampleChunk,
+    SegmentRow,
+    SfemResultRow,
+    ThermalResultRow,
+    utcnow,
+)
 from station.events import (
     BatchStateChanged,
+    DutProgrammed,
     DutResult,
+    DutVerdict,
+    DutVerified,
     Event,
     SamplesReceived,
     SegmentLogged,
@@ -109,6 +131,10 @@ def sfem_rows(sfem: dict | None) -> list[dict]:
         return []
     poly = sfem.get("polynomial_coefficients") or sfem.get("polynomials") or sfem.get("polynomial")
     steps = sfem.get("steps")
+    if not isinstance(steps, list) and isinstance(sfem.get("temperatures"), list):
+        # the daemon's shape: {"temperatures": [{"setpoint_c", "temp_c", "fit": {...}}, ...]}
+        steps = [{**(t.get("fit") or {}), **{k: v for k, v in t.items() if k != "fit"},
+                  "temperature_step": i} for i, t in enumerate(sfem["temperatures"])]
     rows = []
     if isinstance(steps, list):
         for i, st in enumerate(steps):
@@ -149,7 +175,41 @@ def sfem_rows(sfem: dict | None) -> list[dict]:
     ]
 
 
-_STORED = (SamplesReceived, SegmentLogged, DutResult, SlotStateChanged, BatchStateChanged, StepStarted, StepCompleted)
+VERDICT_FIELDS = ("verdict", "grade", "tray", "reason", "attempt", "limits_name", "limits_version")
+
+
+def verdict_columns(verdict: dict) -> dict:
+    """dut_run columns of a verdict dict (station/judging.py)."""
+    return {
+        "verdict": str(verdict.get("verdict") or "")[:16] or None,
+        "grade": None if verdict.get("grade") is None else str(verdict["grade"])[:16],
+        "tray": None if verdict.get("tray") is None else str(verdict["tray"])[:64],
+        "verdict_reason": str(verdict.get("reason") or ""),
+        "verdict_detail": plain_json(verdict),
+        "limits_name": None if verdict.get("limits_name") is None else str(verdict["limits_name"])[:64],
+        "limits_version": None if verdict.get("limits_version") is None else str(verdict["limits_version"])[:32],
+    }
+
+
+def take_result_seq(conn: Connection) -> int:
+    """The next MES cursor value, from the one-row counter (db.models.ResultCounter). The UPDATE
+    holds the row lock until this transaction commits, so two writers (two stations on one
+    PostgreSQL) take numbers in commit order: `results since N` cannot see N+2 before N+1 exists.
+    On SQLite the UPDATE takes the database write lock, which gives the same. Call it late in the
+    transaction: the lock is held from here to the commit."""
+    value = conn.execute(
+        update(ResultCounter).where(ResultCounter.id == 1).values(value=ResultCounter.value + 1)
+        .returning(ResultCounter.value)
+    ).scalar()
+    if value is None:  # the row is made by migration 0005; a hand-made schema may lack it
+        start = int(conn.execute(select(func.coalesce(func.max(DutRun.result_seq), 0))).scalar_one()) + 1
+        conn.execute(insert(ResultCounter).values(id=1, value=start))
+        value = start
+    return int(value)
+
+
+_STORED = (SamplesReceived, SegmentLogged, DutResult, DutVerdict, SlotStateChanged, BatchStateChanged, StepStarted,
+           StepCompleted, DutProgrammed, DutVerified)
 _BATCH_LEVEL = (BatchStateChanged, StepStarted, StepCompleted)
 
 
@@ -196,8 +256,17 @@ class DbWriter:
         seal_samples: int = 1024,
         outbox: bool = False,
         on_commit: Callable[[CommitInfo], None] | None = None,
+        on_storage: Callable[[str | None], None] | None = None,
+        retry_max_s: float = 5.0,
     ) -> None:
         self.db = database
+        self.station = str(getattr(database, "station", "") or "")  # stamped on every result row
+        self.on_storage = on_storage
+        self.retry_max_s = retry_max_s
+        self.failing: str | None = None  # why storage fails now (None = healthy)
+        self.failing_since: float | None = None
+        self._abandon = threading.Event()
+        self._held: list = []  # the events of the commit being retried
         self.interval_s = interval_s
         self.max_events = max_events
         self.seal_samples = seal_samples
@@ -210,7 +279,8 @@ class DbWriter:
         self._closed = False
         self.stats: dict[str, Any] = {
             "submitted": 0, "committed_events": 0, "committed_samples": 0, "commits": 0,
-            "dropped_events": 0, "unbound_events": 0, "last_error": "",
+            "dropped_events": 0, "unbound_events": 0, "last_error": "", "storage_failures": 0,
+            "abandoned_events": 0,
         }
         self._thread = threading.Thread(target=self._loop, name="db-writer", daemon=True)
         self._thread.start()
@@ -249,7 +319,10 @@ class DbWriter:
         self._closed = True
         m = _Marker(stop=True)
         self._q.put(m)
-        m.done.wait(timeout)
+        if self.failing is not None and timeout is not None:
+            timeout = min(timeout, 5.0)  # storage is down: one more try, then say what is lost
+        if not m.done.wait(timeout):
+            self._abandon.set()
         self._thread.join(timeout)
 
     def __enter__(self) -> "DbWriter":
@@ -286,22 +359,60 @@ class DbWriter:
             if stop:
                 return
 
-    def _commit_with_retry(self, events: list[Event], seal_all: bool = False) -> None:
-        for attempt in range(5):
+    def _set_failing(self, reason: str | None) -> None:
+        if reason == self.failing:
+            return
+        was = self.failing
+        self.failing = reason
+        self.failing_since = time.time() if reason is not None else None
+        if reason is not None and was is None:
+            log.critical("db writer: the database does not take writes (%s): %d events held in memory, "
+                         "retrying", reason, len(self._held))
+        elif reason is None:
+            log.warning("db writer: the database takes writes again; held events stored")
+        if self.on_storage is not None:
+            try:
+                self.on_storage(reason)
+            except Exception:
+                log.exception("db writer: on_storage callback failed")
+
+    def _commit_storage_retry(self, events: list[Event], seal_all: bool) -> bool:
+        """Commit, retrying storage failures with backoff until they pass (True) or close() gives
+        up (False). Raises what is not a storage failure (a bad event)."""
+        attempt = 0
+        self._held = events
+        while True:
             try:
                 self._commit(events, seal_all)
+                self._set_failing(None)
+                return True
+            except OperationalError as exc:  # disk full, I/O error, locked, lost connection
+                reason = str(getattr(exc, "orig", exc)).strip() or type(exc).__name__
+                self.stats["last_error"] = reason
+                self.stats["storage_failures"] += 1
+                attempt += 1
+                if attempt >= 3 or "full" in reason or "I/O" in reason or "readonly" in reason:
+                    self._set_failing(reason)
+                else:
+                    log.warning("db writer: commit failed (%s), retrying", reason)
+                if self._abandon.is_set():
+                    n = len(events) + self._q.qsize()
+                    self.stats["abandoned_events"] += n
+                    log.critical("db writer: giving up at shutdown: %d events NOT stored (%s)", n, reason)
+                    return False
+                time.sleep(min(self.retry_max_s, 0.2 * attempt))
+
+    def _commit_with_retry(self, events: list[Event], seal_all: bool = False) -> None:
+        try:
+            if self._commit_storage_retry(events, seal_all) or self._abandon.is_set():
                 return
-            except OperationalError as exc:  # locked/busy or a lost PostgreSQL connection: retry
-                self.stats["last_error"] = str(exc.orig)
-                log.warning("db writer: commit failed (%s), retrying", exc.orig)
-                time.sleep(0.2 * (attempt + 1))
-            except Exception as exc:  # a bad event: isolate it, keep the rest
-                self.stats["last_error"] = repr(exc)
-                log.exception("db writer: commit of %d events failed; retrying one by one", len(events))
-                break
+        except Exception as exc:  # a bad event: isolate it, keep the rest
+            self.stats["last_error"] = repr(exc)
+            log.exception("db writer: commit of %d events failed; retrying one by one", len(events))
         for ev in events:
             try:
-                self._commit([ev], False)
+                if not self._commit_storage_retry([ev], False):
+                    return
             except Exception as exc:
                 self.stats["dropped_events"] += 1
                 self.stats["last_error"] = repr(exc)
@@ -320,6 +431,9 @@ class DbWriter:
             with self.db.engine.begin() as conn:
                 samples: dict[int, list[SamplesReceived]] = {}
                 seal: set[int] = set()
+                # results take their result_seq last (take_result_seq), so the counter's row lock
+                # is held only for the commit, not while samples are compressed
+                numbered: list[tuple[int, Callable[[Connection, int], None]]] = []
                 for ev in events:
                     if not isinstance(ev, _STORED):
                         continue  # prompts, lamp, alarms, steps: not stored
@@ -332,9 +446,14 @@ class DbWriter:
                     elif isinstance(ev, SegmentLogged):
                         if run_id is not None:
                             info.segments.append((run_id, ev.segment.index, self._segment(conn, run_id, ev)))
-                    elif isinstance(ev, DutResult):
+                    elif isinstance(ev, (DutResult, DutVerdict)):
                         if run_id is not None:
-                            info.results.append((run_id, self._result(conn, run_id, ev)))
+                            numbered.append((run_id, self._result(conn, run_id, ev)))
+                    elif isinstance(ev, (DutProgrammed, DutVerified)):
+                        if run_id is not None:
+                            finish = self._program_verify(conn, run_id, ev)
+                            if finish is not None:
+                                numbered.append((run_id, finish))
                     elif isinstance(ev, SlotStateChanged):
                         if run_id is not None:
                             self._slot_state(conn, run_id, ev)
@@ -351,6 +470,10 @@ class DbWriter:
                     seal.discard(run_id)
                 for run_id in sorted(seal | (set(self._bufs) if seal_all else set())):
                     self._seal(conn, run_id)
+                for run_id, finish in numbered:
+                    seq = take_result_seq(conn)
+                    finish(conn, seq)
+                    info.results.append((run_id, seq))
         except BaseException:
             self._bufs = saved
             raise
@@ -400,14 +523,25 @@ class DbWriter:
             values[f"acc_std_{ax}_g"] = float(sg.acc_std_g[k])
         return int(conn.execute(insert(SegmentRow).values(**values)).inserted_primary_key[0])
 
-    def _result(self, conn: Connection, run_id: int, ev: DutResult) -> int:
+    def _result(self, conn: Connection, run_id: int, ev: DutResult | DutVerdict) -> Callable[[Connection, int], None]:
+        """A result (and its verdict) or a verdict alone: one MES record either way. Stores the
+        result rows and returns what stores its result_seq (called at the end of the transaction)."""
         now = utcnow()
-        for row in thermal_rows(ev.thermal):
-            conn.execute(insert(ThermalResultRow).values(run_id=run_id, created_at=now, **row))
-        for row in sfem_rows(ev.sfem):
-            conn.execute(insert(SfemResultRow).values(run_id=run_id, created_at=now, **row))
-        seq = int(conn.execute(select(func.coalesce(func.max(DutRun.result_seq), 0))).scalar_one()) + 1
-        conn.execute(update(DutRun).where(DutRun.id == run_id).values(result_seq=seq))
+        thermal = getattr(ev, "thermal", None)
+        sfem = getattr(ev, "sfem", None)
+        for row in thermal_rows(thermal):
+            conn.execute(insert(ThermalResultRow).values(run_id=run_id, station=self.station, created_at=now, **row))
+        for row in sfem_rows(sfem):
+            conn.execute(insert(SfemResultRow).values(run_id=run_id, station=self.station, created_at=now, **row))
+        return lambda conn, seq: self._number_result(conn, run_id, ev, seq, now)
+
+    def _number_result(self, conn: Connection, run_id: int, ev: DutResult | DutVerdict, seq: int, now: Any) -> None:
+        thermal = getattr(ev, "thermal", None)
+        sfem = getattr(ev, "sfem", None)
+        values: dict[str, Any] = {"result_seq": seq}
+        if ev.verdict:
+            values.update(verdict_columns(ev.verdict), judged_at=now)
+        conn.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
         if self.outbox:
             payload = {
                 "result_seq": seq,
@@ -415,16 +549,60 @@ class DbWriter:
                 "batch_id": ev.batch_id,
                 "slot": ev.slot,
                 "serial": ev.serial,
-                "thermal": plain_json(ev.thermal),
-                "sfem": plain_json(ev.sfem),
+                "thermal": plain_json(thermal),
+                "sfem": plain_json(sfem),
             }
+            if ev.verdict:
+                payload.update({k: ev.verdict.get(k) for k in VERDICT_FIELDS})
             conn.execute(
                 insert(Outbox).values(
                     idempotency_key=f"result:{run_id}:{seq}", topic="result", payload=payload, attempts=0,
                     next_attempt_at=now, last_error="", created_at=now,
                 )
             )
-        return seq
+
+    def _program_verify(self, conn: Connection, run_id: int, ev: DutProgrammed | DutVerified
+                        ) -> Callable[[Connection, int], None] | None:
+        """Upsert the run's program_verify row. A verification is a new result of the run: its
+        result_seq is bumped and the MES outbox gets the run's program-and-verify record."""
+        now = utcnow()
+        row = conn.execute(select(ProgramVerifyRow.id).where(ProgramVerifyRow.run_id == run_id)).scalar()
+        if isinstance(ev, DutProgrammed):
+            p = plain_json(ev.program)
+            values: dict[str, Any] = {
+                "programmed": bool(p.get("programmed")), "crc": p.get("crc"), "readback_crc": p.get("readback_crc"),
+                "comp_on": bool(p.get("comp")), "attempts": int(p.get("attempts") or 0),
+                "error_kind": str(p.get("error_kind") or ""), "error": str(p.get("error") or ""), "program": p,
+                "updated_at": now,
+            }
+        else:
+            v = plain_json(ev.verification)
+            before, after = v.get("e_before_mg") or {}, v.get("e_after_mg") or {}
+            values = {"verified": bool(v.get("passed")), "flags": list(v.get("flags") or []), "verification": v,
+                      "updated_at": now}
+            for ax in AXES:
+                values[f"e_before_{ax}_mg"] = _num(before.get(ax))
+                values[f"e_after_{ax}_mg"] = _num(after.get(ax))
+        if row is None:
+            base = {"programmed": False, "comp_on": False, "attempts": 0, "error_kind": "", "error": "", "flags": [],
+                    "program": {}, "created_at": now}
+            conn.execute(insert(ProgramVerifyRow).values(run_id=run_id, station=self.station, **{**base, **values}))
+        else:
+            conn.execute(update(ProgramVerifyRow).where(ProgramVerifyRow.id == row).values(**values))
+        if not isinstance(ev, DutVerified):
+            return None
+        return lambda conn, seq: self._number_verification(conn, run_id, ev, seq, now)
+
+    def _number_verification(self, conn: Connection, run_id: int, ev: DutVerified, seq: int, now: Any) -> None:
+        conn.execute(update(DutRun).where(DutRun.id == run_id).values(result_seq=seq))
+        if self.outbox:
+            prog = conn.execute(select(ProgramVerifyRow.program).where(ProgramVerifyRow.run_id == run_id)).scalar()
+            payload = {"result_seq": seq, "run_id": run_id, "batch_id": ev.batch_id, "slot": ev.slot, "serial": ev.serial,
+                       "program_verify": {"program": plain_json(prog), "verification": plain_json(ev.verification)}}
+            conn.execute(insert(Outbox).values(
+                idempotency_key=f"result:{run_id}:{seq}", topic="result", payload=payload, attempts=0,
+                next_attempt_at=now, last_error="", created_at=now,
+            ))
 
     def _slot_state(self, conn: Connection, run_id: int, ev: SlotStateChanged) -> None:
         values: dict[str, Any] = {"state": ev.state, "fault_reason": ev.fault_reason}
@@ -554,4 +732,4 @@ class DbWriter:
         return int(res.inserted_primary_key[0])
 
 
-__all__ = ["DbWriter", "CommitInfo", "thermal_rows", "sfem_rows", "plain_json"]
+__all__ = ["DbWriter", "CommitInfo", "thermal_rows", "sfem_rows", "plain_json", "verdict_columns", "VERDICT_FIELDS", "take_result_seq"]
