@@ -10,13 +10,64 @@ calibration.
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from station.types import Identity, SampleBlock
 
 
 class DriverError(Exception):
     """A link failed (port vanished, device unreachable, no reply). Faults one slot or device."""
+
+
+CAL_ERROR_KINDS = ("crc_mismatch", "refused", "no_reply", "readback_mismatch", "comp_not_set", "unsupported")
+
+
+class CalibrationError(DriverError):
+    """Writing or reading a board's calibration failed after the retry policy (design 4, program
+    and verify). `kind` names what went wrong (CAL_ERROR_KINDS); the sequencer faults that slot
+    with the message. Never a silent pass: every path that cannot prove the stored values equal
+    the written ones raises this."""
+
+    def __init__(self, kind: str, message: str, attempts: int = 1) -> None:
+        assert kind in CAL_ERROR_KINDS, kind
+        super().__init__(message)
+        self.kind = kind
+        self.attempts = attempts
+
+
+@dataclass(frozen=True)
+class CalReadback:
+    """What a board says it stores: values as float32, their CRC-32 and the compensation switch."""
+
+    values: tuple[float, ...]
+    crc: int
+    comp: bool
+
+
+@dataclass
+class ProgramReport:
+    """Outcome of write + read back + compensation on for one board (program_thermal)."""
+
+    crc: int  # CRC-32 of the written float32 values (station side == board side when ok)
+    readback: CalReadback
+    comp: bool
+    attempts: int  # write attempts used (1 = first try)
+    retries: list[str] = field(default_factory=list)  # why each failed attempt failed
+    # Board time (s, the driver's sample clock) of the latest sample received when compensation was
+    # confirmed on: every later sample is compensated (replies and samples share one ordered link).
+    comp_from_t: float | None = None
+
+    def to_json(self) -> dict:
+        return {
+            "crc": f"{self.crc:08X}",
+            "readback_crc": f"{self.readback.crc:08X}",
+            "readback_values": list(self.readback.values),
+            "readback_identical": self.readback.crc == self.crc,
+            "comp": self.comp,
+            "attempts": self.attempts,
+            "retries": list(self.retries),
+            "comp_from_t": self.comp_from_t,
+        }
 
 
 @dataclass
@@ -51,6 +102,12 @@ class BoardDriver(abc.ABC):
     @abc.abstractmethod
     async def stop(self) -> None: ...
 
+    def discard_held(self) -> int:
+        """Drop samples received but not yet read (returns how many): called before a NEW run
+        starts streaming, since samples that arrived after the previous run's last read (until its
+        STOP took effect) are not the new run's. A driver that holds none need not override it."""
+        return 0
+
     @abc.abstractmethod
     async def set_odr(self, odr_hz: float) -> None: ...
 
@@ -64,6 +121,84 @@ class BoardDriver(abc.ABC):
     @abc.abstractmethod
     async def close(self) -> None: ...
 
+    # ---- calibration write-back (design 3.1/3.2, program and verify) ----------------------
+    # Boards that can store coefficients override the four primitives; each primitive makes ONE
+    # attempt and raises CalibrationError (kind) on a refused write, a CRC mismatch or no reply.
+    # program_thermal() is the retry policy around them.
+    cal_retries: int = 3
+    last_sample_t: float | None = None  # board time of the latest sample received (drivers set it)
+    last_rx_wall: float = 0.0  # time.monotonic() of the latest frame received on this board's link
+
+    async def write_thermal(self, tdb_mg_per_c, tdsf_ppm_per_c) -> int:
+        """Store the six thermal coefficients; returns the CRC the board reports for what it stored."""
+        raise CalibrationError("unsupported", f"{self!r} cannot store calibration coefficients")
+
+    async def read_thermal(self) -> CalReadback:
+        raise CalibrationError("unsupported", f"{self!r} cannot read calibration coefficients")
+
+    async def set_compensation(self, on: bool) -> None:
+        raise CalibrationError("unsupported", f"{self!r} has no on-board compensation")
+
+    async def write_sfem(self, a_3x3, b_g) -> int:
+        raise CalibrationError("unsupported", f"{self!r} cannot store an SFEM")
+
+    async def read_sfem(self) -> CalReadback:
+        raise CalibrationError("unsupported", f"{self!r} cannot read an SFEM")
+
+    async def _retried(self, step, retries: list[str], label: str, failed: str):
+        """Run step() up to cal_retries times: a CalibrationError other than "unsupported" is
+        noted in `retries` and retried; the last one is raised when the attempts are used up.
+        Returns (step's result, the attempt that succeeded)."""
+        last: CalibrationError | None = None
+        for attempt in range(1, self.cal_retries + 1):
+            try:
+                return await step(), attempt
+            except CalibrationError as exc:
+                if exc.kind == "unsupported":
+                    raise
+                last = exc
+                retries.append(f"{label}attempt {attempt}: {exc.kind}: {exc}")
+        assert last is not None
+        raise CalibrationError(last.kind, f"{failed} after {self.cal_retries} attempts: {last}",
+                               attempts=self.cal_retries)
+
+    async def program_thermal(self, tdb_mg_per_c, tdsf_ppm_per_c, *, compensation: bool = True) -> ProgramReport:
+        """Write, read back and compare (CRC and every value), then switch compensation on and
+        confirm it. Up to `cal_retries` write attempts; a CRC mismatch, a refused write, a
+        missing reply or a read-back that differs is retried, and raised as CalibrationError
+        (the last kind) when the attempts are used up."""
+        from drivers.protocol.serial_frames import crc32_f32, to_f32
+
+        want = to_f32([*tdb_mg_per_c, *tdsf_ppm_per_c])
+        want_crc = crc32_f32(want)
+        retries: list[str] = []
+
+        async def write_and_read_back() -> CalReadback:
+            board_crc = await self.write_thermal(want[:3], want[3:])
+            if board_crc != want_crc:
+                raise CalibrationError("crc_mismatch", f"board stored CRC {board_crc:08X}, station computed {want_crc:08X}")
+            rb = await self.read_thermal()
+            if rb.crc != want_crc or tuple(rb.values) != want:
+                raise CalibrationError("readback_mismatch", f"read back CRC {rb.crc:08X} values {list(rb.values)}, "
+                                       f"written CRC {want_crc:08X}")
+            return rb
+
+        async def switch_compensation_on() -> CalReadback:
+            await self.set_compensation(True)
+            rb = await self.read_thermal()
+            if rb.comp and rb.crc == want_crc:
+                return rb
+            raise CalibrationError("comp_not_set", "compensation still off after COMP 1")
+
+        rb, attempt = await self._retried(write_and_read_back, retries, "", "calibration write failed")
+        comp = rb.comp
+        if compensation:
+            rb, _ = await self._retried(switch_compensation_on, retries, "compensation ",
+                                        "compensation could not be switched on")
+            comp = True
+        return ProgramReport(crc=want_crc, readback=rb, comp=comp, attempts=attempt, retries=retries,
+                             comp_from_t=self.last_sample_t)
+
 
 class LampRelay(abc.ABC):
     @abc.abstractmethod
@@ -71,6 +206,11 @@ class LampRelay(abc.ABC):
 
     @abc.abstractmethod
     async def read_lamp(self) -> bool: ...
+
+    async def set_watchdog(self, seconds: int) -> None:
+        """Arm the relay's host watchdog (design 3.3): with no request for `seconds`, the relay
+        switches the lamp off by itself (0 = off). A relay without one raises DriverError."""
+        raise DriverError(f"{type(self).__name__} has no host watchdog")
 
 
 class Fixture(abc.ABC):

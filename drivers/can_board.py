@@ -12,17 +12,39 @@ import asyncio
 import collections
 import dataclasses
 import threading
+import time
 from typing import Any
 
 import can
 import numpy as np
 
-from drivers.base import BoardDriver, DriverError, LinkStats
+from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats
 from drivers.protocol import can_frames as cf
 from drivers.protocol.serial_frames import SeqTracker
 from station.types import Identity, SampleBlock
 
 MAX_PENDING_SAMPLES = 2_000_000
+MAX_UNREADABLE_IN_A_ROW = 1000  # then it is not noise but a broken adapter: fail the bus
+
+
+def _is_line_noise(exc: BaseException) -> bool:
+    """A garbled line from the adapter, not a failed link.
+
+    python-can's slcan parser raises on a corrupt line: ValueError/IndexError from int() or
+    bytes.fromhex, or CanOperationError wrapping the UnicodeDecodeError of a non-ASCII byte.
+    One such line once failed the whole bus (every CAN board of the plate); OSError and pyserial's
+    SerialException (an OSError) still mean the port is gone."""
+    if isinstance(exc, (ValueError, IndexError)):
+        return True
+    return isinstance(exc, can.CanOperationError) and isinstance(exc.__cause__, (ValueError, IndexError))
+
+
+def _drop_partial_line(bus) -> None:
+    """python-can's slcan keeps an undecodable line in its buffer (the decode fails before the
+    clear), so every later line would fail too: drop it."""
+    buf = getattr(bus, "_buffer", None)
+    if isinstance(buf, bytearray):
+        buf.clear()
 
 
 def _sensor_from_ug(ug_per_lsb: float) -> str:
@@ -57,6 +79,8 @@ class CanBus:
         self.error: DriverError | None = None
         self.frames_rx = 0
         self.frames_foreign = 0  # ids no registered board claims
+        self.frames_unreadable = 0  # garbled adapter lines (e.g. slcan noise), skipped
+        self.last_rx_wall = 0.0  # time.monotonic() of the latest frames handed to the boards
 
     def __repr__(self) -> str:
         return f"CanBus({self.interface!r}, {self.channel!r})"
@@ -87,13 +111,20 @@ class CanBus:
         bus, loop = self.bus, self._loop
         assert bus is not None and loop is not None
         inbox = self._inbox
+        noise_in_a_row = 0
         while self._running:
             try:
                 msg = bus.recv(0.1)
-            except Exception as exc:  # noqa: BLE001 - the bus is gone
+            except Exception as exc:  # noqa: BLE001 - line noise (counted) or the bus is gone
+                if self._running and _is_line_noise(exc) and noise_in_a_row < MAX_UNREADABLE_IN_A_ROW:
+                    noise_in_a_row += 1
+                    self.frames_unreadable += 1
+                    _drop_partial_line(bus)
+                    continue
                 if self._running:
                     loop.call_soon_threadsafe(self._fail, f"CAN bus {self.channel} failed: {exc}")
                 return
+            noise_in_a_row = 0
             if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
                 continue
             inbox.append((msg.arbitration_id, bytes(msg.data)))
@@ -106,6 +137,7 @@ class CanBus:
 
     def _drain(self) -> None:
         self._wake_pending = False
+        self.last_rx_wall = time.monotonic()
         inbox = self._inbox
         touched: set[CanBoard] = set()
         while inbox:
@@ -176,7 +208,8 @@ class CanBoard(BoardDriver):
     ug_per_lsb).
     """
 
-    def __init__(self, bus: CanBus, node_id: int, *, sensor: str | None = None, retries: int = 3) -> None:
+    def __init__(self, bus: CanBus, node_id: int, *, sensor: str | None = None, retries: int = 3,
+                 cal_timeout_s: float = 2.0) -> None:
         self.bus = bus
         self.node_id = cf.check_node(node_id)
         self.sensor = sensor
@@ -195,6 +228,19 @@ class CanBoard(BoardDriver):
         self._ident_fut: asyncio.Future[Identity] | None = None
         self._error: DriverError | None = None
         self._opened = False
+        self.cal_timeout_s = cal_timeout_s
+        self._cal_fut: asyncio.Future[cf.CalStatus] | None = None
+        self._cal_fields: list[float | None] = [None] * cf.N_CAL_FIELDS
+        self._cal_lock = asyncio.Lock()
+
+    @property  # type: ignore[override]
+    def last_rx_wall(self) -> float:
+        """The whole bus: a reply waits behind every node's frames, not only this node's."""
+        return self.bus.last_rx_wall
+
+    @last_rx_wall.setter
+    def last_rx_wall(self, value: float) -> None:
+        pass
 
     def __repr__(self) -> str:
         return f"CanBoard({self.bus.channel!r}, node={self.node_id})"
@@ -225,7 +271,20 @@ class CanBoard(BoardDriver):
                 return
             t = self._time_base_s + (self._seq.index - self._index_base) / odr
             self._pending.append((t, s.ax, s.ay, s.az, s.t))
+            self.last_sample_t = t
             self._got = True
+        elif func == cf.IDENT_BASE and cf.is_cal_reply(data):
+            try:
+                idx, value = cf.decode_cal_reply(data)
+            except ValueError:
+                self.stats.frames_malformed += 1
+                return
+            self.stats.frames_ok += 1
+            if idx == cf.CAL_STATUS_INDEX:
+                if self._cal_fut is not None and not self._cal_fut.done():
+                    self._cal_fut.set_result(value)  # type: ignore[arg-type]
+            else:
+                self._cal_fields[idx - cf.CAL_FIELD_INDEX0] = value  # type: ignore[assignment]
         elif func == cf.IDENT_BASE:
             if self._ident is None:
                 self._ident = cf.IdentityAssembler()
@@ -237,19 +296,16 @@ class CanBoard(BoardDriver):
             self.stats.frames_ok += 1
             if done and self._ident_fut is not None and not self._ident_fut.done():
                 a = self._ident
-                ug = float(f"{a.ug_per_lsb:.7g}")
-                odr = float(f"{a.odr_hz:.7g}")
-                self._ident_fut.set_result(
-                    Identity(
-                        serial=a.serial,
-                        sensor=self.sensor or _sensor_from_ug(ug),
-                        fw="",
-                        ug_per_lsb=ug,
-                        t_lsb_per_c=1.0,
-                        t_lsb_at_25c=0.0,
-                        odr_hz=odr,
-                    )
-                )
+                try:
+                    ug = float(f"{a.ug_per_lsb:.7g}")
+                    odr = float(f"{a.odr_hz:.7g}")
+                    ident = Identity(serial=a.serial, sensor=self.sensor or _sensor_from_ug(ug), fw="",
+                                     ug_per_lsb=ug, t_lsb_per_c=1.0, t_lsb_at_25c=0.0, odr_hz=odr)
+                except ValueError:  # NaN/zero sensitivity or ODR: refuse, identify() asks again
+                    self.stats.frames_malformed += 1
+                    self._ident = cf.IdentityAssembler()
+                    return
+                self._ident_fut.set_result(ident)
         elif func == cf.CMD_BASE:
             pass  # our own command echoed back by an interface
         else:
@@ -267,8 +323,9 @@ class CanBoard(BoardDriver):
 
     def _on_bus_error(self, error: DriverError) -> None:
         self._error = error
-        if self._ident_fut is not None and not self._ident_fut.done():
-            self._ident_fut.set_exception(error)
+        for fut in (self._ident_fut, self._cal_fut):
+            if fut is not None and not fut.done():
+                fut.set_exception(error)
         self._data.set()
 
     def _check(self) -> None:
@@ -314,6 +371,12 @@ class CanBoard(BoardDriver):
             await self.identify()
         await self._send(cf.encode_command(cf.CMD_START))
 
+    def discard_held(self) -> int:
+        n = len(self._pending)
+        self._pending.clear()
+        self._pending_lost = 0
+        return n
+
     async def stop(self) -> None:
         await self._send(cf.encode_command(cf.CMD_STOP))
 
@@ -322,6 +385,53 @@ class CanBoard(BoardDriver):
         self._rebase(float(odr_hz))
         if self.identity is not None:
             self.identity = dataclasses.replace(self.identity, odr_hz=float(odr_hz))
+
+    # ---- calibration write-back (one attempt each; BoardDriver.program_thermal retries) ------
+    async def _cal_status(self, frames: list[bytes], what: str) -> cf.CalStatus:
+        """Send frames, wait for the index-4 status reply; one attempt."""
+        self._check()
+        loop = asyncio.get_running_loop()
+        self._cal_fut = loop.create_future()
+        try:
+            for data in frames:
+                await self._send(data)
+            return await asyncio.wait_for(asyncio.shield(self._cal_fut), self.cal_timeout_s)
+        except asyncio.TimeoutError:
+            self._check()
+            raise CalibrationError("no_reply", f"no {what} status from CAN node {self.node_id} within "
+                                   f"{self.cal_timeout_s:g} s") from None
+        finally:
+            self._cal_fut = None
+
+    async def write_thermal(self, tdb_mg_per_c, tdsf_ppm_per_c) -> int:
+        from drivers.protocol.serial_frames import crc32_f32, to_f32
+
+        vals = to_f32([*tdb_mg_per_c, *tdsf_ppm_per_c])
+        frames = [cf.encode_cal_field(k, v) for k, v in enumerate(vals)] + [cf.encode_cal_commit(crc32_f32(vals))]
+        async with self._cal_lock:
+            st = await self._cal_status(frames, "CAL_COMMIT")
+        if st.status == cf.CAL_CRC_MISMATCH:
+            raise CalibrationError("crc_mismatch", f"CAN node {self.node_id}: the board's CRC of the received fields "
+                                   f"does not match the commit CRC (nothing stored)")
+        if st.status == cf.CAL_WRITE_FAILED:
+            raise CalibrationError("refused", f"CAN node {self.node_id}: write failed")
+        if st.status != cf.CAL_STORED:
+            raise CalibrationError("refused", f"CAN node {self.node_id}: unknown commit status {st.status}")
+        return st.crc
+
+    async def read_thermal(self) -> CalReadback:
+        async with self._cal_lock:
+            self._cal_fields = [None] * cf.N_CAL_FIELDS
+            st = await self._cal_status([cf.encode_cal_read()], "CAL_READ")
+            fields = list(self._cal_fields)
+        if any(v is None for v in fields):
+            missing = [k for k, v in enumerate(fields) if v is None]
+            raise CalibrationError("no_reply", f"CAN node {self.node_id}: stored field(s) {missing} missing in the read-back")
+        return CalReadback(tuple(float(v) for v in fields), st.crc, st.comp)  # type: ignore[arg-type]
+
+    async def set_compensation(self, on: bool) -> None:
+        """COMP has no reply in 3.2: program_thermal confirms it with CAL_READ (comp byte)."""
+        await self._send(cf.encode_comp(on))
 
     # ---- samples ---------------------------------------------------------------------------
     async def read_block(self, timeout_s: float = 1.0) -> SampleBlock:

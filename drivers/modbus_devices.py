@@ -159,6 +159,14 @@ class ModbusLampRelay(LampRelay):
     async def read_lamp(self) -> bool:
         return await self.link.read_coil(self.unit, self.coil)
 
+    async def set_watchdog(self, seconds: int) -> None:
+        """Holding register 0 of the relay = host watchdog time in s (design 3.3), read back."""
+        value = max(0, min(0xFFFF, int(round(seconds))))
+        await self.link.write_holding(self.unit, 0, value)
+        got = (await self.link.read_holding(self.unit, 0))[0]
+        if got != value:
+            raise DriverError(f"lamp relay: host watchdog reads back {got} s, wrote {value} s")
+
 
 class ModbusFixture(Fixture):
     """Motorised fixture: HR0 commanded position, IR0 reached position, IR1 = 1 while moving."""

@@ -13,15 +13,24 @@ import asyncio
 import dataclasses
 import os
 import threading
+import time
 
 import numpy as np
 import serial
 
-from drivers.base import BoardDriver, DriverError, LinkStats
+from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats
 from drivers.protocol import serial_frames as sf
 from station.types import Identity, SampleBlock
 
 MAX_PENDING_SAMPLES = 2_000_000  # if nobody reads, the oldest samples are dropped (counted lost)
+
+
+class BoardErrorReply(DriverError):
+    """The board answered a command with `E,<code>,<text>`."""
+
+    def __init__(self, port: str, code: str, text: str) -> None:
+        super().__init__(f"board {port} error {code}: {text}")
+        self.code, self.text = code, text
 
 
 class SerialBoard(BoardDriver):
@@ -136,6 +145,7 @@ class SerialBoard(BoardDriver):
 
     # ---- frames ----------------------------------------------------------------------------
     def _feed(self, data: bytes) -> None:
+        self.last_rx_wall = time.monotonic()
         got_samples = False
         for frame in self._parser.feed(data):
             if type(frame) is sf.SampleFrame:
@@ -143,21 +153,26 @@ class SerialBoard(BoardDriver):
                 if lost:
                     self.stats.samples_lost += lost
                     self._pending_lost += lost
-                self._pending.append(
-                    (self._clock.update(frame.t_us), frame.ax, frame.ay, frame.az, frame.t)
-                )
+                t_us = self._clock.update(frame.t_us, lost + 1)
+                if t_us is None:  # a time that follows nothing: a corrupt frame, not a clock wrap
+                    self.stats.frames_ok -= 1
+                    self.stats.frames_malformed += 1
+                    continue
+                self._pending.append((t_us, frame.ax, frame.ay, frame.az, frame.t))
+                self.last_sample_t = t_us / 1e6
                 got_samples = True
             elif isinstance(frame, sf.IdentityFrame):
                 if self._ident_fut is not None and not self._ident_fut.done():
                     self._ident_fut.set_result(frame.identity)
-            elif isinstance(frame, sf.AckFrame):
-                fut = self._ack_waiters.get(frame.command)
+            elif isinstance(frame, (sf.AckFrame, sf.CalReadFrame, sf.SfemReadFrame)):
+                key = frame.command if isinstance(frame, sf.AckFrame) else ("C" if isinstance(frame, sf.CalReadFrame) else "S")
+                fut = self._ack_waiters.get(key)
                 if fut is not None and not fut.done():
                     fut.set_result(frame)
             elif isinstance(frame, sf.ErrorFrame):
                 for fut in self._ack_waiters.values():
                     if not fut.done():
-                        fut.set_exception(DriverError(f"board {self.port} error {frame.code}: {frame.text}"))
+                        fut.set_exception(BoardErrorReply(self.port, frame.code, frame.text))
         if got_samples:
             if len(self._pending) > MAX_PENDING_SAMPLES:
                 drop = len(self._pending) - MAX_PENDING_SAMPLES
@@ -235,15 +250,68 @@ class SerialBoard(BoardDriver):
         if self.identity is None:
             await self.identify()
         self._seq.reset()
+        self._clock.reset_period()  # the board may have been stopped for a while: no period to hold to
         await self._command(sf.cmd_start(), "START")
+
+    def discard_held(self) -> int:
+        n = len(self._pending)
+        self._pending.clear()
+        self._pending_lost = 0
+        return n
 
     async def stop(self) -> None:
         await self._command(sf.cmd_stop(), "STOP")
 
     async def set_odr(self, odr_hz: float) -> None:
         await self._command(sf.cmd_odr(odr_hz), "ODR")
+        self._clock.reset_period()
         if self.identity is not None:
             self.identity = dataclasses.replace(self.identity, odr_hz=float(odr_hz))
+
+    # ---- calibration write-back (one attempt each; BoardDriver.program_thermal retries) ------
+    async def _exchange(self, raw: bytes, key: str, what: str):
+        """Send one command and wait for its reply frame (ack `key`, or `C`/`S`); one attempt."""
+        self._check()
+        assert self._loop is not None
+        async with self._cmd_lock:
+            fut = self._loop.create_future()
+            self._ack_waiters[key] = fut
+            try:
+                self._write(raw)
+                return await asyncio.wait_for(asyncio.shield(fut), self.ack_timeout_s)
+            except asyncio.TimeoutError:
+                self._check()
+                raise CalibrationError("no_reply", f"no reply to {what} from {self.port} within {self.ack_timeout_s:g} s") from None
+            except BoardErrorReply as exc:
+                raise CalibrationError("refused", f"{what} refused by {self.port}: {exc.code} {exc.text}") from None
+            finally:
+                self._ack_waiters.pop(key, None)
+
+    @staticmethod
+    def _ack_crc(frame: sf.AckFrame, what: str) -> int:
+        try:
+            return int(frame.args[0], 16)
+        except (IndexError, ValueError):
+            raise CalibrationError("crc_mismatch", f"{what} acknowledged without a CRC: {frame.args!r}") from None
+
+    async def write_thermal(self, tdb_mg_per_c, tdsf_ppm_per_c) -> int:
+        ack = await self._exchange(sf.cmd_calw(tdb_mg_per_c, tdsf_ppm_per_c), "CALW", "CALW")
+        return self._ack_crc(ack, "CALW")
+
+    async def read_thermal(self) -> CalReadback:
+        c = await self._exchange(sf.cmd_calr(), "C", "CALR")
+        return CalReadback(tuple(c.values), c.crc, c.comp)
+
+    async def set_compensation(self, on: bool) -> None:
+        await self._exchange(sf.cmd_comp(on), "COMP", "COMP")
+
+    async def write_sfem(self, a_3x3, b_g) -> int:
+        ack = await self._exchange(sf.cmd_sfew(a_3x3, b_g), "SFEW", "SFEW")
+        return self._ack_crc(ack, "SFEW")
+
+    async def read_sfem(self) -> CalReadback:
+        s = await self._exchange(sf.cmd_sfer(), "S", "SFER")
+        return CalReadback(tuple(s.values), s.crc, False)
 
     # ---- samples ---------------------------------------------------------------------------
     async def read_block(self, timeout_s: float = 1.0) -> SampleBlock:
@@ -266,11 +334,18 @@ class SerialBoard(BoardDriver):
         ident = self.identity or Identity(serial="")
         if not rows:
             return SampleBlock(np.empty(0), np.empty((0, 3)), np.empty(0), lost)
-        arr = np.array(rows, dtype=np.int64)
+        try:
+            arr = np.array(rows, dtype=np.int64)
+            t_us, counts = arr[:, 0], arr[:, 1:]
+        except OverflowError:
+            # a 64-bit board clock past 2**63 us (in range for the protocol's uint64): the time goes
+            # through float64 instead of int64; the counts (int32 by the frame checks) stay exact
+            t_us = np.array([r[0] for r in rows], dtype=np.float64)
+            counts = np.array([r[1:] for r in rows], dtype=np.int64)
         return SampleBlock(
-            time_s=arr[:, 0] / 1e6,
-            acc_g=ident.acc_g(arr[:, 1:4]),
-            temp_c=ident.temp_c(arr[:, 4]),
+            time_s=t_us / 1e6,
+            acc_g=ident.acc_g(counts[:, 0:3]),
+            temp_c=ident.temp_c(counts[:, 3]),
             lost_samples=lost,
         )
 

@@ -5,6 +5,16 @@
     0x600+N station -> board  command: 0x01 START, 0x02 STOP, 0x03 IDENTIFY, 0x04 SET_ODR + f32 Hz
     0x580+N board -> station  identity: four frames, byte 0 = index; 0,1: serial chars (7 each,
                                       NUL padded); 2: f32 ug_per_lsb; 3: f32 ODR Hz
+
+Calibration write-back (program and verify):
+    0x600+N  0x05 CAL_FIELD  byte 1 field index 0..5 (tdb x y z mg/C, tdsf x y z ppm/C), bytes 2-5 f32
+             0x06 CAL_COMMIT bytes 1-4 CRC-32 (zlib) of the six float32 values in index order
+             0x07 CAL_READ   0x08 COMP byte 1 = 0 off / 1 on
+    0x580+N  index 4: byte 1 status (0 stored, 1 CRC mismatch, 2 write failed), byte 2 comp 0/1,
+                      bytes 3-6 stored CRC; index 5..10: stored field 0..5 (bytes 1-4 f32), sent
+                      after CAL_READ before the index-4 frame.
+The contract does not name the byte order of the CRC: little-endian like every other multi-byte
+field of 3.2 (uint32 LE).
 """
 
 from __future__ import annotations
@@ -20,12 +30,25 @@ CMD_START = 0x01
 CMD_STOP = 0x02
 CMD_IDENTIFY = 0x03
 CMD_SET_ODR = 0x04
+CMD_CAL_FIELD = 0x05
+CMD_CAL_COMMIT = 0x06
+CMD_CAL_READ = 0x07
+CMD_COMP = 0x08
+
+CAL_STATUS_INDEX = 4
+CAL_FIELD_INDEX0 = 5  # reply index of stored field 0; field k is index 5 + k
+N_CAL_FIELDS = 6
+CAL_STORED = 0
+CAL_CRC_MISMATCH = 1
+CAL_WRITE_FAILED = 2
+CAL_STATUS_TEXT = {CAL_STORED: "stored", CAL_CRC_MISMATCH: "CRC mismatch", CAL_WRITE_FAILED: "write failed"}
 
 SERIAL_MAX_CHARS = 14
 TEMP_C_AT_ZERO = 25.0
 
 _SAMPLE = struct.Struct("<hhhbB")
 _F32 = struct.Struct("<f")
+_U32 = struct.Struct("<I")
 
 
 def check_node(node_id: int) -> int:
@@ -140,3 +163,99 @@ class IdentityAssembler:
 def float32(value: float) -> float:
     """The value as it survives a float32 field (3.9 -> 3.9000000954); for exact comparisons."""
     return _F32.unpack(_F32.pack(value))[0]
+
+
+# ---- calibration write-back ----------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class CalCommand:
+    """A decoded calibration command (board side): CAL_FIELD, CAL_COMMIT, CAL_READ or COMP."""
+
+    cmd: int
+    field: int | None = None  # CAL_FIELD
+    value: float | None = None  # CAL_FIELD, float32
+    crc: int | None = None  # CAL_COMMIT
+    on: bool | None = None  # COMP
+
+
+def encode_cal_field(index: int, value: float) -> bytes:
+    if not 0 <= int(index) < N_CAL_FIELDS:
+        raise ValueError(f"calibration field index must be 0..{N_CAL_FIELDS - 1}, got {index}")
+    return bytes([CMD_CAL_FIELD, int(index)]) + _F32.pack(float(value))
+
+
+def encode_cal_commit(crc: int) -> bytes:
+    return bytes([CMD_CAL_COMMIT]) + _U32.pack(int(crc) & 0xFFFFFFFF)
+
+
+def encode_cal_read() -> bytes:
+    return bytes([CMD_CAL_READ])
+
+
+def encode_comp(on: bool) -> bytes:
+    return bytes([CMD_COMP, 1 if on else 0])
+
+
+def decode_cal_command(data: bytes) -> CalCommand:
+    """Raises ValueError for a frame that is not a well-formed calibration command."""
+    if not data:
+        raise ValueError("empty command frame")
+    cmd = data[0]
+    if cmd == CMD_CAL_FIELD:
+        if len(data) < 6 or data[1] >= N_CAL_FIELDS:
+            raise ValueError("CAL_FIELD frame needs a field index 0..5 and a float32")
+        return CalCommand(cmd, field=data[1], value=_F32.unpack(bytes(data[2:6]))[0])
+    if cmd == CMD_CAL_COMMIT:
+        if len(data) < 5:
+            raise ValueError("CAL_COMMIT frame shorter than 5 bytes")
+        return CalCommand(cmd, crc=_U32.unpack(bytes(data[1:5]))[0])
+    if cmd == CMD_CAL_READ:
+        return CalCommand(cmd)
+    if cmd == CMD_COMP:
+        if len(data) < 2 or data[1] not in (0, 1):
+            raise ValueError("COMP frame needs byte 1 = 0 or 1")
+        return CalCommand(cmd, on=bool(data[1]))
+    raise ValueError(f"0x{cmd:02X} is not a calibration command")
+
+
+def encode_cal_status(status: int, comp: bool, crc: int) -> bytes:
+    """Reply frame index 4: status, compensation flag, stored CRC."""
+    return bytes([CAL_STATUS_INDEX, int(status), 1 if comp else 0]) + _U32.pack(int(crc) & 0xFFFFFFFF)
+
+
+def encode_cal_stored_field(index: int, value: float) -> bytes:
+    """Reply frame index 5 + index: stored field `index` (0..5)."""
+    if not 0 <= int(index) < N_CAL_FIELDS:
+        raise ValueError(f"calibration field index must be 0..{N_CAL_FIELDS - 1}, got {index}")
+    return bytes([CAL_FIELD_INDEX0 + int(index)]) + _F32.pack(float(value))
+
+
+@dataclass(frozen=True, slots=True)
+class CalStatus:
+    status: int
+    comp: bool
+    crc: int
+
+    @property
+    def text(self) -> str:
+        return CAL_STATUS_TEXT.get(self.status, f"status {self.status}")
+
+
+def decode_cal_reply(data: bytes) -> tuple[int, CalStatus | float]:
+    """(frame index, CalStatus for index 4 or the float32 value for 5..10). ValueError if malformed."""
+    if not data:
+        raise ValueError("empty reply frame")
+    idx = data[0]
+    if idx == CAL_STATUS_INDEX:
+        if len(data) < 7:
+            raise ValueError("calibration status frame shorter than 7 bytes")
+        return idx, CalStatus(data[1], bool(data[2]), _U32.unpack(bytes(data[3:7]))[0])
+    if CAL_FIELD_INDEX0 <= idx < CAL_FIELD_INDEX0 + N_CAL_FIELDS:
+        if len(data) < 5:
+            raise ValueError(f"stored field frame {idx} shorter than 5 bytes")
+        return idx, _F32.unpack(bytes(data[1:5]))[0]
+    raise ValueError(f"frame index {idx} is not a calibration reply")
+
+
+def is_cal_reply(data: bytes) -> bool:
+    return bool(data) and CAL_STATUS_INDEX <= data[0] < CAL_FIELD_INDEX0 + N_CAL_FIELDS

@@ -7,13 +7,20 @@ LinkStats, so a noisy line is measurable but never fatal.
 
 from __future__ import annotations
 
+import struct
+import zlib
 from dataclasses import dataclass
 from functools import reduce
 from operator import xor
 
+import numpy as np
+
 from drivers.base import LinkStats
 from station.types import Identity
 
+_U32_MAX = (1 << 32) - 1
+_U64_MAX = (1 << 64) - 1
+_I32_MIN, _I32_MAX = -(1 << 31), (1 << 31) - 1
 MAX_LINE_BYTES = 512  # no valid frame is this long; longer runs without a newline are garbage
 
 
@@ -51,6 +58,69 @@ def cmd_stop() -> bytes:
 
 def cmd_odr(odr_hz: float) -> bytes:
     return encode(f"ODR,{fmt_number(odr_hz)}")
+
+
+# ---- calibration write-back (program and verify) ---------------------------------------------
+# The board keeps float32 values; the CRC is CRC-32 (zlib) of those float32 values, little-endian,
+# in the order written. The station therefore rounds to float32 BEFORE writing and writes the
+# shortest decimal that parses back to exactly that float32, so its own CRC and the board's agree.
+
+N_THERMAL = 6  # tdb_x, tdb_y, tdb_z (mg/C), tdsf_x, tdsf_y, tdsf_z (ppm/C)
+N_SFEM = 12  # a11..a33 row by row, b_x, b_y, b_z (g)
+
+
+def to_f32(values) -> tuple[float, ...]:
+    """The values as the board stores them (IEEE float32), back in Python floats."""
+    arr = np.asarray(values, dtype=np.float32).reshape(-1) + np.float32(0.0)  # -0.0 -> 0.0
+    return tuple(float(v) for v in arr)
+
+
+def crc32_f32(values) -> int:
+    """CRC-32 (zlib) of the values packed as IEEE float32 little-endian (design 3.1/3.2)."""
+    vals = to_f32(values)
+    return zlib.crc32(struct.pack(f"<{len(vals)}f", *vals)) & 0xFFFFFFFF
+
+
+def fmt_crc(crc: int) -> str:
+    """8 hex digits, upper case like the frame checksum."""
+    return f"{int(crc) & 0xFFFFFFFF:08X}"
+
+
+def fmt_f32(value: float) -> str:
+    """Shortest decimal text that parses back to the same float32 ("-0.35", "1.2e-05" never: positional)."""
+    return np.format_float_positional(np.float32(value), unique=True, trim="-")
+
+
+def _values_body(kind: str, values, n: int) -> str:
+    vals = to_f32(values)
+    if len(vals) != n:
+        raise ValueError(f"{kind} needs {n} values, got {len(vals)}")
+    if not all(np.isfinite(vals)):
+        raise ValueError(f"{kind}: every value must be a finite float32")
+    return ",".join((kind, *(fmt_f32(v) for v in vals)))
+
+
+def cmd_calw(tdb_mg_per_c, tdsf_ppm_per_c) -> bytes:
+    """`$CALW,<tdb_x>,<tdb_y>,<tdb_z>,<tdsf_x>,<tdsf_y>,<tdsf_z>*HH`."""
+    return encode(_values_body("CALW", [*tdb_mg_per_c, *tdsf_ppm_per_c], N_THERMAL))
+
+
+def cmd_sfew(a_3x3, b_g) -> bytes:
+    """`$SFEW,<a11>,<a12>,...,<a33>,<b_x>,<b_y>,<b_z>*HH` (A row by row, b in g)."""
+    a = np.asarray(a_3x3, dtype=np.float64).reshape(-1)
+    return encode(_values_body("SFEW", [*a, *np.asarray(b_g, dtype=np.float64).reshape(-1)], N_SFEM))
+
+
+def cmd_calr() -> bytes:
+    return encode("CALR")
+
+
+def cmd_sfer() -> bytes:
+    return encode("SFER")
+
+
+def cmd_comp(on: bool) -> bytes:
+    return encode(f"COMP,{1 if on else 0}")
 
 
 # ---- frame records -------------------------------------------------------------------------
@@ -99,14 +169,52 @@ class ErrorFrame:
 
 
 @dataclass(frozen=True, slots=True)
+class CalReadFrame:
+    """`C,<tdb_x>,...,<tdsf_z>,<crc>,<comp>`: the board's stored thermal coefficients (reply to CALR)."""
+
+    values: tuple[float, ...]  # 6: tdb x y z (mg/C), tdsf x y z (ppm/C), as float32
+    crc: int
+    comp: bool
+
+    def encode(self) -> bytes:
+        return encode(",".join(("C", *(fmt_f32(v) for v in self.values), fmt_crc(self.crc), "1" if self.comp else "0")))
+
+
+@dataclass(frozen=True, slots=True)
+class SfemReadFrame:
+    """`S,<a11>,...,<a33>,<b_x>,<b_y>,<b_z>,<crc>`: the board's stored SFEM (reply to SFER)."""
+
+    values: tuple[float, ...]  # 12
+    crc: int
+
+    def encode(self) -> bytes:
+        return encode(",".join(("S", *(fmt_f32(v) for v in self.values), fmt_crc(self.crc))))
+
+
+@dataclass(frozen=True, slots=True)
 class CommandFrame:
-    """A station-to-board command as the board parses it (`ID`, `START`, `STOP`, `ODR,<hz>`)."""
+    """A station-to-board command as the board parses it (`ID`, `START`, `STOP`, `ODR,<hz>`,
+    `CALW,<6 values>`, `SFEW,<12 values>`, `CALR`, `SFER`, `COMP,<0|1>`); args stay text."""
 
     command: str
     args: tuple[str, ...] = ()
 
 
-Frame = SampleFrame | IdentityFrame | AckFrame | ErrorFrame | CommandFrame
+Frame = SampleFrame | IdentityFrame | AckFrame | ErrorFrame | CommandFrame | CalReadFrame | SfemReadFrame
+
+
+def _crc_field(text: str) -> int:
+    if len(text) != 8:
+        raise ValueError("CRC field must be 8 hex digits")
+    return int(text, 16)
+
+
+def _finite_floats(fields: list[str]) -> tuple[float, ...]:
+    """Decimal fields as the float32 values they denote (the board stores float32)."""
+    vals = to_f32([float(f) for f in fields])
+    if not all(np.isfinite(vals)):
+        raise ValueError("non-finite value")
+    return vals
 
 
 def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
@@ -114,17 +222,26 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
     kind = fields[0]
     try:
         if board_side:  # the board parses commands
-            if kind in ("ID", "START", "STOP") and len(fields) == 1:
+            if kind in ("ID", "START", "STOP", "CALR", "SFER") and len(fields) == 1:
                 return CommandFrame(kind)
             if kind == "ODR" and len(fields) == 2:
                 float(fields[1])
+                return CommandFrame(kind, (fields[1],))
+            if (kind == "CALW" and len(fields) == 1 + N_THERMAL) or (kind == "SFEW" and len(fields) == 1 + N_SFEM):
+                _finite_floats(fields[1:])
+                return CommandFrame(kind, tuple(fields[1:]))
+            if kind == "COMP" and len(fields) == 2 and fields[1] in ("0", "1"):
                 return CommandFrame(kind, (fields[1],))
             return None
         if kind == "D":
             if len(fields) != 7:
                 return None
             seq, t_us, ax, ay, az, t = (int(f) for f in fields[1:])
-            if seq < 0 or t_us < 0:
+            # In range or malformed: seq uint32, t_us uint64 (a 32- or 64-bit board clock), counts
+            # int32. A checksum-valid frame with a 20-digit number must be counted, not stored.
+            if not (0 <= seq <= _U32_MAX and 0 <= t_us <= _U64_MAX):
+                return None
+            if not all(_I32_MIN <= v <= _I32_MAX for v in (ax, ay, az, t)):
                 return None
             return SampleFrame(seq, t_us, ax, ay, az, t)
         if kind == "I":
@@ -141,6 +258,14 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
                     odr_hz=float(fields[7]),
                 )
             )
+        if kind == "C":
+            if len(fields) != 1 + N_THERMAL + 2 or fields[-1] not in ("0", "1"):
+                return None
+            return CalReadFrame(_finite_floats(fields[1 : 1 + N_THERMAL]), _crc_field(fields[-2]), fields[-1] == "1")
+        if kind == "S":
+            if len(fields) != 1 + N_SFEM + 1:
+                return None
+            return SfemReadFrame(_finite_floats(fields[1 : 1 + N_SFEM]), _crc_field(fields[-1]))
         if kind == "A":
             if len(fields) < 2 or not fields[1]:
                 return None
@@ -267,20 +392,71 @@ class SeqTracker:
 class ClockUnwrapper:
     """Board microsecond clock to a monotonic count across a 32-bit wrap (71.6 min).
 
-    A 64-bit board clock never wraps and passes through unchanged. A backward jump that does not
-    look like a wrap (board reset) is passed through as is.
+    A 64-bit board clock never wraps and passes through unchanged. A 32-bit clock is unwrapped
+    only when the new time follows the previous one by about the sample period modulo 2^32
+    (`steps` periods when the sequence numbers say samples were lost in between): one corrupt
+    `t_us = 0xFFFFFFFF` once counted as a wrap and shifted that DUT's time by 4,295 s.
+
+    `update()` returns None for a time that does not follow the previous sample: an outlier the
+    caller counts as malformed and skips. When the next time follows that outlier instead (the
+    board's clock really jumped: a reset, an ODR change), the new timeline is taken as it is
+    (no offset change), so a real jump costs one sample, never the rest of the run.
+    Until the period is known (first two samples, after `reset_period()`), any forward step of
+    less than half the range is accepted, as before.
     """
 
     WRAP = 1 << 32
+    TOLERANCE = 0.5  # of the expected step: board timers are regular, corrupt values are not
 
     def __init__(self) -> None:
         self.offset = 0
         self.last: int | None = None
+        self.period_us: float | None = None
+        self.outliers = 0
+        self.jumps = 0
+        self._candidate: int | None = None
+        self._skipped_steps = 0  # periods of the outliers since the last accepted sample
 
-    def update(self, t_us: int) -> int:
+    def reset_period(self) -> None:
+        """The sample rate changed: learn the period again from the next step."""
+        self.period_us = None
+
+    def _follows(self, step_us: int, steps: int) -> bool:
+        if step_us <= 0 or step_us >= self.WRAP // 2:
+            return False
+        if self.period_us is None:
+            return True
+        expected = self.period_us * max(1, steps)
+        return abs(step_us - expected) <= self.TOLERANCE * expected
+
+    def update(self, t_us: int, steps: int = 1) -> int | None:
+        """t_us: the frame's clock; steps: sample periods since the previous frame (1 + lost)."""
         last = self.last
-        if last is not None and t_us < last and last < self.WRAP:
-            if last >= self.WRAP // 2 and t_us < self.WRAP // 2 and last - t_us > self.WRAP // 2:
+        if last is None or last >= self.WRAP or t_us >= self.WRAP:  # first sample, or a 64-bit clock
+            self.last = t_us
+            self._candidate = None
+            self._skipped_steps = 0
+            return t_us + self.offset
+        step = (t_us - last) % self.WRAP
+        since_last = steps + self._skipped_steps
+        if self._follows(step, since_last):
+            if t_us < last:
                 self.offset += self.WRAP
-        self.last = t_us
-        return t_us + self.offset
+            self.period_us = step / max(1, since_last)
+            self.last = t_us
+            self._candidate = None
+            self._skipped_steps = 0
+            return t_us + self.offset
+        cand = self._candidate
+        if cand is not None and 0 < t_us - cand < self.WRAP // 2:
+            # two samples agree with each other and not with the past: the clock jumped
+            self.jumps += 1
+            self.period_us = (t_us - cand) / max(1, steps)
+            self.last = t_us
+            self._candidate = None
+            self._skipped_steps = 0
+            return t_us + self.offset
+        self._candidate = t_us
+        self._skipped_steps += steps
+        self.outliers += 1
+        return None

@@ -1,6 +1,7 @@
 """Simulated Modbus devices (design 3.3) in one pymodbus TCP server on 127.0.0.1.
 
-Units: 1 lamp relay (coil 0), 2 reference thermometer (IR0, 0.1 C), 3 fixture (HR0 commanded,
+Units: 1 lamp relay (coil 0; HR0 host watchdog in s: no request to the relay for that long
+switches the coil off by itself, in wall time like the real module), 2 reference thermometer (IR0, 0.1 C), 3 fixture (HR0 commanded,
 IR0 reached, IR1 moving), 4 thermal chamber (HR0 set point, IR0 temperature, 0.1 C). Writes act
 on the plant at once (lamp_on, chamber_setpoint_c); a fixture move takes `move_time_s` of
 simulated time, during which IR1 = 1 and the plant keeps its old position. Input registers are
@@ -13,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import math
 import socket
+import time
 from typing import Any, Protocol
 
 from pymodbus.constants import ExcCodes
@@ -88,6 +90,13 @@ class SimModbusServer:
         self._move_end_s = 0.0
         self.writes: list[tuple[int, int, int, Any]] = []  # (unit, fc, address, values) log
         self.server: ModbusTcpServer | None = None
+        # Relay host watchdog (design 3.3): wall seconds, 0 = off.
+        self.watchdog_s = 0
+        self.watchdog_trips = 0
+        self.last_relay_request = time.monotonic()
+        self.relay_offline = False  # fault injection: the relay answers nothing (tests)
+        self.fixture_offline = False  # fault injection: the fixture answers nothing
+        self._watchdog_task: asyncio.Task | None = None
 
     # ---- plant side ------------------------------------------------------------------------
     def update(self) -> None:
@@ -106,6 +115,17 @@ class SimModbusServer:
 
     # ---- pymodbus actions (run in the server's event loop) ---------------------------------
     async def _relay(self, fc, start, address, count, regs, values):
+        if self.relay_offline:
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        self.last_relay_request = time.monotonic()
+        if fc in (FC_WRITE_REGISTER, FC_WRITE_REGISTERS) and values is not None:
+            self.writes.append((UNIT_RELAY, fc, address, list(values)))
+            if address == 0:
+                self.watchdog_s = int(values[0])
+            return None
+        if fc == FC_READ_HOLDING:
+            regs[0] = self.watchdog_s & 0xFFFF
+            return None
         if values is not None and fc in (FC_WRITE_COIL, FC_WRITE_COILS):
             self.writes.append((UNIT_RELAY, fc, address, list(values)))
             if address <= 0 < address + len(values):
@@ -120,6 +140,8 @@ class SimModbusServer:
         return None
 
     async def _fixture(self, fc, start, address, count, regs, values):
+        if self.fixture_offline:
+            return ExcCodes.GATEWAY_NO_RESPONSE
         if values is not None and fc in (FC_WRITE_REGISTER, FC_WRITE_REGISTERS):
             self.writes.append((UNIT_FIXTURE, fc, address, list(values)))
             if address == 0:
@@ -147,15 +169,28 @@ class SimModbusServer:
     async def start(self) -> None:
         devices = [
             _device(0, self._absent, coils=1, hr=1, ir=2),
-            _device(UNIT_RELAY, self._relay, coils=1),
+            _device(UNIT_RELAY, self._relay, coils=1, hr=1),
             _device(UNIT_THERMOMETER, self._thermometer, ir=1),
             _device(UNIT_FIXTURE, self._fixture, hr=1, ir=2),
             _device(UNIT_CHAMBER, self._chamber, hr=1, ir=1),
         ]
         self.server = ModbusTcpServer(devices, address=(self.host, self.port))
         await self.server.serve_forever(background=True)
+        self._watchdog_task = asyncio.get_running_loop().create_task(self._watchdog())
+
+    async def _watchdog(self, period_s: float = 0.05) -> None:
+        """The relay module's own safe state: no request for watchdog_s -> coil off."""
+        while True:
+            await asyncio.sleep(period_s)
+            if (self.watchdog_s and self.plant.lamp_on
+                    and time.monotonic() - self.last_relay_request > self.watchdog_s):
+                self.plant.lamp_on = False
+                self.watchdog_trips += 1
 
     async def stop(self) -> None:
+        if self._watchdog_task is not None:
+            self._watchdog_task.cancel()
+            self._watchdog_task = None
         if self.server is not None:
             await self.server.shutdown()
             self.server = None

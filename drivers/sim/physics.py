@@ -7,7 +7,8 @@ Forward model, per DUT and sample (what world.py evaluates, vectorized):
     dT    = T_mems - 25
     Acc   = Acc0 + dT (TDB + TDSF Acc0)    martinez2022 eq. 1, per axis
             + hidden effects (off unless switched on by name, see HIDDEN_EFFECTS)
-            + white noise, then quantized to the sensor's LSB and clipped to its range
+            + white noise + bias wander (NoiseModel: random walk, flicker; `white` = none),
+            then quantized to the sensor's LSB and clipped to its range
     temp  = T_die + noise, quantized to the temperature sensor's resolution
 
 The die temperature T_die = plate lagged by die_tau_s + self-heating after power-up
@@ -70,6 +71,71 @@ SENSORS: dict[str, SensorSpec] = {
     # Noise density 25 ug/sqrt(Hz): at 3.125 Hz (bandwidth ~ODR/2) ~31 ug rms per sample.
     "ADXL355": SensorSpec("ADXL355", 3.9, 20, -9.05, 1885.0, 12, False, 3.125, 25e-6 * math.sqrt(3.125 / 2.0), 0.05, 0.030),
 }
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Noise of the acceleration output beyond the datasheet's white noise (a named, documented model).
+
+    Real MEMS accelerometers are not white: their Allan deviation falls as 1/sqrt(tau) (white noise),
+    flattens at the bias instability (flicker, 1/f) and rises again as sqrt(tau) (bias random walk).
+    The bias wander is what makes "independent" 10-minute chunks of a log correlated, so the
+    diagnostics must be tested against it. Per axis and DUT:
+
+        bias(t) = rw(t) + flicker(t)
+        rw:      random walk, increments N(0, bias_rw_g_per_sqrt_s^2 dt) per sample (starts at 0)
+        flicker: sum of first-order Gauss-Markov processes with time constants flicker_tau_s, each of
+                 variance flicker_g^2 / len(flicker_tau_s): a flat (1/f-like) Allan deviation of the
+                 order of flicker_g between the shortest and longest time constant
+
+    Parameters are orders of magnitude from datasheets and published Allan-deviation plots, not a
+    particular part's measurement: LIS3DSH-class (consumer, 0.5 mg white per sample at 3.125 Hz):
+    bias instability ~40 ug, random walk 2 ug per sample at 3.125 Hz (3.5 ug/sqrt(s): ~0.2 mg after
+    an hour, ~0.8 mg after 15 h); ADXL355-class (low-noise): bias instability ~5 ug, random walk
+    ~0.5 ug/sqrt(s). `white` is the ideal part (datasheet white noise only) for unit tests.
+    """
+
+    name: str
+    bias_rw_g_per_sqrt_s: float = 0.0
+    flicker_g: float = 0.0
+    flicker_tau_s: tuple[float, ...] = (60.0, 600.0, 6000.0)
+    white_scale: float = 1.0  # multiplies the DUT's datasheet white noise
+    note: str = ""
+
+    @property
+    def is_white(self) -> bool:
+        return self.bias_rw_g_per_sqrt_s == 0.0 and self.flicker_g == 0.0
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "bias_rw_g_per_sqrt_s": self.bias_rw_g_per_sqrt_s, "flicker_g": self.flicker_g,
+                "flicker_tau_s": list(self.flicker_tau_s), "white_scale": self.white_scale, "note": self.note}
+
+
+NOISE_MODELS: dict[str, NoiseModel] = {
+    "white": NoiseModel("white", note="ideal part: the datasheet's white noise only (unit tests)"),
+    "lis3dsh": NoiseModel("lis3dsh", bias_rw_g_per_sqrt_s=2e-6 * math.sqrt(3.125), flicker_g=40e-6,
+                          note="LIS3DSH-class consumer MEMS: white + 40 ug bias instability + 2 ug/sample "
+                               "random walk at 3.125 Hz"),
+    "adxl355": NoiseModel("adxl355", bias_rw_g_per_sqrt_s=0.5e-6, flicker_g=5e-6,
+                          note="ADXL355-class low-noise MEMS: white + 5 ug bias instability + 0.5 ug/sqrt(s) "
+                               "random walk"),
+}
+# `realistic` (the default of simulated boards and logs) picks the model of the DUT's sensor class.
+REALISTIC_BY_SENSOR = {"LIS3DSH": "lis3dsh", "ADXL355": "adxl355"}
+NOISE_NAMES: tuple[str, ...] = ("realistic",) + tuple(NOISE_MODELS)
+DEFAULT_NOISE = "realistic"
+
+
+def noise_model(name: str | NoiseModel, sensor: str = "LIS3DSH") -> NoiseModel:
+    """Resolve a noise model name (or pass a NoiseModel through); `realistic` depends on the sensor."""
+    if isinstance(name, NoiseModel):
+        return name
+    key = str(name).lower()
+    if key == "realistic":
+        key = REALISTIC_BY_SENSOR.get(sensor, "lis3dsh")
+    if key not in NOISE_MODELS:
+        raise StationError(f"unknown noise model {name!r} (known: {', '.join(NOISE_NAMES)})")
+    return NOISE_MODELS[key]
+
 
 HIDDEN_EFFECTS: tuple[str, ...] = (
     "bias_t2",
@@ -347,6 +413,11 @@ def population_from_json(doc: dict) -> list[DutTruth]:
 
 
 __all__ = [
+    "NoiseModel",
+    "NOISE_MODELS",
+    "NOISE_NAMES",
+    "DEFAULT_NOISE",
+    "noise_model",
     "SensorSpec",
     "SENSORS",
     "HIDDEN_EFFECTS",

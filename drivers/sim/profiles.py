@@ -185,6 +185,7 @@ def run_profile(
             "fw": ident.fw,
             "ug_per_lsb": f"{ident.ug_per_lsb:g}",
             "source": "simulator",
+            "noise": world.noise_models[i].name if hasattr(world, "noise_models") else "white",
         }
         m.update(meta or {})
         logs.append(

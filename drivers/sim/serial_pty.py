@@ -18,6 +18,7 @@ from collections.abc import Callable
 import numpy as np
 
 from drivers.protocol import serial_frames as sf
+from drivers.sim.board_nvm import CalFirmware
 from station.types import Identity
 
 OUT_BUFFER_MAX_BYTES = 1 << 20  # a board's USB buffer: beyond this, frames are dropped (seq gap)
@@ -42,6 +43,7 @@ class PtyEndpoint:
         self._writer_on = False
         self.closed = False
         self.bytes_dropped = 0
+        self.last_drain = 0.0  # loop time the host last took bytes (a live reader)
 
     def start(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -74,9 +76,18 @@ class PtyEndpoint:
             n = 0
         except OSError:
             return
+        if n and self._loop is not None:
+            self.last_drain = self._loop.time()
         if n < len(data):
             self._out += data[n:]
             self._arm_writer()
+
+    def backlog_bytes(self, now: float, live_within_s: float = 1.0) -> int:
+        """Bytes waiting for a host that is reading (one that took bytes lately); 0 for a dead
+        or absent reader, whose backlog must not hold the plant."""
+        if self.closed or now - self.last_drain > live_within_s:
+            return 0
+        return len(self._out)
 
     def _arm_writer(self) -> None:
         if not self._writer_on and self._loop is not None and not self.closed:
@@ -91,6 +102,8 @@ class PtyEndpoint:
         except OSError:
             n = len(self._out)
         del self._out[:n]
+        if n and self._loop is not None:
+            self.last_drain = self._loop.time()
         if not self._out and self._loop is not None:
             self._loop.remove_writer(self.master_fd)
             self._writer_on = False
@@ -125,7 +138,9 @@ class SimSerialBoard:
 
     `identity` gives the counts' scaling and the source sample rate (identity.odr_hz); ODR
     commands are honoured when they divide the source rate (decimation), else answered `E`.
-    Faults: inject_garbage, corrupt_next, stop_streaming, disconnect.
+    Faults: inject_garbage, corrupt_next, stop_streaming, disconnect; on the calibration write
+    path `cal.flip_next_write`, `cal.refuse_writes`, `cal.drop_replies` (drivers.sim.board_nvm).
+    Calibration ($CALW/$SFEW/$CALR/$SFER/$COMP) lives in `cal.nvm`, which `power_cycle()` keeps.
     """
 
     def __init__(self, identity: Identity, *, t0_us: int = 0, clock_bits: int | None = 32) -> None:
@@ -144,6 +159,8 @@ class SimSerialBoard:
         self.clock_mask = (1 << clock_bits) - 1 if clock_bits else None  # firmware uint32 clock wraps
         self.commands: list[bytes] = []  # every command frame received, raw (tests read it)
         self.frames_sent = 0
+        self.cal = CalFirmware()
+        self.power_cycles = 0
 
     # ---- lifecycle ------------------------------------------------------------------------
     def start(self) -> None:
@@ -166,6 +183,15 @@ class SimSerialBoard:
     def disconnect(self) -> None:
         """Close the pty master: the host's port vanishes."""
         self.port.close()
+
+    def power_cycle(self) -> None:
+        """The board restarts: RAM state (streaming, seq, ODR, parser) is lost, the NVM is kept."""
+        self.streaming = False
+        self.seq = 0
+        self._decim, self._phase = 1, 0
+        self.identity = dataclasses.replace(self.identity, odr_hz=self.source_odr_hz)
+        self.parser = sf.FrameParser(board_side=True)
+        self.power_cycles += 1
 
     @property
     def connected(self) -> bool:
@@ -210,6 +236,37 @@ class SimSerialBoard:
             self._decim, self._phase = k, 0
             self.identity = dataclasses.replace(self.identity, odr_hz=self.source_odr_hz / k)
             self._send(sf.AckFrame("ODR", (frame.args[0],)).encode())
+        elif cmd in ("CALW", "SFEW", "CALR", "SFER", "COMP"):
+            self._calibration(cmd, frame.args)
+
+    def _cal_reply(self, raw: bytes) -> None:
+        if not self.cal.take_drop():
+            self._send(raw)
+
+    def _calibration(self, cmd: str, args: tuple[str, ...]) -> None:
+        cal = self.cal
+        if cmd in ("CALW", "SFEW"):
+            values = cal.on_the_way([float(a) for a in args])
+            if cal.take_refuse():
+                self._cal_reply(sf.ErrorFrame(cmd, "flash write failed").encode())
+                return
+            if cmd == "CALW":
+                cal.store_thermal(values)
+                crc = cal.nvm.thermal_crc
+            else:
+                cal.store_sfem(values)
+                crc = cal.nvm.sfem_crc
+            self._cal_reply(sf.AckFrame(cmd, (sf.fmt_crc(crc),)).encode())
+        elif cmd == "CALR":
+            self._cal_reply(sf.CalReadFrame(cal.nvm.thermal, cal.nvm.thermal_crc, cal.nvm.comp).encode())
+        elif cmd == "SFER":
+            if cal.nvm.sfem is None:
+                self._cal_reply(sf.ErrorFrame("SFER", "no SFEM stored").encode())
+            else:
+                self._cal_reply(sf.SfemReadFrame(cal.nvm.sfem, cal.nvm.sfem_crc).encode())
+        elif cmd == "COMP":
+            cal.nvm.comp = args[0] == "1"
+            self._cal_reply(sf.AckFrame("COMP").encode())
 
     # ---- samples from the world -----------------------------------------------------------
     def feed(self, time_s: np.ndarray, acc_counts: np.ndarray, temp_counts: np.ndarray) -> None:
@@ -227,8 +284,13 @@ class SimSerialBoard:
         if self.clock_mask is not None:
             t_us_arr &= self.clock_mask
         t_us = t_us_arr.tolist()
-        acc = np.asarray(acc_counts)[sel].astype(np.int64).tolist()
-        tc = np.asarray(temp_counts)[sel].astype(np.int64).tolist()
+        acc_arr = np.asarray(acc_counts)[sel].astype(np.int64)
+        tc_arr = np.asarray(temp_counts)[sel].astype(np.int64)
+        if self.cal.nvm.comp:  # on-board compensation with the board's own temperature reading
+            acc_arr = self.cal.compensate_counts(acc_arr, self.identity.temp_c(tc_arr), self.identity.ug_per_lsb)
+            acc_arr = np.clip(acc_arr, -(1 << 31), (1 << 31) - 1)
+        acc = acc_arr.tolist()
+        tc = tc_arr.tolist()
         parts = []
         seq = self.seq
         for k in range(len(t_us)):

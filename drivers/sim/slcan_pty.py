@@ -16,6 +16,8 @@ import can
 import numpy as np
 
 from drivers.protocol import can_frames as cf
+from drivers.protocol.serial_frames import crc32_f32
+from drivers.sim.board_nvm import CalFirmware, flip_bit
 from drivers.sim.serial_pty import PtyEndpoint, _ratio
 from station.types import Identity
 
@@ -32,7 +34,13 @@ def can_scale(identity: Identity) -> tuple[int, float]:
 
 
 class SimCanBoard:
-    """Firmware of one CAN board: commands in, identity and sample frames out via `send`."""
+    """Firmware of one CAN board: commands in, identity and sample frames out via `send`.
+
+    Calibration (design 3.2, 0x05-0x08): CAL_FIELD fills RAM, CAL_COMMIT stores the six fields
+    in `cal.nvm` only if the board's own CRC of what it received matches the commit CRC; the
+    NVM survives `power_cycle()`. Write-path faults: `cal.flip_next_write` (a field arrives with
+    a bit flipped: CRC mismatch), `cal.refuse_writes` (write failed), `cal.drop_replies`.
+    """
 
     def __init__(self, node_id: int, identity: Identity, send: SendFn | None = None) -> None:
         self.node_id = cf.check_node(node_id)
@@ -50,6 +58,18 @@ class SimCanBoard:
         self.connected = True
         self.commands: list[bytes] = []
         self.frames_sent = 0
+        self.cal = CalFirmware()
+        self._fields: list[float | None] = [None] * cf.N_CAL_FIELDS
+        self.power_cycles = 0
+
+    def power_cycle(self) -> None:
+        """The board restarts: RAM state (streaming, seq, ODR, received fields) lost, NVM kept."""
+        self.streaming = False
+        self.seq = 0
+        self._decim, self._phase = 1, 0
+        self.odr_hz = self.source_odr_hz
+        self._fields = [None] * cf.N_CAL_FIELDS
+        self.power_cycles += 1
 
     # ---- faults ----------------------------------------------------------------------------
     def inject_garbage(self, data: bytes) -> None:
@@ -73,6 +93,9 @@ class SimCanBoard:
         if arb_id != cf.CMD_BASE + self.node_id or not self.connected:
             return
         self.commands.append(bytes(data))
+        if data and cf.CMD_CAL_FIELD <= data[0] <= cf.CMD_COMP:
+            self._calibration(bytes(data))
+            return
         try:
             cmd, odr = cf.decode_command(data)
         except ValueError:
@@ -90,6 +113,42 @@ class SimCanBoard:
                 self._decim, self._phase = k, 0
                 self.odr_hz = self.source_odr_hz / k
 
+    def _calibration(self, data: bytes) -> None:
+        try:
+            c = cf.decode_cal_command(data)
+        except ValueError:
+            return
+        cal = self.cal
+        reply = cf.IDENT_BASE + self.node_id
+        if c.cmd == cf.CMD_CAL_FIELD:
+            assert c.field is not None and c.value is not None
+            value = c.value
+            if cal.flip and cal.flip[0][0] % cf.N_CAL_FIELDS == c.field:  # flipped on the way in
+                _, bit = cal.flip.pop(0)
+                value = flip_bit(value, bit)
+                cal.flips_done += 1
+            self._fields[c.field] = value
+        elif c.cmd == cf.CMD_CAL_COMMIT:
+            got = self._fields
+            if any(v is None for v in got) or crc32_f32(got) != c.crc:
+                status = cf.CAL_CRC_MISMATCH
+            elif cal.take_refuse():
+                status = cf.CAL_WRITE_FAILED
+            else:
+                cal.store_thermal(got)
+                status = cf.CAL_STORED
+            self._fields = [None] * cf.N_CAL_FIELDS
+            if not cal.take_drop():
+                self._out(reply, cf.encode_cal_status(status, cal.nvm.comp, cal.nvm.thermal_crc))
+        elif c.cmd == cf.CMD_CAL_READ:
+            if cal.take_drop():
+                return
+            for k, v in enumerate(cal.nvm.thermal):
+                self._out(reply, cf.encode_cal_stored_field(k, v))
+            self._out(reply, cf.encode_cal_status(cf.CAL_STORED, cal.nvm.comp, cal.nvm.thermal_crc))
+        elif c.cmd == cf.CMD_COMP:
+            cal.nvm.comp = bool(c.on)  # no reply in 3.2: the station confirms with CAL_READ
+
     def _out(self, arb_id: int, payload: bytes) -> None:
         if self.send is not None:
             self.send(arb_id, payload)
@@ -106,6 +165,9 @@ class SimCanBoard:
         if len(sel) == 0:
             return
         acc = np.asarray(acc_counts)[sel].astype(np.int64)
+        if self.cal.nvm.comp:  # on-board compensation with the board's own (full-resolution) temperature
+            acc = self.cal.compensate_counts(acc, self.identity.temp_c(np.asarray(temp_counts)[sel]),
+                                             self.identity.ug_per_lsb)
         if self.shift:
             acc = np.floor_divide(acc + (1 << (self.shift - 1)), 1 << self.shift)
         acc = np.clip(acc, -32768, 32767).tolist()

@@ -86,6 +86,9 @@ class SimStation:
         self._sim0_samples = 0
         self._produced = 0
         self.paused = False
+        self.backpressure_bytes = 32 * 1024  # a live reader this far behind holds the plant clock
+        self.held_ticks = 0
+        self.max_hold_s = 2.0  # wall seconds; well under any stall timeout
 
     # ---- lifecycle -------------------------------------------------------------------------
     async def __aenter__(self) -> "SimStation":
@@ -156,6 +159,12 @@ class SimStation:
             return self.serial_boards[i]
         return self.can_boards[i - self.n_serial]
 
+    def power_cycle(self, i: int, off_s: float = 0.0) -> None:
+        """Board i loses power and restarts: its RAM state is gone, its NVM (calibration) is kept,
+        and the world's self-heating of that DUT starts over."""
+        self.board(i).power_cycle()
+        self.world.power_cycle(i, off_s)
+
     def subscribe(self, callback: Callable[[WorldChunk], None]) -> None:
         """callback(chunk) after every world advance (simulator truth for tests and plots)."""
         self._listeners.append(callback)
@@ -206,12 +215,29 @@ class SimStation:
 
     async def _run_clock(self) -> None:
         loop = asyncio.get_running_loop()
+        last_advance = loop.time()
         while True:
             await asyncio.sleep(self.tick_s)
             if self.paused:
                 self._sim0_samples = self._produced
                 self._wall0 = loop.time()
                 continue
-            due = self._due_samples(loop.time())
+            now = loop.time()
+            if self._backlog(now) > self.backpressure_bytes and now - last_advance < self.max_hold_s:
+                # The daemon is behind (a loaded machine): the plant waits for it instead of running
+                # ahead, so a compressed-time run gives the same physics whatever the CPU load. The
+                # plant still moves a tick every max_hold_s, so no board ever looks stalled.
+                self._sim0_samples = self._produced
+                self._wall0 = now
+                self.held_ticks += 1
+                continue
+            due = self._due_samples(now)
             if due > self._produced:
                 self.advance(due - self._produced)
+            last_advance = now
+
+    def _backlog(self, now: float) -> int:
+        ports = [b.port for b in self.serial_boards]
+        if self._adapter is not None and hasattr(self._adapter, "port"):
+            ports.append(self._adapter.port)
+        return max((p.backlog_bytes(now) for p in ports), default=0)

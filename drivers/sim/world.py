@@ -16,7 +16,9 @@ of n samples is the same computation as n chunks of one sample):
     MEMS         -> the die, or lagging it with tau_s when the hidden `thermal_lag` effect is on
 
 Noise: one np.random.Generator per DUT, consumed in sample order (4 normals per sample), so the
-output does not depend on how advance() is chunked.
+output does not depend on how advance() is chunked. The bias wander of the noise model
+(physics.NoiseModel: random walk and flicker; default `realistic`, `white` = none) draws from a
+second per-DUT stream, so a `white` world's output is exactly what it was before noise models.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.signal import lfilter
 
-from drivers.sim.physics import SENSORS, DutTruth
+from drivers.sim.physics import DEFAULT_NOISE, SENSORS, DutTruth, NoiseModel, noise_model
 from station.positions import GRAVITY_DIRECTIONS
 from station.types import T_REF_C, Identity
 
@@ -76,8 +78,11 @@ def _stack(truths: list[DutTruth], attr: str) -> np.ndarray:
 class SimWorld:
     """All DUTs of a simulated station (see module doc). Deterministic from `seed`."""
 
-    def __init__(self, duts: list[DutTruth], env: EnvConfig | None = None, odr_hz: float | None = None, seed: int = 0):
+    def __init__(self, duts: list[DutTruth], env: EnvConfig | None = None, odr_hz: float | None = None, seed: int = 0,
+                 noise: str | NoiseModel = DEFAULT_NOISE):
         self.duts = list(duts)
+        self.noise_name = noise.name if isinstance(noise, NoiseModel) else str(noise)
+        self.noise_models = [noise_model(noise, t.sensor) for t in self.duts]
         self.env = env or EnvConfig()
         self.seed = int(seed)
         n = len(self.duts)
@@ -108,6 +113,11 @@ class SimWorld:
         self._sh_tau = _stack(self.duts, "self_heat_tau_s").reshape(n)
         self._lamp_gain = np.append(_stack(self.duts, "lamp_gain").reshape(n), 1.0)  # last: reference
         self._rngs = [np.random.default_rng([self.seed, i, 0x0015E]) for i in range(n)]
+        self._bias_rngs = [np.random.default_rng([self.seed, i, 0xB1A5]) for i in range(n)]
+        self._rw = np.zeros((n, 3))  # bias random walk state, g
+        # Gauss-Markov states (g), started in their stationary distribution
+        self._fl = [np.random.default_rng([self.seed, i, 0xB1A6]).standard_normal((3, len(m.flicker_tau_s)))
+                    * (m.flicker_g / np.sqrt(max(1, len(m.flicker_tau_s)))) for i, m in enumerate(self.noise_models)]
         # thermal state
         amb = self.env.ambient_c
         self._air = amb
@@ -287,6 +297,8 @@ class SimWorld:
         for i in range(nd):
             z = self._rngs[i].standard_normal((n, 4))
             a = acc[i] + z[:, :3] * self._noise[i]
+            if not self.noise_models[i].is_white:
+                a = a + self._bias_wander(i, n, dt)
             acc_counts[i] = np.clip(np.rint(a / self._lsb_g[i]), *self._acc_lim[i]).astype(np.int64)
             t = die[i] + z[:, 3] * self._tnoise[i]
             tc = np.rint((t - T_REF_C) * self._t_lsb_per_c[i] + self._t_lsb_at_25[i])
@@ -302,6 +314,24 @@ class SimWorld:
             position=pos,
             chamber_air_c=air,
         )
+
+    def _bias_wander(self, i: int, n: int, dt: float) -> np.ndarray:
+        """(n, 3) bias of DUT i in g: random walk + flicker (sum of Gauss-Markov), state carried over."""
+        m = self.noise_models[i]
+        k = len(m.flicker_tau_s)
+        z = self._bias_rngs[i].standard_normal((n, 3 * (1 + k)))
+        rw = self._rw[i] + np.cumsum(z[:, :3] * (m.bias_rw_g_per_sqrt_s * np.sqrt(dt)), axis=0)
+        self._rw[i] = rw[-1]
+        out = rw
+        if m.flicker_g > 0 and k:
+            sig = m.flicker_g / np.sqrt(k)
+            for c, tau in enumerate(m.flicker_tau_s):
+                a = float(np.exp(-dt / tau))
+                u = z[:, 3 * (1 + c):3 * (2 + c)] * (sig * np.sqrt(1.0 - a * a))
+                y, _ = lfilter([1.0], [1.0, -a], u, axis=0, zi=(a * self._fl[i][:, c])[None, :])
+                self._fl[i][:, c] = y[-1]
+                out = out + y
+        return out
 
     def _hidden(self, acc0: np.ndarray, dT: np.ndarray, die: np.ndarray, since_on: np.ndarray, n: int) -> np.ndarray:
         fx = self._fx
