@@ -37,6 +37,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated effects to rank (default: every registered effect)")
     parser.add_argument("--basis", choices=("window", "sample"), default="window",
                         help="RMS of 1-minute residual means (default) or of every sample")
+    parser.add_argument("--columns", metavar="MAP",
+                        help="read a log from another tool: key=name pairs for time, ax, ay, az, temp "
+                             "(e.g. time=timestamp,ax=acc_x,ay=acc_y,az=acc_z,temp=temperature); "
+                             "comma, tab or semicolon delimited, header row required")
+    parser.add_argument("--accel-units", choices=("g", "m/s2", "counts"), default=None,
+                        help="acceleration units of an imported log (default g)")
+    parser.add_argument("--counts-per-g", type=float, default=None, help="LSB per g for --accel-units counts")
+    parser.add_argument("--time-units", choices=("s", "ms", "us", "ns"), default=None,
+                        help="time units of an imported log (default s)")
+    parser.add_argument("--delimiter", default=None, help="field delimiter of an imported log (default: sniffed)")
     parser.add_argument("--save-model", metavar="PATH",
                         help="save the fitted model (baseline + added effects): a file for one log, "
                              "a directory (one <serial>.model.json per DUT) for several")
@@ -68,21 +78,45 @@ def format_report(doc: dict) -> str:
     b = doc["baseline"]
     lines.append(f"baseline (eq. 1: Acc0 per orientation, TDB, TDSF): in-sample {_f(b['rms_mg'])} mg, "
                  f"held-out {_f(b['heldout_rms_mg'])} mg")
+    nm = doc.get("noise_model") or {}
+    if nm:
+        lines.append(f"noise model of the residual: {nm['residual']}")
+        lines.append(f"held-out: {nm['heldout']}")
+    drift = doc.get("drift") or {}
+    for serial, axes in (drift.get("tdsf_identifiable") or {}).items():
+        bad = [ax for ax, ok in axes.items() if not ok]
+        if bad:
+            tot = (doc.get("baseline_parameters", {}).get(serial, {}).get("baseline", {})
+                   .get("total_drift_mg_per_c", {}))
+            per = "  ".join(f"{ax} {_fmt_value(tot[ax])}" for ax in bad if ax in tot)
+            lines.append(f"  {serial}: TDSF NOT IDENTIFIABLE on axis {','.join(bad)} (one Acc0 per axis in this log); "
+                         f"total drift TDB + TDSF Acc0 [mg/C]: {per}")
+            lines.append(f"    test that would identify it: {drift.get('test_to_identify')}")
     lines.append("")
-    lines.append("candidate effects, best held-out first (held-out = whole 5-min chunks never used in their fit):")
-    lines.append(f"  {'effect':<20}{'held-out mg':>12}{'gain mg':>10}{'delta BIC':>12}{'score p':>10}  {'admitted':<9}flags")
+    lines.append("candidate effects, best held-out first (each alone against the baseline):")
+    lines.append(f"  {'effect':<20}{'held-out mg':>12}{'gain mg':>10}{'delta BIC':>12}{'LR p':>10}  {'admitted':<9}flags")
     for r in doc["ranking"]:
         lines.append(f"  {r['effect']:<20}{_f(r['heldout_rms_mg']):>12}{_f(r['heldout_gain_mg']):>10}"
                      f"{_f(r['delta_bic'], '.1f'):>12}{_f(r['score_p'], '.2g'):>10}  "
                      f"{'yes' if r['admitted'] else 'no':<9}{' '.join(r['flags'])}")
+        if r.get("same_as"):
+            lines.append(f"  {'':<20}one term -- {r['same_as']}")
     for c in doc["confusable"]:
         lines.append(f"  CONFUSABLE: {' and '.join(c['effects'])} (cos {c['cosine']}): {c['reason']}; "
                      f"to separate: {c['to_separate']}")
     for u in doc["unidentifiable"]:
         lines.append(f"  NOT IDENTIFIABLE: {u['effect']}: {u['reason']}; needs {u['needs']}; "
                      f"test that would identify it: {u['test_to_identify']}")
-    admitted = [r["effect"] for r in doc["ranking"] if r["admitted"]]
+    admitted = doc.get("admitted", [r["effect"] for r in doc["ranking"] if r["admitted"]])
     lines.append(f"  admitted: {', '.join(admitted) if admitted else 'none (no effect passes the gate)'}")
+    auto = doc.get("admitted_staircase") or []
+    if len(auto) > 1:
+        lines.append("  admitted staircase (each step against the model before it; reproduce with "
+                     + " ".join(f"--add {e}" for e in admitted) + "):")
+        for s_ in auto:
+            extra = (f"  delta BIC {_f(s_.get('delta_bic'), '.1f')}, LR p {_f(s_.get('score_p'), '.2g')}"
+                     if "delta_bic" in s_ else "")
+            lines.append(f"    {s_['model']:<26}held-out {_f(s_['heldout_rms_mg'])} mg{extra}")
     lines.append("")
     lines.append("error staircase:")
     lines.append(f"  {'model':<28}{'in-sample mg':>14}{'held-out mg':>13}")
@@ -94,7 +128,7 @@ def format_report(doc: dict) -> str:
     params = doc["model"].get("parameters", {})
     if doc["model"]["effects"]:
         lines.append("")
-        lines.append("fitted effect parameters (1-sigma, autocorrelation-corrected):")
+        lines.append("fitted effect parameters (1-sigma from the GLS fit under the residual's noise model):")
         for serial, p in params.items():
             for eff, vals in p["effects"].items():
                 for pname, entry in vals.items():
@@ -119,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     candidates = _split([args.candidates]) if args.candidates else None
     for c in candidates or ():
         get_effect(c)
-    logs = [read_log(p) for p in args.logs]
+    logs = [_read(p, args) for p in args.logs]
     for path, lg in zip(args.logs, logs):
         if not lg.meta.get("serial"):
             lg.meta["serial"] = Path(path).stem
@@ -144,6 +178,29 @@ def run(args: argparse.Namespace) -> int:
         for p in doc.get("saved_models", []):
             print(f"model saved: {p}")
     return 0
+
+
+def _read(path: str, args: argparse.Namespace):
+    """A station log (design 5.1), or with any import option a delimited log from another tool;
+    a log without the station's columns is imported with the column names recognised."""
+    from station.log_import import import_log
+    from station.logfile import read_log
+
+    kw = dict(columns=getattr(args, "columns", None), accel_units=getattr(args, "accel_units", None) or "g",
+              time_units=getattr(args, "time_units", None) or "s", counts_per_g=getattr(args, "counts_per_g", None),
+              delimiter=getattr(args, "delimiter", None))
+    explicit = any(getattr(args, k, None) for k in ("columns", "accel_units", "time_units", "delimiter", "counts_per_g"))
+    if explicit:
+        return import_log(path, **kw)
+    try:
+        return read_log(path)
+    except StationError as exc:
+        if "missing column" not in str(exc):
+            raise
+        try:
+            return import_log(path, **kw)
+        except StationError:
+            raise exc from None
 
 
 def _save_models(report, path: Path) -> list[Path]:

@@ -32,12 +32,22 @@ MODEL_VERSION = 1
 
 @dataclass
 class Segmentation:
-    """Block structure used for fitting, scoring and held-out folds (all contiguous in time)."""
+    """Block structure used for fitting, scoring and held-out folds (all contiguous in time).
+
+    Held-out units are whole thermal legs (a heating or a cooling ramp with its hold: one step of a
+    profile), never short interleaved chunks: the bias of a real MEMS part wanders (random walk,
+    flicker), so neighbouring minutes share their error and a chunk predicted from its neighbours
+    looks better than it is. Legs are assigned to at most n_folds folds in turn, and every fit
+    leaves out, besides its fold, a guard of guard_s on both sides of each held-out leg.
+    """
 
     fit_block_s: float = 10.0  # regressors averaged over these for the fit
     window_s: float = 60.0  # residual RMS reported on means over these windows
-    chunk_s: float = 300.0  # held-out unit: a contiguous chunk never used in its fold's fit
-    n_folds: int = 5
+    n_folds: int = 6  # folds of whole legs (fewer when the log has fewer legs)
+    guard_s: float = 600.0  # training excludes this much data on each side of a held-out leg
+    min_leg_s: float = 900.0  # shorter legs are merged into their neighbour
+    turn_c: float = 3.0  # a temperature reversal of this much ends a leg
+    min_segments: int = 5  # fewer legs than this: each is cut into equal pieces
 
 
 @dataclass
@@ -54,7 +64,7 @@ class DutData:
     block: np.ndarray  # (n,) fit-block id (contiguous, sorted)
     block_starts: np.ndarray
     window: np.ndarray  # (n,) RMS window id
-    chunk: np.ndarray  # (n,) held-out chunk id
+    chunk: np.ndarray  # (n,) held-out segment id (a whole thermal leg)
     fold: np.ndarray  # (n,) fold of the sample
     run: np.ndarray  # (n,) constant-orientation run id
     t_power_on_s: float
@@ -63,6 +73,10 @@ class DutData:
     block_count: np.ndarray = field(default_factory=lambda: np.zeros(0))
     block_fold: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     block_chunk: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    block_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seg_bounds_s: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (n_segments, 2) time span
+    guard_s: float = 600.0
+    n_folds: int = 1
     y_block: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     cache: dict = field(default_factory=dict)  # per-sample regressors that depend only on the data
 
@@ -103,8 +117,52 @@ def _orientation_codes(log: DutLog) -> tuple[np.ndarray, list[str]]:
     return codes, [f"o{k}" for k in range(len(centers))]
 
 
+def _legs(time_s: np.ndarray, temp_c: np.ndarray, a: int, b: int, seg: Segmentation) -> list[int]:
+    """Start indices (relative to a) of the thermal legs of samples a:b: a leg ends at a temperature
+    extreme once the temperature has turned back by seg.turn_c; legs shorter than min_leg_s merge."""
+    t = time_s[a:b]
+    T = temp_c[a:b]
+    n = b - a
+    starts = [0]
+    step = 16  # the smoothed temperature is slow: every 16th sample finds the turns
+    idx = np.arange(0, n, step)
+    Td = T[idx]
+    direction, ext = 0, 0
+    for k in range(1, Td.shape[0]):
+        if direction == 0:
+            if Td[k] - Td[0] >= seg.turn_c:
+                direction, ext = 1, int(np.argmax(Td[:k + 1]))
+            elif Td[0] - Td[k] >= seg.turn_c:
+                direction, ext = -1, int(np.argmin(Td[:k + 1]))
+        elif direction > 0:
+            if Td[k] > Td[ext]:
+                ext = k
+            elif Td[ext] - Td[k] >= seg.turn_c:
+                starts.append(int(idx[ext]))
+                direction, ext = -1, k
+        else:
+            if Td[k] < Td[ext]:
+                ext = k
+            elif Td[k] - Td[ext] >= seg.turn_c:
+                starts.append(int(idx[ext]))
+                direction, ext = 1, k
+    # merge short legs into the previous one (the first into the next)
+    out: list[int] = []
+    bounds = starts + [n]
+    for k in range(len(starts)):
+        dur = t[bounds[k + 1] - 1] - t[bounds[k]]
+        if out and dur < seg.min_leg_s:
+            continue
+        out.append(bounds[k])
+    if len(out) > 1 and t[-1] - t[out[-1]] < seg.min_leg_s:
+        out.pop()
+    if len(out) > 1 and t[out[1] - 1] - t[0] < seg.min_leg_s:
+        out.pop(1)
+    return out or [0]
+
+
 def prepare(log: DutLog, seg: Segmentation | None = None) -> DutData:
-    """Cut a log into constant-orientation runs, fit blocks, RMS windows and held-out chunks."""
+    """Cut a log into constant-orientation runs, fit blocks, RMS windows and held-out legs."""
     seg = seg or Segmentation()
     n = len(log)
     if n < 50:
@@ -114,28 +172,44 @@ def prepare(log: DutLog, seg: Segmentation | None = None) -> DutData:
         raise StationError(f"{log.serial or 'log'}: time_s is not strictly increasing")
     dt = float(np.median(np.diff(time_s)))
     pos, labels = _orientation_codes(log)
-    # drop orientation-change transients: samples of runs shorter than 2 fit blocks
+    temp_c = np.asarray(log.temp_c, dtype=np.float64)
+    temp_smooth = smooth_temperature(temp_c, time_s, 60.0)
     brk = np.flatnonzero((np.diff(pos) != 0) | (np.diff(time_s) > 10 * dt)) + 1
     starts = np.concatenate([[0], brk])
     ends = np.concatenate([brk, [n]])
     bs = max(1, int(round(seg.fit_block_s / dt)))
     ws = bs * max(1, int(round(seg.window_s / seg.fit_block_s)))
-    cs = ws * max(1, int(round(seg.chunk_s / seg.window_s)))
+    # held-out segments: thermal legs of every run (a run with no turn is one leg) ...
+    seg_starts = []  # absolute sample index of each segment start (run starts included)
+    for a, b in zip(starts, ends):
+        seg_starts += [a + k for k in _legs(time_s, smooth_temperature(temp_smooth, time_s, 300.0), a, b, seg)]
+    # ... and when there are too few, each leg cut into equal pieces (never fewer than min_segments)
+    if len(seg_starts) < seg.min_segments:
+        pieces = int(math.ceil(seg.min_segments / len(seg_starts)))
+        bounds = seg_starts + [n]
+        seg_starts = [int(bounds[k] + (bounds[k + 1] - bounds[k]) * j // pieces)
+                      for k in range(len(bounds) - 1) for j in range(pieces)]
+    seg_id = np.zeros(n, np.int64)
+    seg_id[np.array(seg_starts[1:], dtype=np.int64)] = 1
+    seg_id = np.cumsum(seg_id)
     block = np.empty(n, np.int64)
     window = np.empty(n, np.int64)
-    chunk = np.empty(n, np.int64)
     run = np.empty(n, np.int64)
-    nb = nw = nc = 0
-    for r, (a, b) in enumerate(zip(starts, ends)):
+    nb = nw = 0
+    # blocks never straddle a run or a segment boundary
+    cut = np.unique(np.concatenate([starts, np.array(seg_starts, dtype=np.int64)]))
+    cut_end = np.concatenate([cut[1:], [n]])
+    for a, b in zip(cut, cut_end):
         k = np.arange(b - a)
         block[a:b] = nb + k // bs
         window[a:b] = nw + k // ws
-        chunk[a:b] = nc + k // cs
-        run[a:b] = r
         nb = block[b - 1] + 1
         nw = window[b - 1] + 1
-        nc = chunk[b - 1] + 1
-    fold = chunk % seg.n_folds
+    for r, (a, b) in enumerate(zip(starts, ends)):
+        run[a:b] = r
+    n_seg = int(seg_id[-1]) + 1
+    n_folds = max(2, min(seg.n_folds, n_seg))
+    fold = seg_id % n_folds
     block_starts = np.flatnonzero(np.concatenate([[True], np.diff(block) != 0]))
     meta_on = log.meta.get("t_power_on_s")
     t_on = float(meta_on) if meta_on not in (None, "") else min(0.0, float(time_s[0]))
@@ -143,17 +217,34 @@ def prepare(log: DutLog, seg: Segmentation | None = None) -> DutData:
         serial=log.serial or "dut",
         time_s=time_s,
         acc_mg=np.asarray(log.acc_g, dtype=np.float64) * 1000.0,
-        temp_c=np.asarray(log.temp_c, dtype=np.float64),
-        temp_smooth_c=smooth_temperature(np.asarray(log.temp_c, np.float64), time_s, 60.0),
+        temp_c=temp_c,
+        temp_smooth_c=temp_smooth,
         pos=pos, pos_labels=labels, block=block, block_starts=block_starts, window=window,
-        chunk=chunk, fold=fold, run=run, t_power_on_s=t_on, lamp=log.lamp,
+        chunk=seg_id, fold=fold, run=run, t_power_on_s=t_on, lamp=log.lamp,
     )
     d.block_count = np.diff(np.concatenate([block_starts, [n]])).astype(np.float64)
     d.block_pos = pos[block_starts]
     d.block_fold = fold[block_starts]
-    d.block_chunk = chunk[block_starts]
+    d.block_chunk = seg_id[block_starts]
+    d.block_time_s = d.block_mean(time_s)
+    first = np.flatnonzero(np.concatenate([[True], np.diff(seg_id) != 0]))
+    last = np.concatenate([first[1:] - 1, [n - 1]])
+    d.seg_bounds_s = np.stack([time_s[first], time_s[last]], axis=1)
+    d.guard_s = seg.guard_s
+    d.n_folds = n_folds
     d.y_block = d.block_mean(d.acc_mg)
     return d
+
+
+def train_mask(d: DutData, k: int) -> np.ndarray:
+    """Training blocks of fold k: not in the fold, and not within the guard of a held-out segment."""
+    held = np.flatnonzero(np.arange(d.seg_bounds_s.shape[0]) % d.n_folds == k)
+    ok = d.block_fold != k
+    tb = d.block_time_s
+    for s_ in held:
+        lo, hi = d.seg_bounds_s[s_]
+        ok &= ~((tb > lo - d.guard_s) & (tb < hi + d.guard_s))
+    return ok
 
 
 # ---------------------------------------------------------------------------------------------
@@ -173,6 +264,23 @@ class DutFit:
     acc0_g: np.ndarray  # (P, 3), NaN for orientations not in training
     ssr_block: np.ndarray  # (3,) weighted training SSR on block means (mg^2 * samples)
     n_train_blocks: int
+
+
+TDSF_MIN_SPREAD_G = 0.25  # TDSF needs orientations whose Acc0 on the axis differ by at least this
+
+
+def tdsf_identifiable(acc0_g: np.ndarray) -> np.ndarray:
+    """(3,) bool: per axis, do the orientations seen give TDSF a lever arm (Acc0 spread)?
+
+    TDSF multiplies Acc0 (martinez2022 eq. 1): with one orientation, or orientations with the same
+    Acc0 on an axis, dT TDSF Acc0 is a multiple of dT and only the total drift TDB + TDSF Acc0 is
+    measurable. The column is then left out (TDSF = 0, TDB = the total drift), never fitted to noise.
+    """
+    a = np.asarray(acc0_g, float)
+    ok = ~np.isnan(a).any(axis=1)
+    if ok.sum() < 2:
+        return np.zeros(3, bool)
+    return (a[ok].max(axis=0) - a[ok].min(axis=0)) >= TDSF_MIN_SPREAD_G
 
 
 class _Design:
@@ -232,7 +340,7 @@ class _Design:
             ind[np.arange(ind.shape[0]), d.block_pos] = 1000.0
             d.cache["_block_indicator"] = ind
         dtb = d.block_mean(dt_c)
-        a0b = a0[d.block_pos]
+        a0b = a0[d.block_pos] * tdsf_identifiable(acc0_g)[None, :]
         eff_blocks = [d.block_mean(c.reshape(d.n, -1)).reshape(-1, 3, c.shape[2]) for c in extra if c.shape[2]]
         mats = []
         for i in range(3):
@@ -246,12 +354,13 @@ class _Design:
         P = len(d.pos_labels)
         a0 = np.nan_to_num(acc0_g)[d.pos]  # (n, 3)
         ctx = self.context(nl, a0)
+        tdsf_on = tdsf_identifiable(acc0_g)
         ind = np.zeros((d.n, P))
         ind[np.arange(d.n), d.pos] = 1000.0  # Acc0 in g -> mg
         extra = [e.columns(ctx, nl.get(e.name, {})) for e in self.effects]
         mats, names = [], []
         for i in range(3):
-            cols = [ind, ctx.dt_c[:, None], (ctx.dt_c * a0[:, i] * 1e-3)[:, None]]
+            cols = [ind, ctx.dt_c[:, None], (ctx.dt_c * a0[:, i] * 1e-3 * tdsf_on[i])[:, None]]
             nm = [f"acc0_g[{lab}]" for lab in d.pos_labels] + ["tdb_mg_per_c", "tdsf_ppm_per_c"]
             for e, c in zip(self.effects, extra):
                 if c.shape[2]:
@@ -300,6 +409,13 @@ def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray,
         new_acc0 = np.full((P, 3), np.nan)
         for i in range(3):
             Xb = mats[i][train_blocks]
+            # a column with < 1 % of its full-log size in the training blocks (a warm-up transient
+            # whose start is held out) would be extrapolated by 100x: not fitted in this fold
+            full_max = np.max(np.abs(mats[i]), axis=0)
+            weak = np.max(np.abs(Xb), axis=0) < 1e-2 * full_max if Xb.shape[0] else np.zeros(Xb.shape[1], bool)
+            if weak.any():
+                Xb = Xb.copy()
+                Xb[:, weak] = 0.0
             yb = d.y_block[train_blocks, i]
             beta, cov, live = _solve(Xb, yb, w, want_cov=want_cov)
             betas.append(beta)
@@ -467,20 +583,40 @@ def window_rms(d: DutData, resid_mg: np.ndarray, mask: np.ndarray | None = None,
     return float(np.sqrt(np.sum(cnt[keep, None] * means**2) / (3.0 * cnt[keep].sum())))
 
 
-def heldout_residual(d: DutData, effect_names: list[str], full: DutFit, n_folds: int,
-                     max_nfev: int = 15) -> np.ndarray:
-    """Residual of each sample predicted by a fit that never saw its chunk (blocked K-fold)."""
+def heldout_residual(d: DutData, effect_names: list[str], full: DutFit, n_folds: int | None = None,
+                     max_nfev: int = 8) -> np.ndarray:
+    """Residual of each sample predicted by a fit that never saw its thermal leg nor the guard
+    around it (blocked K-fold over whole legs, see Segmentation).
+
+    An orientation seen only in held-out data has no fitted Acc0 (it is the fixture's reading, not
+    a model parameter): its offset per axis is taken from the held-out residual itself, so the
+    held-out error of such a leg is its shape error; every model gets the same treatment.
+    """
     out = np.full((d.n, 3), np.nan)
-    for k in range(n_folds):
+    P = len(d.pos_labels)
+    for k in range(d.n_folds):
         test = d.fold == k
         if not test.any():
             continue
-        train_blocks = d.block_fold != k
+        train_blocks = train_mask(d, k)
         if not train_blocks.any():
             continue
         f = fit_dut(d, effect_names, train_blocks, nl_start=full.nl, max_nfev=max_nfev)
+        unseen = [p for p in range(P) if np.isnan(f.acc0_g[p]).any() and not np.isnan(full.acc0_g[p]).any()]
+        if unseen:
+            f.acc0_g = f.acc0_g.copy()
+            f.beta = [b.copy() for b in f.beta]
+            for p in unseen:
+                f.acc0_g[p] = full.acc0_g[p]
+                for i in range(3):
+                    f.beta[i][p] = full.acc0_g[p, i]
         pred = predict_dut(d, f)
-        out[test] = d.acc_mg[test] - pred[test]
+        r = d.acc_mg - pred
+        for p in unseen:
+            sel = test & (d.pos == p)
+            if sel.any():
+                r[sel] -= np.nanmean(r[sel], axis=0)
+        out[test] = r[test]
     return out
 
 
@@ -589,4 +725,4 @@ class DiagnosticModel:
 
 
 __all__ = ["Segmentation", "DutData", "DutFit", "prepare", "fit_dut", "predict_dut", "window_rms",
-           "heldout_residual", "DiagnosticModel"]
+           "heldout_residual", "DiagnosticModel", "train_mask", "tdsf_identifiable"]

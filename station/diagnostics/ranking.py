@@ -1,34 +1,36 @@
 """Rank candidate effects against the baseline, admit the ones the data supports, refit (design 7).
 
 Statistics, for one DUT or a batch (sums over DUTs: each DUT has its own parameters, the effect
-structure is shared):
+structure is shared). Real MEMS parts have a wandering bias (random walk, flicker), so the residual
+of a perfect model is not white and its minutes are not independent; every figure accounts for it:
 
-- held-out RMS: blocked K-fold. Every constant-orientation run is cut into contiguous chunks
-  (default 10 min) assigned to K = 5 folds in turn; each chunk is predicted by a fit that never saw
-  it. Samples are autocorrelated, so nothing is ever split at random.
-- effective sample count: residual block means (10 s) are autocorrelated; per axis and DUT,
-  n_eff = n_blocks / tau_int with tau_int = 1 + 2 sum rho_k (Sokal's automatic window).
-- score (Lagrange multiplier) test of the candidate's regressors against the baseline residual,
-  with the score's variance from chunk sums (cluster-robust, so autocorrelation within a chunk is
-  accounted for): LM = s' V^-1 s ~ chi2(df). Nonlinear parameters are set to the candidate's fit.
-- delta BIC = sum_axes n_eff ln(SSR_cand / SSR_base) + dk ln(N_eff): the usual BIC with the
-  effective count in place of the sample count, so 30 000 autocorrelated samples do not pretend to
-  be 30 000 independent ones (which would admit anything).
-- admission gate: delta BIC < -10 (strong evidence) and held-out RMS lower by >= 3 % and
-  the score test p < 0.001. Data with no missing effect admits nothing.
-- unidentifiable: a candidate whose regressors are (numerically) a linear combination of the
-  baseline's (relative residual norm < 1e-3, variance inflation > 1e6), e.g. cross_axis or
-  scale_nonlinearity from two orientations; reported with the test that would identify it.
-- confusable: two candidates that both pass the evidence test and whose fitted contributions are
-  nearly collinear (|cos| > 0.9 after the baseline is projected out); and structural pairs that
-  only a data feature separates (Effect.confusable_with: thermal_lag and hysteresis need >= 2
-  distinct ramp rates, since a lag scales with the rate and hysteresis does not) when the data
-  lack it and either has evidence. Both are flagged and neither is admitted automatically.
-- forward admission: the best candidate with evidence is admitted; each further one must pass the
-  same gate against the model holding the ones before it (a confusable pair's best member stands
-  in for the pair), so an effect that only soaks up part of another is "explained_by" it. A
-  candidate with no evidence of its own (masked by an effect of opposite sign) is score-tested
-  again against the model holding the admitted ones and, if significant, refitted and gated.
+- held-out RMS: blocked K-fold over whole thermal legs (a heating or cooling ramp with its hold,
+  i.e. a profile step; model.Segmentation), each predicted by a fit that saw neither the leg nor a
+  guard of 10 min on each side of it. Never short interleaved chunks, never at random.
+- noise model of the residual: AR(p) (p <= 6 by BIC) of the 10 s block means, per DUT and axis and
+  within constant-orientation runs, estimated on the residual of the larger model of each
+  comparison (so an effect missing from the smaller model is not mistaken for noise). A bias
+  random walk shows up as phi ~ 1; the AR filter prewhitens data and regressors (GLS).
+- likelihood-ratio test (reported as score / score_p): LR = sum n ln(SSR_small / SSR_big) of the
+  prewhitened GLS fits ~ chi2(dk), dk = extra linear and nonlinear parameters.
+- delta BIC = sum n ln(SSR_big / SSR_small) + dk ln(N), N = prewhitened block count.
+- uncertainties: GLS covariance sigma^2 (X~' X~)^-1 of the prewhitened fit.
+- admission gate (model before -> model with the effect): delta BIC < -30, LR p < 0.001 and
+  held-out RMS lower by >= 3 %. The forward staircase gates every candidate against the model
+  holding exactly the effects admitted before it and admits, of those that pass, the one with the
+  lowest delta BIC; repeated until none passes. `admitted` is the staircase `--add` of those effects
+  reproduces, each step lowering the held-out error. When no single candidate passes, the (at most
+  3) candidates strong in sample but worse held-out are tried in pairs: two effects of opposite
+  sign that mask each other are admitted together when the pair passes the gate.
+- aliases: candidates whose regressors are identical on the data (bias_t2 and scale_t2 with one
+  orientation: dT^2 Acc0 is a multiple of dT^2) are one term, ranked and admitted under the first
+  name, with the others listed.
+- unidentifiable: regressors inside the baseline's span (cross_axis from two orientations), and
+  TDSF with one orientation (only the total drift TDB + TDSF Acc0 is measurable): reported with the
+  test that would identify them.
+- confusable: pairs only a data feature separates (thermal_lag and hysteresis need >= 2 ramp
+  rates) or whose fitted contributions are nearly collinear: the better one may be admitted, flagged
+  with its partner, and the partner is not tested on top of it.
 """
 
 from __future__ import annotations
@@ -37,17 +39,18 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.signal import lfilter
 from scipy.stats import chi2
 
 from station.diagnostics.effects import BUILTIN_NAMES, REGISTRY, get_effect, load_effects_file
 from station.diagnostics.model import (
     DiagnosticModel, DutData, DutFit, Segmentation, _tau_int, fit_dut, heldout_residual, predict_dut, prepare,
-    window_rms,
+    tdsf_identifiable, window_rms,
 )
 from station.logfile import DutLog, read_log
 from station.types import AXES, StationError
 
-BIC_GATE = -10.0
+BIC_GATE = -30.0  # "very strong" is -10 for an exact likelihood; a margin for the approximate noise model
 HELDOUT_GAIN_GATE = 0.03
 SCORE_P_GATE = 1e-3
 UNIDENTIFIABLE_REL = 1e-3
@@ -85,6 +88,12 @@ class DiagnosisReport:
     parameters: dict
     features: dict = field(default_factory=dict)
     data: list[DutData] = field(repr=False, default_factory=list)
+    admitted: list[str] = field(default_factory=list)
+    admitted_staircase: list[dict] = field(default_factory=list)
+    aliases: list[dict] = field(default_factory=list)
+    noise_model: dict = field(default_factory=dict)
+    drift: dict = field(default_factory=dict)
+    baseline_parameters: dict = field(default_factory=dict)
     candidates: dict[str, ModelEval] = field(repr=False, default_factory=dict)
 
     def to_json(self) -> dict:
@@ -99,6 +108,12 @@ class DiagnosisReport:
             "confusable": self.confusable,
             "unidentifiable": self.unidentifiable,
             "data_features": self.features,
+            "admitted": self.admitted,
+            "admitted_staircase": self.admitted_staircase,
+            "aliases": self.aliases,
+            "noise_model": self.noise_model,
+            "drift": self.drift,
+            "baseline_parameters": self.baseline_parameters,
         }
 
     def models(self) -> list[DiagnosticModel]:
@@ -145,6 +160,7 @@ def evaluate(data: list[DutData], effects: list[str], basis: str, n_folds: int,
     fits, res, held = [], [], []
     for k, d in enumerate(data):
         f = fit_dut(d, effects, nl_start=nl_start[k] if nl_start else None)
+        f.beta_sigma = gls_sigma(d, f)  # the residual's AR noise model, not white noise
         fits.append(f)
         res.append(d.acc_mg - predict_dut(d, f))
         held.append(heldout_residual(d, effects, f, n_folds))
@@ -229,61 +245,205 @@ def candidate_regressors(d: DutData, base_fit: DutFit, cand_fit: DutFit) -> list
     return out
 
 
-def score_test(data, base: ModelEval, cand: ModelEval):
-    """Cluster-robust LM statistic, df, p-value, and the one-step predicted SSR fraction removed."""
-    lm_total, df_total, proj_total, ssr_total = 0.0, 0, 0.0, 0.0
-    for d, bf, cf, r in zip(data, base.fits, cand.fits, base.resid):
-        Xs = _baseline_design(d, bf)
-        Zs = candidate_regressors(d, bf, cf)
-        rb = block_resid(d, r)
-        w = d.block_count
+AR_MAX = 6
+THETA_GRID = np.concatenate([[0.0], 1.0 - 10.0 ** np.linspace(-0.3, -3.5, 28)])
+
+
+def _runs_of_blocks(d: DutData) -> list[np.ndarray]:
+    """Block indices of each constant-orientation run (the noise filter restarts at a run)."""
+    run_b = d.run[d.block_starts]
+    cut = np.flatnonzero(np.diff(run_b) != 0) + 1
+    return np.split(np.arange(run_b.size), cut)
+
+
+@dataclass
+class NoiseFilter:
+    """Residual noise model of block means: a local level (random walk + white: IMA(1,1), theta) and
+    AR(p) for what is left (flicker, short-range correlation). apply() is its prediction-error
+    (whitening) filter, run per constant-orientation run, started at the run's first value."""
+
+    theta: float
+    phi: np.ndarray
+    sigma: float
+
+    def _ima(self, v: np.ndarray) -> np.ndarray:
+        # (1 - L) y_t = (1 - theta L) e_t  ->  e = lfilter([1, -1], [1, -theta], y), level removed
+        zi = -v[:1]  # the filter's state for a constant input equal to the first value: output 0
+        y, _ = lfilter([1.0, -1.0], [1.0, -self.theta], v, axis=0, zi=zi)
+        return y[1:]
+
+    def _ar(self, v: np.ndarray) -> np.ndarray:
+        p_ = self.phi.size
+        if v.shape[0] <= p_:
+            return v[:0]
+        w = v[p_:].copy()
+        for j in range(1, p_ + 1):
+            w -= self.phi[j - 1] * v[p_ - j:v.shape[0] - j]
+        return w
+
+    def apply(self, x: np.ndarray, runs: list[np.ndarray]) -> np.ndarray:
+        out = [self._ar(self._ima(x[idx])) for idx in runs if idx.size > self.phi.size + 2]
+        return np.concatenate(out) if out else x[:0]
+
+    def to_json(self) -> dict:
+        s = float(np.sum(self.phi))
+        return {"model": "local level (random walk + white, IMA(1,1)) + AR(p)", "theta": _r(self.theta, 5),
+                "ar_order": int(self.phi.size), "phi": [round(float(x), 4) for x in self.phi],
+                "innovation_mg": _r(self.sigma, 5),
+                "random_walk": bool(self.theta < 0.999),
+                "long_run_factor": _r(1.0 / max(abs(1.0 - s), 1e-3), 2)}
+
+
+def ar_fit(e: np.ndarray, runs: list[np.ndarray], pmax: int = AR_MAX) -> NoiseFilter:
+    """Fit the residual noise model: theta of the local level by conditional sum of squares on a
+    grid (theta -> 1: no random walk), then AR(p) (p <= pmax by BIC) of the IMA-filtered residual."""
+    e = np.asarray(e, float)
+    best = None
+    for th in THETA_GRID:
+        f = NoiseFilter(float(th), np.zeros(0), 0.0)
+        w = f.apply(e, runs)
+        ss = float(np.mean(w**2)) if w.size else math.inf
+        if best is None or ss < best[0]:
+            best = (ss, float(th))
+    theta = best[1]
+    pieces = [NoiseFilter(theta, np.zeros(0), 0.0)._ima(e[idx]) for idx in runs if idx.size > pmax + 3]
+    rows_y, rows_x = [], []
+    for x in pieces:
+        if x.size <= pmax + 1:
+            continue
+        rows_y.append(x[pmax:])
+        rows_x.append(np.stack([x[pmax - j:x.size - j] for j in range(1, pmax + 1)], axis=1))
+    if not rows_y:
+        return NoiseFilter(theta, np.zeros(0), float(np.std(e)) if e.size else 0.0)
+    Y = np.concatenate(rows_y)
+    X = np.concatenate(rows_x)
+    n = Y.size
+    bbest = (math.inf, np.zeros(0), float(np.sqrt(np.mean(Y**2))))
+    for p_ in range(pmax + 1):
+        if p_:
+            phi, *_ = np.linalg.lstsq(X[:, :p_], Y, rcond=None)
+            r = Y - X[:, :p_] @ phi
+        else:
+            phi, r = np.zeros(0), Y
+        s2 = max(float(np.mean(r**2)), 1e-300)
+        bic = n * math.log(s2) + p_ * math.log(n)
+        if bic < bbest[0]:
+            bbest = (bic, phi, math.sqrt(s2))
+    return NoiseFilter(theta, bbest[1], bbest[2])
+
+
+def whiten(x: np.ndarray, runs: list[np.ndarray], nf: NoiseFilter) -> np.ndarray:
+    return nf.apply(x, runs)
+
+
+def _design_blocks(d: DutData, effects: list[str], nl: dict, acc0_g: np.ndarray) -> list[np.ndarray]:
+    from station.diagnostics.model import _Design
+
+    mats, _ = _Design(d, [get_effect(n) for n in effects]).block_matrices(nl, acc0_g)
+    return mats
+
+
+def _n_nl(effects: list[str]) -> int:
+    return sum(len(get_effect(n).nonlinear) for n in effects)
+
+
+def _gls_ssr(Xw: np.ndarray, yw: np.ndarray) -> tuple[float, int]:
+    live = np.any(np.abs(Xw) > 0, axis=0)
+    A = Xw[:, live]
+    if A.shape[1] == 0:
+        return float(yw @ yw), 0
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    sol, _, rank, _ = np.linalg.lstsq(A / scale, yw, rcond=None)
+    r = yw - (A / scale) @ sol
+    return float(r @ r), int(rank)
+
+
+@dataclass
+class Comparison:
+    """Small model vs big model under the big model's AR noise (prewhitened GLS)."""
+
+    lr: float
+    df: int
+    p: float
+    delta_bic: float
+    n: int
+    noise: dict
+
+
+def compare(data: list[DutData], small: list[tuple], big: list[tuple]) -> Comparison:
+    """Likelihood-ratio test and delta BIC of `big` against `small` (per DUT: (effects, nl, acc0_g)).
+
+    The noise model (AR(p) per DUT and axis) is fitted on the OLS residual of the big model and both
+    models are refitted by GLS under it, so the comparison is fair and the random-walk part of the
+    residual is not counted as independent evidence."""
+    lr = 0.0
+    df = 0
+    n_tot = 0
+    noise: dict = {}
+    for d, (es, nls, a0s), (eb, nlb, a0b) in zip(data, small, big):
+        Xs = _design_blocks(d, es, nls, a0s)
+        Xb = _design_blocks(d, eb, nlb, a0b)
+        runs = _runs_of_blocks(d)
+        noise[d.serial] = {}
         for i in range(3):
-            Z = Zs[i]
-            keep = np.any(Z != 0, axis=0)
-            Z = Z[:, keep]
-            if Z.shape[1] == 0:
-                continue
-            Zt = _residualize(Xs[i], Z, w)
-            e = rb[:, i]
-            s_blocks = Zt * (w * e)[:, None]
-            s = s_blocks.sum(axis=0)
-            # cluster sums over held-out chunks (each ~10 min): robust to autocorrelation inside
-            clusters = d.block_chunk
-            uc, inv = np.unique(clusters, return_inverse=True)
-            S = np.zeros((uc.size, Z.shape[1]))
-            np.add.at(S, inv, s_blocks)
-            # cluster-robust variance needs the regressor spread over many clusters; a transient
-            # confined to a few chunks (self_heating) gets the autocorrelation-inflated model-based
-            # variance instead: Var(w_b e_b) = sigma^2 w_b for block means, sigma^2 = mean(w e^2)
-            energy = np.bincount(inv, weights=np.sum(w[:, None] * Zt * Zt, axis=1))
-            n_clusters_eff = energy.sum() ** 2 / max(float(np.sum(energy**2)), 1e-300)
-            if n_clusters_eff >= max(10.0, 4.0 * Z.shape[1]):
-                V = S.T @ S
-            else:
-                V = (np.sum(w * e * e) / w.size) * ((Zt.T * w) @ Zt) * tau_int(e)
-            lm = float(s @ np.linalg.pinv(V) @ s)
-            lm_total += lm
-            df_total += Z.shape[1]
-            G = (Zt.T * w) @ Zt
-            proj_total += float(s @ np.linalg.pinv(G) @ s)
-            ssr_total += float(np.sum(w * e * e))
-    p = float(chi2.sf(lm_total, df_total)) if df_total else 1.0
-    frac = proj_total / ssr_total if ssr_total > 0 else 0.0
-    return lm_total, df_total, p, min(max(frac, 0.0), 1.0)
+            y = d.y_block[:, i]
+            live = np.any(np.abs(Xb[i]) > 0, axis=0)
+            coef, *_ = np.linalg.lstsq(Xb[i][:, live], y, rcond=None)
+            e = y - Xb[i][:, live] @ coef
+            nf = ar_fit(e, runs)
+            yw = nf.apply(y, runs)
+            ss, ks = _gls_ssr(nf.apply(Xs[i], runs), yw)
+            sb, kb = _gls_ssr(nf.apply(Xb[i], runs), yw)
+            n = yw.size
+            lr += n * math.log(max(ss, 1e-300) / max(sb, 1e-300))
+            df += max(kb - ks, 0)
+            n_tot += n
+            noise[d.serial][AXES[i]] = nf.to_json()
+        df += max(_n_nl(eb) - _n_nl(es), 0)
+    df = max(df, 1)
+    lr = max(lr, 0.0)
+    p = float(chi2.sf(lr, df))
+    dbic = -lr + df * math.log(max(n_tot, 2))
+    return Comparison(lr=lr, df=df, p=p, delta_bic=dbic, n=n_tot, noise=noise)
 
 
-def delta_bic(data, base: ModelEval, cand: ModelEval) -> tuple[float, float]:
-    """BIC(candidate) - BIC(baseline) with effective sample counts (see module doc)."""
-    ll = 0.0
-    n_eff_total = 0.0
-    for d, rb_, rc in zip(data, base.resid, cand.resid):
-        neff = n_eff_axes(d, rc)
-        sb = _ssr_block(d, rb_)
-        sc = _ssr_block(d, rc)
-        ll += float(np.sum(neff * np.log(np.maximum(sc, 1e-300) / np.maximum(sb, 1e-300))))
-        n_eff_total += float(neff.sum())
-    dk = cand.n_params - base.n_params
-    return ll + dk * math.log(max(n_eff_total, 2.0)), n_eff_total
+def _spec(m: ModelEval) -> list[tuple]:
+    return [(list(m.effects), f.nl, f.acc0_g) for f in m.fits]
+
+
+def _spec_plus(m: ModelEval, cand: ModelEval, name: str) -> list[tuple]:
+    """The model m plus candidate `name` at the candidate's own nonlinear values (cheap screen)."""
+    out = []
+    for f, cf in zip(m.fits, cand.fits):
+        nl = {**f.nl, name: cf.nl.get(name, {})}
+        out.append((list(m.effects) + [name], nl, f.acc0_g))
+    return out
+
+
+def gls_sigma(d: DutData, fit: DutFit) -> list[np.ndarray]:
+    """1-sigma of every linear parameter from the GLS fit under the residual's AR noise model."""
+    X = _design_blocks(d, fit.effects, fit.nl, fit.acc0_g)
+    runs = _runs_of_blocks(d)
+    out = []
+    for i in range(3):
+        y = d.y_block[:, i]
+        sig = np.full(X[i].shape[1], np.nan)
+        live = np.any(np.abs(X[i]) > 0, axis=0)
+        A = X[i][:, live]
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        nf = ar_fit(y - A @ coef, runs)
+        Aw = nf.apply(A, runs)
+        yw = nf.apply(y, runs)
+        scale = np.linalg.norm(Aw, axis=0)
+        scale[scale == 0] = 1.0
+        sol, *_ = np.linalg.lstsq(Aw / scale, yw, rcond=None)
+        r = yw - (Aw / scale) @ sol
+        s2 = float(r @ r) / max(1, yw.size - A.shape[1])
+        cov = np.linalg.pinv((Aw / scale).T @ (Aw / scale)) / np.outer(scale, scale)
+        sig[live] = np.sqrt(np.maximum(np.diag(cov), 0.0) * s2)
+        out.append(sig)
+    return out
 
 
 def identifiability(data: list[DutData], base: ModelEval, name: str) -> float:
@@ -337,26 +497,52 @@ def _cos(a: np.ndarray, b: np.ndarray) -> float:
     return float(a @ b / (na * nb)) if na > 0 and nb > 0 else 0.0
 
 
+TDSF_TEST = ("log a second orientation in which this axis reads a different Acc0 (turn the board over: "
+             "+1 g and -1 g on the axis, e.g. the fast-thermal P/N turn or six-position) through the same "
+             "temperatures; TDB and TDSF are then told apart by how the drift scales with Acc0")
+
+
 def _params_json(data: list[DutData], fits: list[DutFit]) -> dict:
-    """Fitted parameters with 1-sigma uncertainties in physical units, per DUT."""
+    """Fitted parameters with 1-sigma uncertainties in physical units, per DUT.
+
+    Where TDSF is not identifiable (one orientation, or orientations with the same Acc0 on an axis)
+    it is reported as null with the reason, and tdb_mg_per_c is the total drift of that orientation
+    (also given as total_drift_mg_per_c): never a TDSF with a sigma that the data cannot support."""
     out = {}
     for d, f in zip(data, fits):
         dut: dict = {"baseline": {}, "effects": {}}
+        tdsf_ok = tdsf_identifiable(f.acc0_g)
         for i, ax in enumerate(AXES):
-            for name, b, s in zip(f.col_names[i], f.beta[i], f.beta_sigma[i]):
-                entry = {"value": _sig(b), "sigma": _sig(s, 3)}
+            for name, b, s_ in zip(f.col_names[i], f.beta[i], f.beta_sigma[i]):
+                entry = {"value": _sig(b), "sigma": _sig(s_, 3)}
                 if "." in name:
                     eff, pname = name.split(".", 1)
-                    if s == 0 and b == 0:
+                    if s_ == 0 and b == 0:
                         continue
                     dut["effects"].setdefault(eff, {}).setdefault(pname, {})[ax] = entry
+                elif name == "tdsf_ppm_per_c" and not tdsf_ok[i]:
+                    dut["baseline"].setdefault(name, {})[ax] = {
+                        "value": None, "sigma": None, "identifiable": False,
+                        "reason": "Acc0 of this axis is the same in every orientation of the log: only the total "
+                                  "drift TDB + TDSF Acc0 is measured", "test_to_identify": TDSF_TEST}
                 else:
                     dut["baseline"].setdefault(name, {})[ax] = entry
+                    if name == "tdb_mg_per_c" and not tdsf_ok[i]:
+                        dut["baseline"].setdefault("total_drift_mg_per_c", {})[ax] = dict(entry)
         for eff, vals in f.nl.items():
             for pname, v in vals.items():
                 dut["effects"].setdefault(eff, {})[pname] = {
                     "value": _sig(v), "sigma": _sig(f.nl_sigma.get(eff, {}).get(pname, float("nan")), 3)}
         out[d.serial] = dut
+    return out
+
+
+def drift_identifiability(data: list[DutData], base: ModelEval) -> dict:
+    """Per DUT and axis: is TDSF identifiable from the orientations in the log (see _params_json)?"""
+    out = {}
+    for d, f in zip(data, base.fits):
+        ok = tdsf_identifiable(f.acc0_g)
+        out[d.serial] = {ax: bool(ok[i]) for i, ax in enumerate(AXES)}
     return out
 
 
@@ -393,77 +579,184 @@ def data_features(data: list[DutData]) -> dict:
 
 
 
-def _gate_given(data, current: ModelEval, cond: list[str], name: str, basis: str, n_folds: int):
-    """Refit with `name` added to the admitted effects `cond` and put it through the admission gate
-    (information criterion, score test, held-out gain). Returns (eval, record, passed)."""
-    cand = evaluate(data, cond + [name], basis, n_folds)
-    _, _, p, _ = score_test(data, current, cand)
-    dbic, _ = delta_bic(data, current, cand)
-    gain = ((current.heldout_rms_mg - cand.heldout_rms_mg) / current.heldout_rms_mg
-            if current.heldout_rms_mg > 0 else 0.0)
-    record = {"effects": list(cond), "heldout_rms_mg": _r(cand.heldout_rms_mg), "delta_bic": _r(dbic, 2),
-              "score_p": float(f"{p:.3g}"), "heldout_gain_rel": _r(gain)}
-    return cand, record, bool(dbic < BIC_GATE and p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE)
+TERMS = {"bias_t2": "curvature", "scale_t2": "curvature", "bias_t3": "cubic drift", "thermal_lag": "lag",
+         "hysteresis": "hysteresis", "self_heating": "warm-up", "cross_axis": "cross-axis drift",
+         "scale_nonlinearity": "nonlinearity drift"}
+ALIAS_REL = 1e-4
 
-def _admit_forward(data, base: ModelEval, rows: list[dict], evals: dict, conf_names: set, basis: str,
-                   n_folds: int) -> list[str]:
-    """Forward admission: the best candidate with evidence is admitted; every further one must pass
-    the same gate against the model that already holds the admitted ones (so a candidate that only
-    soaks up part of an admitted effect, e.g. bias_t3 beside a true bias_t2, is not admitted)."""
-    admitted: list[str] = []
-    cond: list[str] = []  # effects in the model every further candidate is tested against
-    current = base
+
+def _span_residual(A: np.ndarray, B: np.ndarray) -> float:
+    """Largest relative norm of a column of B left after projecting it on the span of A."""
+    if A.shape[1] == 0 or B.shape[1] == 0:
+        return 1.0
+    coef, *_ = np.linalg.lstsq(A, B, rcond=None)
+    r = B - A @ coef
+    nb = np.linalg.norm(B, axis=0)
+    ok = nb > 0
+    return float(np.max(np.linalg.norm(r, axis=0)[ok] / nb[ok])) if ok.any() else 0.0
+
+
+def alias_groups(data: list[DutData], base: ModelEval, names: list[str]) -> list[list[str]]:
+    """Groups of candidates whose regressors span the same space on this data once the baseline is
+    projected out (effects with nonlinear parameters are compared at their initial values only if
+    they have none: a lag or width makes the regressor data-dependent, so those are never aliases)."""
+    from station.diagnostics.model import _Design
+
+    lin = [n for n in names if not get_effect(n).nonlinear and type(get_effect(n)).temperature is type(get_effect(n)).__mro__[-2].temperature]
+    cols: dict[str, list[np.ndarray]] = {}
+    for n in lin:
+        parts = []
+        for d, bf in zip(data, base.fits):
+            mats, _ = _Design(d, [get_effect(n)]).matrices({}, bf.acc0_g)
+            Xs = _baseline_design(d, bf)
+            P = len(d.pos_labels)
+            for i in range(3):
+                Z = d.block_mean(mats[i][:, P + 2:])
+                parts.append(_residualize(Xs[i], Z, d.block_count) if Z.shape[1] else Z)
+        cols[n] = parts
+    groups: list[list[str]] = []
+    used: set[str] = set()
+    for k, a in enumerate(lin):
+        if a in used:
+            continue
+        g = [a]
+        for b in lin[k + 1:]:
+            if b in used:
+                continue
+            same = all(_span_residual(A, B) < ALIAS_REL and _span_residual(B, A) < ALIAS_REL
+                       for A, B in zip(cols[a], cols[b]) if A.shape[1] and B.shape[1])
+            if same:
+                g.append(b)
+                used.add(b)
+        if len(g) > 1:
+            groups.append(g)
+            used.add(a)
+    return groups
+
+
+def _gate(cmp: Comparison, before: ModelEval, after: ModelEval) -> tuple[dict, bool]:
+    gain = ((before.heldout_rms_mg - after.heldout_rms_mg) / before.heldout_rms_mg
+            if before.heldout_rms_mg > 0 else 0.0)
+    rec = {"effects": list(before.effects), "heldout_rms_mg": _r(after.heldout_rms_mg),
+           "heldout_gain_rel": _r(gain), "delta_bic": _r(cmp.delta_bic, 2), "score": _r(cmp.lr, 3),
+           "score_df": cmp.df, "score_p": float(f"{cmp.p:.3g}")}
+    ok = bool(cmp.delta_bic < BIC_GATE and cmp.p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE)
+    return rec, ok
+
+
+MASKED_PAIR_TOP = 3  # pairs among the 3 strongest in-sample candidates (3 extra fits at most)
+
+
+def _masked_pair(data, rows: list[dict], admitted: list[str], partners: dict, current: ModelEval, get_eval):
+    """Two effects of opposite sign can cancel on every held-out leg: each alone fits the training
+    legs better (strong delta BIC) yet predicts the held-out legs worse, because it soaks up part of
+    the other's signal with the wrong shape. When no single candidate passes the gate, the few
+    candidates that are significant in sample but fail held-out are tried in pairs; a pair that
+    passes the same gate (its dk counts both) is admitted together. Clean data rarely has even one
+    such candidate, so this costs nothing there."""
+    def vs_current(r):  # the candidate's comparison against exactly the current model, if made
+        if not admitted:
+            return r
+        rec = r.get("given_admitted")
+        return rec if rec and rec["effects"] == admitted else None
+
+    pool = []
     for r in rows:
-        name = r["effect"]
-        if not r["evidence"]:
+        if r["admitted"] or partners.get(r["effect"], set()) & set(admitted):
             continue
-        if name in conf_names:
-            # not admitted, but its best-ranked member stands in for the pair while the others are
-            # tested, so that a third effect does not get admitted for soaking up the pair's signal
-            if not any(c in conf_names for c in cond):
-                if not cond:
-                    current = evals[name]
-                else:
-                    current = evaluate(data, cond + [name], basis, n_folds)
-                cond.append(name)
+        rec = vs_current(r)
+        if rec is None or rec.get("delta_bic") is None:
             continue
-        if not cond:
-            admitted.append(name)
-            cond.append(name)
-            current = evals[name]
-            r["admitted"] = True
-            continue
-        cand, r["given_admitted"], passed = _gate_given(data, current, cond, name, basis, n_folds)
-        if passed:
-            admitted.append(name)
-            cond.append(name)
-            current = cand
-            r["admitted"] = True
-        else:
-            r["flags"].append("explained_by:" + ",".join(cond))
-    # Masking: two effects of opposite sign can hide each other, so a candidate with no evidence on
-    # its own is score-tested again against the current model (cheap); only if that is significant
-    # is it refitted with the admitted ones and put through the same gate.
-    changed = bool(cond)
-    while changed:
-        changed = False
+        if rec["delta_bic"] < BIC_GATE and rec["score_p"] < SCORE_P_GATE:
+            pool.append((rec["delta_bic"], r["effect"]))
+    pool = [n for _, n in sorted(pool)[:MASKED_PAIR_TOP]]
+    best = None
+    for i in range(len(pool)):
+        for j in range(i + 1, len(pool)):
+            a, b = pool[i], pool[j]
+            if b in partners.get(a, set()):
+                continue  # a confusable pair is one term, never two
+            cand = get_eval(admitted + [a, b])
+            rec, ok = _gate(compare(data, _spec(current), _spec(cand)), current, cand)
+            if ok and (best is None or rec["delta_bic"] < best[2]["delta_bic"]):
+                best = ((a, b), cand, rec)
+    return best
+
+
+def _admit_forward(data, base: ModelEval, rows: list[dict], confusable: list[dict], get_eval) -> tuple[list[str], list[dict]]:
+    """Monotone forward staircase: at each step every candidate is gated against the model that holds
+    exactly the effects admitted before it (no stand-ins); of those that pass, the one with the
+    lowest delta BIC is admitted. A candidate
+    with no evidence on its own (masked by an effect of opposite sign) is screened again against the
+    current model (a cheap GLS test at its own nonlinear values) and, if significant, gated like the
+    others. A confusable partner of an admitted effect is not tested on top of it."""
+    admitted: list[str] = []
+    steps: list[dict] = []
+    current = base
+    partners = {}
+    for c in confusable:
+        a, b = c["effects"]
+        partners.setdefault(a, set()).add(b)
+        partners.setdefault(b, set()).add(a)
+    while True:
+        passing = []
         for r in rows:
             name = r["effect"]
-            if r["evidence"] or r["admitted"] or name in conf_names or name in cond or r.get("given_admitted"):
+            if r["admitted"] or partners.get(name, set()) & set(admitted):
                 continue
-            _, _, p0, _ = score_test(data, current, evals[name])
-            if not p0 < SCORE_P_GATE:
-                continue
-            cand, r["given_admitted"], passed = _gate_given(data, current, cond, name, basis, n_folds)
-            if passed:
-                admitted.append(name)
-                cond.append(name)
-                current = cand
-                r["admitted"] = True
-                r["flags"] = [f for f in r["flags"] if f != "no_evidence"] + ["masked:evidence_given:" + ",".join(cond[:-1])]
-                changed = True
+            if not admitted:
+                if not r["evidence"]:
+                    continue
+                cand = get_eval([name])
+                rec = {k: r[k] for k in ("heldout_rms_mg", "heldout_gain_rel", "delta_bic", "score", "score_df",
+                                         "score_p")}
+                rec["effects"] = []
+            else:
+                if not r["evidence"]:
+                    screen = compare(data, _spec(current), _spec_plus(current, get_eval([name]), name))
+                    if not (screen.p < SCORE_P_GATE and screen.delta_bic < BIC_GATE):
+                        continue
+                cand = get_eval(admitted + [name])
+                rec, ok = _gate(compare(data, _spec(current), _spec(cand)), current, cand)
+                r["given_admitted"] = rec
+                if not ok:
+                    continue
+            passing.append((rec["delta_bic"], r, cand, rec))
+        if not passing:
+            pair = _masked_pair(data, rows, admitted, partners, current, get_eval)
+            if pair is None:
                 break
-    return admitted
+            (a, b), cand, rec = pair
+            for name, other in ((a, b), (b, a)):
+                r = next(x for x in rows if x["effect"] == name)
+                admitted.append(name)
+                r["admitted"] = True
+                r["flags"] = [f for f in r["flags"] if f != "no_evidence"]
+                r["flags"].append("masked:admitted_with:" + other)
+                r["given_admitted"] = rec
+            steps.append({**rec, "model": f"+{a} +{b}", "effects": list(admitted)})
+            current = cand
+            continue
+        # of the candidates that pass, the strongest evidence goes in first (a transient or a term
+        # held-out legs cannot fully show must not lose its place to one that soaks up part of it)
+        _, r, cand, rec = min(passing, key=lambda x: x[0])
+        name = r["effect"]
+        admitted.append(name)
+        r["admitted"] = True
+        if admitted[:-1] and not r["evidence"]:
+            r["flags"] = [f for f in r["flags"] if f != "no_evidence"]
+            r["flags"].append("masked:evidence_given:" + ",".join(admitted[:-1]))
+        steps.append({**rec, "model": "+" + name, "effects": list(admitted)})
+        current = cand
+    for r in rows:
+        if r["admitted"]:
+            continue
+        adm_partner = partners.get(r["effect"], set()) & set(admitted)
+        if adm_partner:
+            r["flags"].append("stands_for_it:" + ",".join(sorted(adm_partner)))
+        elif admitted and r["evidence"]:
+            r["flags"].append("explained_by:" + ",".join(admitted))
+    return admitted, steps
 
 
 def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candidates: list[str] | None = None,
@@ -490,11 +783,19 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
         if span < MIN_TEMP_SPAN_C:
             raise StationError(f"{d.serial}: the temperature spans only {span:.1f} C; the thermal model needs "
                                f"at least {MIN_TEMP_SPAN_C:g} C (a ramp or temperature plateaus)")
-        if d.block_starts.shape[0] < 4 * seg.n_folds:
+        if d.block_starts.shape[0] < 20:
             raise StationError(f"{d.serial}: only {d.n} samples ({d.time_s[-1] - d.time_s[0]:.0f} s) in usable "
                                f"runs, too little data for held-out validation")
     names = list(candidates) if candidates is not None else list(REGISTRY)
-    base = evaluate(data, [], basis, seg.n_folds)
+    cache: dict[tuple, ModelEval] = {}
+
+    def get_eval(effs: list[str]) -> ModelEval:
+        key = tuple(effs)
+        if key not in cache:
+            cache[key] = evaluate(data, list(effs), basis, seg.n_folds)
+        return cache[key]
+
+    base = get_eval([])
 
     # identifiability first: a candidate the data cannot identify is not ranked
     unident, ident = [], []
@@ -507,33 +808,49 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
                             "needs": e.needs, "test_to_identify": e.identify_hint})
         else:
             ident.append(name)
-
-    evals: dict[str, ModelEval] = {}
-    rows = []
     ident = [n for n in ident if n in names]
-    for name in ident:
-        cand = evaluate(data, [name], basis, seg.n_folds)
-        evals[name] = cand
-        lm, df, p, frac = score_test(data, base, cand)
-        dbic, neff = delta_bic(data, base, cand)
+    # aliases: identical regressors on this data are one term, ranked under the first name
+    feats = data_features(data)
+    aliases = []
+    alias_of: dict[str, str] = {}
+    for g in alias_groups(data, base, ident):
+        why = "with one orientation" if feats["orientations"] == 1 else "on this data"
+        term = TERMS.get(g[0], g[0])
+        text = f"{term}: {g[0]}, same as {', '.join(g[1:])} {why}"
+        aliases.append({"term": term, "effects": g, "ranked_as": g[0], "text": text,
+                        "reason": "their regressors are identical on this data once the baseline is fitted"})
+        for other in g[1:]:
+            alias_of[other] = g[0]
+    ranked = [n for n in ident if n not in alias_of]
+
+    rows = []
+    for name in ranked:
+        cand = get_eval([name])
+        cmp = compare(data, _spec(base), _spec(cand))
         gain = (base.heldout_rms_mg - cand.heldout_rms_mg) / base.heldout_rms_mg if base.heldout_rms_mg > 0 else 0.0
-        rows.append({
+        row = {
             "effect": name,
             "heldout_rms_mg": _r(cand.heldout_rms_mg),
             "rms_mg": _r(cand.rms_mg),
             "heldout_gain_mg": _r(base.heldout_rms_mg - cand.heldout_rms_mg),
             "heldout_gain_rel": _r(gain),
-            "delta_bic": _r(dbic, 2),
-            "n_eff": _r(neff, 1),
-            "score": _r(lm, 3), "score_df": df, "score_p": float(f"{p:.3g}"),
-            "predicted_rms_reduction_mg": _r(base.rms_mg * (1.0 - math.sqrt(1.0 - frac))),
-            "evidence": bool(dbic < BIC_GATE and p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE),
+            "delta_bic": _r(cmp.delta_bic, 2),
+            "n_eff": cmp.n,
+            "score": _r(cmp.lr, 3), "score_df": cmp.df, "score_p": float(f"{cmp.p:.3g}"),
+            "predicted_rms_reduction_mg": _r(max(base.rms_mg - cand.rms_mg, 0.0)),
+            "evidence": bool(cmp.delta_bic < BIC_GATE and cmp.p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE),
             "admitted": False,
             "flags": [],
             "note": get_effect(name).note,
-        })
+        }
+        grp = next((a for a in aliases if a["ranked_as"] == name), None)
+        if grp:
+            row["term"] = grp["term"]
+            row["aliases"] = grp["effects"][1:]
+            row["same_as"] = grp["text"]
+        rows.append(row)
     # confusable pairs among candidates with evidence
-    contrib = {r["effect"]: _contribution(data, base, evals[r["effect"]]) for r in rows if r["evidence"]}
+    contrib = {r["effect"]: _contribution(data, base, get_eval([r["effect"]])) for r in rows if r["evidence"]}
     confusable = []
     ev = [r["effect"] for r in rows if r["evidence"]]
     for a_i in range(len(ev)):
@@ -547,7 +864,6 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
                                    "reason": "their fitted contributions are nearly collinear on this data",
                                    "to_separate": f"{get_effect(a).identify_hint}; {get_effect(b).identify_hint}"})
     # structural pairs: told apart only by a feature the data lacks (lag vs hysteresis: ramp rates)
-    feats = data_features(data)
     by_name = {r["effect"]: r for r in rows}
     for a in by_name:
         for b, feature in getattr(get_effect(a), "confusable_with", {}).items():
@@ -558,8 +874,8 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
             if any(set(c["effects"]) == {a, b} for c in confusable):
                 continue
             confusable.append({
-                "effects": [a, b], "cosine": _r(_cos(_contribution(data, base, evals[a]),
-                                                     _contribution(data, base, evals[b])), 4),
+                "effects": [a, b], "cosine": _r(_cos(_contribution(data, base, get_eval([a])),
+                                                     _contribution(data, base, get_eval([b]))), 4),
                 "reason": (f"the data lack {FEATURE_TEXT.get(feature, feature)}, the test that separates them "
                            f"(held-out {by_name[a]['heldout_rms_mg']} vs {by_name[b]['heldout_rms_mg']} mg: any "
                            f"difference rests on the exact parametric shapes, not on the physics that tells them apart)"),
@@ -572,35 +888,51 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
         if not r["evidence"]:
             r["flags"].append("no_evidence")
     rows.sort(key=lambda r: (r["heldout_rms_mg"] if r["heldout_rms_mg"] is not None else 1e300))
-    _admit_forward(data, base, rows, evals, conf_names, basis, seg.n_folds)
+    admitted, auto_steps = _admit_forward(data, base, rows, confusable, get_eval)
 
     # --add: error staircase
-    staircase = [{"model": "baseline", "effects": [], "rms_mg": _r(base.rms_mg),
-                  "heldout_rms_mg": _r(base.heldout_rms_mg), "rms_per_sample_mg": _r(base.rms_sample_mg),
-                  "heldout_rms_per_sample_mg": _r(base.heldout_rms_sample_mg)}]
+    def step_json(model: str, m: ModelEval) -> dict:
+        return {"model": model, "effects": list(m.effects), "rms_mg": _r(m.rms_mg),
+                "heldout_rms_mg": _r(m.heldout_rms_mg), "rms_per_sample_mg": _r(m.rms_sample_mg),
+                "heldout_rms_per_sample_mg": _r(m.heldout_rms_sample_mg)}
+
+    staircase = [step_json("baseline", base)]
     current = base
     for k in range(len(add)):
         effs = add[: k + 1]
-        if len(effs) == 1 and effs[0] in evals:
-            current = evals[effs[0]]
-        else:
-            current = evaluate(data, effs, basis, seg.n_folds)
-        step = {"model": "+" + effs[-1], "effects": list(effs), "rms_mg": _r(current.rms_mg),
-                "heldout_rms_mg": _r(current.heldout_rms_mg),
-                "rms_per_sample_mg": _r(current.rms_sample_mg),
-                "heldout_rms_per_sample_mg": _r(current.heldout_rms_sample_mg),
-                "parameters": _params_json(data, current.fits)}
+        current = get_eval(effs)
+        step = {**step_json("+" + effs[-1], current), "parameters": _params_json(data, current.fits)}
         warn = [u for u in unident if u["effect"] == effs[-1]]
         if warn:
             step["warning"] = (f"{effs[-1]} is not identifiable from this data (its parameters are arbitrary); "
                                f"{warn[0]['test_to_identify']}")
+        if effs[-1] in alias_of:
+            step["warning"] = (f"{effs[-1]} has the same regressor as {alias_of[effs[-1]]} on this data "
+                               f"({next(a['text'] for a in aliases if effs[-1] in a['effects'])})")
         staircase.append(step)
+    admitted_staircase = [step_json("baseline", base)] + [
+        {**step_json(s_["model"], get_eval(s_["effects"])), "delta_bic": s_["delta_bic"], "score_p": s_["score_p"]}
+        for s_ in auto_steps]
+    base_noise = compare(data, _spec(base), _spec(base)).noise
+    n_seg = [int(d.seg_bounds_s.shape[0]) for d in data]
+    noise_model = {
+        "residual": ("local level (bias random walk + white, IMA(1,1)) + AR(p <= 6 by BIC) of the 10 s block "
+                     "means of the residual, per DUT and axis within constant-orientation runs, estimated on the "
+                     "larger model of each comparison; p-values, delta BIC and parameter sigmas come from the "
+                     "prewhitened (GLS) fits"),
+        "baseline": base_noise,
+        "heldout": (f"whole thermal legs ({', '.join(map(str, n_seg))} per DUT) in "
+                    f"{', '.join(str(d.n_folds) for d in data)} folds, {seg.guard_s:g} s guard on each side"),
+    }
+    drift = {"tdsf_identifiable": drift_identifiability(data, base), "test_to_identify": TDSF_TEST}
     return DiagnosisReport(
         serials=[d.serial for d in data], rms_basis="per sample" if basis == "sample" else "1-minute means",
         baseline=base, ranking=rows, model=current, staircase=staircase, confusable=confusable,
         unidentifiable=unident, parameters=_params_json(data, current.fits), features=feats, data=data,
-        candidates=evals)
+        candidates={k[0]: v for k, v in cache.items() if len(k) == 1},
+        admitted=admitted, admitted_staircase=admitted_staircase, aliases=aliases, noise_model=noise_model,
+        drift=drift, baseline_parameters=_params_json(data, base.fits))
 
 
-__all__ = ["diagnose", "DiagnosisReport", "ModelEval", "evaluate", "score_test", "delta_bic", "tau_int",
+__all__ = ["diagnose", "DiagnosisReport", "ModelEval", "evaluate", "compare", "ar_fit", "whiten", "tau_int",
            "BUILTIN_NAMES"]

@@ -180,6 +180,9 @@ class SfemFit:
     success: bool = True
     nfev: int = 0
     notes: list[str] = field(default_factory=list)
+    # held-out |a| - 1 g RMSE (mg): positions or samples the fit never saw (see heldout_rmse)
+    rmse_heldout_mg: float | None = None
+    heldout_method: str | None = None
 
     @property
     def M(self) -> np.ndarray:
@@ -245,6 +248,8 @@ class SfemFit:
             "rmse_before_mg": self.rmse_before_mg,
             "rmse_after_mg": self.rmse_after_mg,
             "rmse_direction_mg": self.rmse_direction_mg,
+            "rmse_heldout_mg": self.rmse_heldout_mg,
+            "heldout_method": self.heldout_method,
             "n_positions": self.n_positions,
             "ref_sigma_deg": self.ref_sigma_deg,
             "uncertainty_scaled": self.uncertainty_scaled,
@@ -776,6 +781,45 @@ class SfemRecordResult:
         return out
 
 
+def heldout_rmse(acc: np.ndarray, ps: "PositionSet", norm_only: bool, ref_sigma_deg: float,
+                 acc_g_per_raw: float) -> tuple[float | None, str | None]:
+    """Held-out |a| - 1 g RMSE of an SFEM step, in mg.
+
+    With one position more than the fit needs: leave one position out (each predicted by a fit of
+    the others). Otherwise (six positions for the 12-parameter reference fit: the in-sample "after"
+    is near zero by construction) held-out halves: fit the first half of every static interval,
+    test on the second half, and the other way round.
+    """
+    need = MIN_POSITIONS_NORM_ONLY if norm_only else MIN_POSITIONS_REFERENCE
+    m = len(ps)
+    ref = None if norm_only else ps.ref_dir
+    res = []
+    try:
+        if m - 1 >= need:
+            for i in range(m):
+                keep = np.arange(m) != i
+                f = fit_sfem(ps.mean[keep], None if ref is None else ref[keep], noise_g=ps.noise_g[keep],
+                             ref_sigma_deg=ref_sigma_deg, raw_per_g=1.0 / acc_g_per_raw)
+                res.append((np.linalg.norm(f.apply(ps.mean[i]) * 1.0) - 1.0) * 1e3)
+            return _rms(np.asarray(res)), "leave one position out"
+        halves = []
+        for spans in ps.spans:
+            idx = np.concatenate([np.arange(a, b) for a, b in spans])
+            if idx.size < 4:
+                return None, None
+            h = idx.size // 2
+            halves.append((acc[idx[:h]].mean(axis=0), acc[idx[h:]].mean(axis=0)))
+        u1 = np.array([a for a, _ in halves])
+        u2 = np.array([b for _, b in halves])
+        for fit_on, test_on in ((u1, u2), (u2, u1)):
+            f = fit_sfem(fit_on, ref, noise_g=ps.noise_g * np.sqrt(2.0), ref_sigma_deg=ref_sigma_deg,
+                         raw_per_g=1.0 / acc_g_per_raw)
+            res.extend((np.linalg.norm(f.apply(test_on), axis=1) - 1.0) * 1e3)
+        return _rms(np.asarray(res)), "held-out halves (fit on one half of every static interval, tested on the other)"
+    except SfemInsufficientData:
+        return None, None
+
+
 def fit_sfem_record(
     time_s: np.ndarray | None,
     acc: np.ndarray,
@@ -809,18 +853,19 @@ def fit_sfem_record(
         if len(ps) < need:
             skipped.append({"temp_c": ps.step_temp_c, "n_positions": len(ps), "reason": f"fewer than {need} positions"})
             continue
-        fits.append(
-            fit_sfem(
-                ps.mean,
-                None if norm_only else ps.ref_dir,
-                noise_g=ps.noise_g,
-                ref_sigma_deg=ref_sigma_deg,
-                raw_per_g=1.0 / acc_g_per_raw,
-                temp_c=ps.step_temp_c,
-                positions=ps.position,
-                n_samples=ps.n_samples,
-            )
+        fit = fit_sfem(
+            ps.mean,
+            None if norm_only else ps.ref_dir,
+            noise_g=ps.noise_g,
+            ref_sigma_deg=ref_sigma_deg,
+            raw_per_g=1.0 / acc_g_per_raw,
+            temp_c=ps.step_temp_c,
+            positions=ps.position,
+            n_samples=ps.n_samples,
         )
+        fit.rmse_heldout_mg, fit.heldout_method = heldout_rmse(
+            np.asarray(acc, dtype=np.float64), ps, norm_only, ref_sigma_deg, acc_g_per_raw)
+        fits.append(fit)
     if not fits:
         best = max((len(ps) for ps in sets), default=0)
         kind = "norm-only fit" if norm_only else "reference fit"
@@ -845,6 +890,7 @@ __all__ = [
     "PositionSet",
     "fit_sfem",
     "fit_sfem_record",
+    "heldout_rmse",
     "SfemRecordResult",
     "group_static_positions",
     "temperature_steps",

@@ -17,6 +17,7 @@ from scipy.signal import lfilter
 
 from station.logfile import DutLog
 from station.science.offline_fit import offline_fit
+from station.science.residual import DEFAULT_OPERATING_RANGE_C, residual_report
 from station.science.streaming import InsufficientData, StreamingConfig, result_from_segments, trace_gate
 from station.types import AXES, SampleBlock, Segment, StationError
 
@@ -41,8 +42,12 @@ def _with_positions(segments: list[Segment], time_s: np.ndarray, position: np.nd
     return out
 
 
-def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None = None) -> dict:
-    """Both methods on one record; raises StationError (InsufficientData) with one clear line."""
+def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None = None,
+              operating_range_c: float = DEFAULT_OPERATING_RANGE_C) -> dict:
+    """Both methods on one record; raises StationError (InsufficientData) with one clear line.
+
+    "residual" holds what the offline TDB/TDSF leave over `operating_range_c` (station/science/
+    residual.py: drift error E/E_FS of eqs. 10-12 with its 1-sigma, curvature, noise density)."""
     cfg = config or StreamingConfig()
     serial, sensor, position = "", "", None
     if isinstance(block_or_log, DutLog):
@@ -76,6 +81,13 @@ def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None
             f"need at least two segments in each of two orientations ({exc})"
         ) from None
     offline = offline_fit(block.time_s, block.acc_g, block.temp_c, cfg, trace=trace)
+    oj = offline.to_json()["axes"]
+    residual = residual_report(
+        block.time_s, block.acc_g, block.temp_c,
+        [oj[a]["tdb_mg_per_c"] for a in AXES], [oj[a]["tdsf_ppm_per_c"] for a in AXES],
+        [oj[a]["tdb_sigma_mg_per_c"] for a in AXES], [oj[a]["tdsf_sigma_ppm_per_c"] for a in AXES],
+        operating_range_c=operating_range_c, config=cfg, trace=trace,
+    )
     out = {
         "serial": serial,
         "sensor": sensor,
@@ -87,6 +99,7 @@ def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None
         "n_samples": n,
         "temperature_swing_c": swing,
         "config": asdict(cfg),
+        "residual": residual,
     }
     for s in out["segments"]:
         s["acc_mean_g"] = list(s["acc_mean_g"])

@@ -1,0 +1,152 @@
+"""What is left after compensation, predicted from the DUT's own data (martinez2022 eqs. 10-13).
+
+The fit gives TDB/TDSF with 1-sigma uncertainties; the verdict needs to know how well eq. 13 will
+compensate THIS part over the product's operating range R. From the DUT's own stable (gate open,
+still) samples, compensated with its own TDB/TDSF, per axis:
+
+- curvature c2 (mg/C^2): a parabola in (T - 25) fitted per orientation to block means of the
+  compensated data (batch means, so autocorrelated noise does not look significant), the
+  orientation with the largest |c2| kept, with its 1-sigma. A linear TDB/TDSF cannot compensate it.
+- bow (mg) = |c2| R^2 / 8: how far that parabola departs from the best straight line over R; the
+  verdict names a bow over its limit as "the DUT's data reject the linear model".
+- drift error E (mg), eq. 10 evaluated on the residual model over R with fine sections: the mean
+  |d residual / dT| times R, which for a parabola centred in R is |c2| R^2 / 2. Its 1-sigma combines
+  the curvature's sigma (sigma_c2 R^2 / 2) with what the coefficient uncertainty alone leaves over
+  R at 1 g (eq. 1 with each coefficient's error): R sqrt(sigma_TDB^2 + (sigma_TDSF * 1 g)^2).
+  E_FS = E / 2000 mg * 100 % (eq. 12, the +-1 g span; Table 7: fast method 0.61 % mean, 1.16 % max).
+  Extrapolating the parabola seen on the ramp (~25..50 C) to R is the model's assumption.
+- ramp residual (mg): RMS of the compensated block means about their orientation's mean, i.e. how
+  far the DUT's own ramp data sit from the compensated model where it was measured.
+- noise density (ug/sqrt(Hz)): the robust sigma of (raw - filtered) over the stable samples,
+  corrected for the filter, divided by sqrt(ODR / 2) (ODR from the sample times).
+
+Pure: arrays in, numbers out.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from station.science.offline_fit import _runs, usable_mask
+from station.science.streaming import GateTrace, StreamingConfig, trace_gate
+from station.science.thermal_model import FULL_SCALE_MG, compensate
+from station.types import AXES, T_REF_C
+
+DEFAULT_OPERATING_RANGE_C = 70.0  # martinez2022 4.5: -10..60 C
+
+
+def _sigmas(v) -> np.ndarray:
+    """Per-axis 1-sigma; None (a method without uncertainty) -> NaN, so E gets no sigma either."""
+    if v is None:
+        return np.full(3, np.nan)
+    return np.array([np.nan if x is None else float(x) for x in v], dtype=np.float64)
+
+
+def residual_report(
+    time_s,
+    acc_g,
+    temp_c,
+    tdb_mg_per_c,
+    tdsf_ppm_per_c,
+    tdb_sigma_mg_per_c=None,
+    tdsf_sigma_ppm_per_c=None,
+    *,
+    operating_range_c: float = DEFAULT_OPERATING_RANGE_C,
+    min_span_c: float = 8.0,
+    block_samples: int = 200,
+    config: StreamingConfig | None = None,
+    trace: GateTrace | None = None,
+) -> dict:
+    """Per-axis residual drift E/E_FS, curvature and noise density of one DUT (see module doc).
+
+    Returns {"operating_range_c", "odr_hz", "n_used", "axes": {x: {"drift_error_mg",
+    "drift_error_sigma_mg", "drift_error_fs_pct", "drift_error_fs_sigma_pct", "curvature_mg_per_c2",
+    "curvature_sigma_mg_per_c2", "bow_mg", "bow_sigma_mg", "noise_ug_per_sqrt_hz",
+    "ramp_residual_rms_mg"}}}; values are None where the data do not allow them (an orientation
+    needs >= 5 blocks spanning min_span_c for a curvature).
+    """
+    cfg = config or StreamingConfig()
+    t = np.asarray(time_s, dtype=np.float64).reshape(-1)
+    acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
+    temp = np.asarray(temp_c, dtype=np.float64).reshape(-1)
+    if trace is None:
+        trace, _ = trace_gate(t, acc, temp, cfg)
+    use = usable_mask(acc, trace)
+    tdb = np.asarray(tdb_mg_per_c, dtype=np.float64)
+    tdsf = np.asarray(tdsf_ppm_per_c, dtype=np.float64)
+    comp = compensate(acc, temp, tdb, tdsf)
+    rng = float(operating_range_c)
+
+    c2 = np.full(3, np.nan)
+    c2_sig = np.full(3, np.nan)
+    ramp_ss = np.zeros(3)
+    ramp_n = 0
+    for o in np.unique(trace.orientation):
+        runs = [(s, e) for s, e in _runs(use & (trace.orientation == o)) if e - s >= 2]
+        if not runs:
+            continue
+        bx, by = [], []
+        for s, e in runs:
+            nb = max(1, int(round((e - s) / block_samples)))
+            for blk in np.array_split(np.arange(s, e), nb):
+                bx.append(temp[blk].mean() - T_REF_C)
+                by.append(comp[blk].mean(axis=0))
+        bx, by = np.array(bx), np.array(by)
+        if bx.size >= 2:
+            ramp_ss += np.sum((by - by.mean(axis=0)) ** 2, axis=0)
+            ramp_n += bx.size
+        if bx.size >= 5 and np.ptp(bx) >= min_span_c:
+            xm = bx.mean()
+            X = np.column_stack([np.ones_like(bx), bx - xm, (bx - xm) ** 2])
+            coef, *_ = np.linalg.lstsq(X, by, rcond=None)
+            resid = by - X @ coef
+            s2 = np.sum(resid * resid, axis=0) / max(bx.size - 3, 1)
+            sig = np.sqrt(s2 * np.linalg.pinv(X.T @ X)[2, 2])
+            cur = coef[2] * 1e3  # mg/C^2
+            for k in range(3):  # keep the orientation with the largest |curvature|
+                if not np.isfinite(c2[k]) or abs(cur[k]) > abs(c2[k]):
+                    c2[k], c2_sig[k] = cur[k], sig[k] * 1e3
+    ramp_rms = np.sqrt(ramp_ss / ramp_n) * 1e3 if ramp_n else np.full(3, np.nan)
+    # noise density
+    dt = np.diff(t)
+    odr = float(1.0 / np.median(dt)) if dt.size and np.median(dt) > 0 else float("nan")
+    noise = np.full(3, np.nan)
+    if use.sum() >= 50 and math.isfinite(odr):
+        r = (acc - trace.acc_filt_g)[use]
+        sigma_g = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+        # raw - filtered with alpha: var = var_w * (1 - alpha/(2 - alpha))^... ~ var_w * 2/(2 - alpha)
+        # for white noise: e = x - y, y_n = a x_n + (1-a) y_{n-1}; var(e) = var_w * 2 (1-a)/(2-a)
+        a = cfg.alpha_acc
+        sigma_g = sigma_g / math.sqrt(2.0 * (1.0 - a) / (2.0 - a))
+        noise = sigma_g / math.sqrt(odr / 2.0) * 1e6
+    sb = _sigmas(tdb_sigma_mg_per_c)
+    sf = _sigmas(tdsf_sigma_ppm_per_c)
+    coef_sig = rng * np.sqrt(sb ** 2 + (sf * 1e-3) ** 2)  # ppm/C at 1 g = 1e-3 mg/C
+    e_mg = np.abs(c2) * rng ** 2 / 2.0
+    e_sig = np.sqrt((c2_sig * rng ** 2 / 2.0) ** 2 + coef_sig ** 2)
+    bow = np.abs(c2) * rng ** 2 / 8.0
+    bow_sig = c2_sig * rng ** 2 / 8.0
+
+    def f(v: float) -> float | None:
+        return float(v) if math.isfinite(v) else None
+
+    axes = {}
+    for k, ax in enumerate(AXES):
+        axes[ax] = {
+            "drift_error_mg": f(e_mg[k]),
+            "drift_error_sigma_mg": f(e_sig[k]),
+            "drift_error_fs_pct": f(e_mg[k] / FULL_SCALE_MG * 100.0),
+            "drift_error_fs_sigma_pct": f(e_sig[k] / FULL_SCALE_MG * 100.0),
+            "curvature_mg_per_c2": f(c2[k]),
+            "curvature_sigma_mg_per_c2": f(c2_sig[k]),
+            "bow_mg": f(bow[k]),
+            "bow_sigma_mg": f(bow_sig[k]),
+            "noise_ug_per_sqrt_hz": f(noise[k]),
+            "ramp_residual_rms_mg": f(ramp_rms[k]),
+        }
+    return {"operating_range_c": rng, "odr_hz": f(odr), "n_used": int(use.sum()), "axes": axes}
+
+
+__all__ = ["residual_report", "DEFAULT_OPERATING_RANGE_C"]
