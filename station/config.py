@@ -13,11 +13,13 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from station.positions import POSITION_INDEX, POSITION_NAMES
+from station.spec_limits import ProductSpec, product_for, resolve_products
 from station.types import StationError
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=False)
+    # NaN/inf are refused everywhere: a NaN limit compares False and would blind a safety check.
+    model_config = ConfigDict(extra="forbid", frozen=False, allow_inf_nan=False)
 
 
 class CanNode(_Model):
@@ -95,6 +97,8 @@ class Limits(_Model):
     max_dut_temp_c: float = 85.0
     max_plate_temp_c: float = 90.0
     lamp_max_on_s: float = Field(default=3600.0, gt=0)
+    relay_watchdog_s: float = Field(default=10.0, ge=0, le=3600,
+                                    description="lamp relay host watchdog (design 3.3), wall s; 0 = not used")
 
 
 class Timing(_Model):
@@ -116,6 +120,10 @@ class Token(_Model):
 class Http(_Model):
     host: str = "127.0.0.1"
     port: int = Field(default=8080, ge=0, le=65535)
+    max_body_bytes: int = Field(default=1 << 20, ge=1024, le=1 << 30,
+                                description="larger request bodies are answered 413 before they are read")
+    max_event_streams: int = Field(default=32, ge=1, le=10_000,
+                                   description="open /api/events streams; more are answered 503")
 
 
 class StepConfig(_Model):
@@ -141,14 +149,36 @@ class StepConfig(_Model):
         return v
 
 
+class ProgramVerifyConfig(_Model):
+    """`[profiles.NAME.program_verify]`: end the profile with program and verify (design 4)."""
+
+    position: int | str | None = None  # default: where the profile's last step is
+    heat_c: float = Field(default=15.0, ge=15.0, description="rise of every DUT's temperature, C")
+    settle_s: float = Field(default=20.0, ge=0)
+    timeout_s: float = Field(default=2400.0, gt=0)
+    e_ratio_max: float = Field(default=0.25, gt=0, le=1)
+    e_floor_mg: float = Field(default=2.0, ge=0)
+    full_range_c: float = Field(default=70.0, gt=0)
+    curvature_limit_mg: float = Field(default=4.0, ge=0)
+
+
 class ProfileConfig(_Model):
     description: str = ""
     analysis: Literal["thermal", "sfem", "none"] = "none"
     steps: list[StepConfig] = Field(min_length=1)
+    program_verify: ProgramVerifyConfig | None = None
+
+
+def _hostname() -> str:
+    import socket
+
+    return (socket.gethostname() or "station")[:64]
 
 
 class StationConfig(_Model):
-    name: str = "station"
+    # the station's name, stamped on every batch, run, result and audit row: stations that share
+    # one database (PostgreSQL) are told apart by it, so the default is the host's name
+    name: str = Field(default_factory=_hostname, min_length=1, max_length=64)
     database_url: str = "sqlite:///var/station.db"
     mes_webhook_url: str | None = None
     http: Http = Http()
@@ -161,6 +191,9 @@ class StationConfig(_Model):
     chamber: ModbusDevice | None = None
     tokens: list[Token] = []
     profiles: dict[str, ProfileConfig] = {}
+    # Spec limits per product (station/spec_limits.py): built-ins for LIS3DSH and ADXL355, which a
+    # site's [products.NAME] with the same key replaces.
+    products: dict[str, ProductSpec] = {}
 
     @model_validator(mode="after")
     def _unique(self) -> "StationConfig":
@@ -191,9 +224,18 @@ class StationConfig(_Model):
                 return t.role
         return None
 
+    def product_specs(self) -> dict[str, ProductSpec]:
+        """Built-in products overlaid with the site's (station/spec_limits.py)."""
+        return resolve_products(self.products)
+
+    def product_for(self, sensor: str | None, part_number: str | None = None) -> ProductSpec | None:
+        return product_for(self.product_specs(), sensor, part_number)
+
     def snapshot(self) -> dict:
         """The config as stored with each batch; auth tokens are masked."""
         data = self.model_dump(mode="json")
+        # every limits set in force (built-ins included), so a stored verdict can be traced to it
+        data["products"] = {k: v.model_dump(mode="json") for k, v in self.product_specs().items()}
         data["tokens"] = [{"role": t["role"], "name": t["name"], "token": "***"} for t in data["tokens"]]
         return data
 
@@ -249,6 +291,9 @@ def load_config(path: str | Path) -> StationConfig:
         raise StationError(f"config file not found: {p}") from None
     except OSError as exc:
         raise StationError(f"cannot read config {p}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        line = exc.object[: exc.start].count(b"\n") + 1
+        raise StationError(f"config {p}: line {line}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x})") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -103,6 +103,37 @@ class DutResult(Event):
     serial: str
     thermal: dict | None = None
     sfem: dict | None = None
+    verdict: dict | None = None  # the station's decision (station/judging.py), stored with the result
+
+
+@dataclass(frozen=True)
+class DutVerdict(Event):
+    """The decision on a DUT run that has no result to carry it (faulted, aborted, analysis failed):
+    verdict error, stored on the run and sent to the MES like a result."""
+
+    slot: str
+    serial: str | None
+    verdict: dict
+
+
+@dataclass(frozen=True)
+class DutProgrammed(Event):
+    """Program and verify, part 1: the coefficients written to a DUT, read back and compensation
+    switched on (program["programmed"]), or why not (program["error_kind"], program["error"])."""
+
+    slot: str
+    serial: str
+    program: dict
+
+
+@dataclass(frozen=True)
+class DutVerified(Event):
+    """Program and verify, part 2: the verified drift error E of the compensated output
+    (station.science.verify.VerificationResult.to_json())."""
+
+    slot: str
+    serial: str
+    verification: dict
 
 
 @dataclass(frozen=True)

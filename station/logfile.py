@@ -79,7 +79,8 @@ def parse_log(text: str, source: str = "<log>") -> DutLog:
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
         raise StationError(f"{source}: missing column(s) {', '.join(missing)} (header is {','.join(header)})")
-    body = [ln for ln in lines[i + 1 :] if ln.strip() and not ln.startswith("#")]
+    numbered = [(n + 1, ln) for n, ln in enumerate(lines) if n > i and ln.strip() and not ln.startswith("#")]
+    body = [ln for _, ln in numbered]
     if not body:
         return _empty_log(meta, header)
     try:
@@ -89,6 +90,7 @@ def parse_log(text: str, source: str = "<log>") -> DutLog:
     if data.shape[1] != len(header):
         raise StationError(f"{source}: rows have {data.shape[1]} fields but the header has {len(header)}")
     col = {name: data[:, k] for k, name in enumerate(header)}
+    _check_values(col, [n for n, _ in numbered], source)
     log = DutLog(
         time_s=col["time_s"].copy(),
         acc_g=np.column_stack([col["ax_g"], col["ay_g"], col["az_g"]]),
@@ -102,6 +104,31 @@ def parse_log(text: str, source: str = "<log>") -> DutLog:
     if all(c in col for c in ("ref_x", "ref_y", "ref_z")):
         log.ref_dir = np.column_stack([col["ref_x"], col["ref_y"], col["ref_z"]])
     return log
+
+
+def _check_values(col: dict[str, np.ndarray], line_numbers: list[int], source: str) -> None:
+    """Samples must be finite and lamp/position small integers: NaN or inf samples passed into
+    every analysis, and `position = 1e300` became int64 min by a silent cast. The first bad value
+    is reported with its line number (1-based, in the file)."""
+    from station.positions import POSITION_NAMES
+
+    def fail(name: str, rows: np.ndarray, why: str) -> None:
+        r = int(np.flatnonzero(rows)[0])
+        raise StationError(f"{source}: line {line_numbers[r]}: {name} = {float(col[name][r])!r} {why}")
+
+    for name in REQUIRED_COLUMNS:
+        bad = ~np.isfinite(col[name])
+        if bad.any():
+            fail(name, bad, "is not a finite number")
+    if "lamp" in col:
+        bad = ~np.isin(col["lamp"], (0.0, 1.0))
+        if bad.any():
+            fail("lamp", bad, "must be 0 or 1")
+    if "position" in col:
+        p = col["position"]
+        bad = ~(np.isfinite(p) & (p == np.round(p)) & (p >= -1) & (p < len(POSITION_NAMES)))
+        if bad.any():
+            fail("position", bad, f"must be an integer -1 (unknown) .. {len(POSITION_NAMES) - 1}")
 
 
 def _empty_log(meta: dict[str, str], header: list[str]) -> DutLog:

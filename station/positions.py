@@ -54,3 +54,21 @@ def direction(position: int | str) -> np.ndarray:
     if not 0 <= idx < len(POSITION_NAMES):
         raise KeyError(f"unknown position {position!r}")
     return GRAVITY_DIRECTIONS[idx].copy()
+
+
+FACING_MAX_ANGLE_DEG = 20.0  # under half the 45 deg between neighbouring sfem-24 positions
+
+
+def first_facing(acc_g: np.ndarray, position: int | str, max_angle_deg: float = FACING_MAX_ANGLE_DEG) -> int | None:
+    """Index of the first sample whose measured gravity points within max_angle_deg of the
+    position's nominal direction, or None. A static step's settle and dwell start there: samples
+    that still show the previous position (a reader behind the plant in compressed time, a slow
+    fixture, a DUT that is not seated) never count as the new one. Mounting misalignment and scale
+    errors are a few degrees, well inside the tolerance."""
+    acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
+    if acc.shape[0] == 0:
+        return None
+    norm = np.linalg.norm(acc, axis=1)
+    cos = (acc @ direction(position)) / np.where(norm > 0, norm, np.inf)
+    hit = np.flatnonzero(cos >= math.cos(math.radians(max_angle_deg)))
+    return int(hit[0]) if hit.size else None

@@ -10,6 +10,15 @@ require:
            step's position (martinez2022: stable temperature, 500 discarded + 1000 averaged samples)
   static   the DUT logs `dwell_s` of sample time at this position after `settle_s` (SFEM, six-position)
   none     the step just lasts `dwell_s` of sample time (a soak, a lamp-off cool-down)
+  program  program and verify, part 1 (design 4): the thermal analysis runs, then every live DUT
+           with a thermal result gets its coefficients written, read back (CRC and values) and its
+           on-board compensation switched on; a DUT whose write fails is faulted alone
+  heat     program and verify, part 2: the lamp heats the plate again until every DUT's own
+           temperature has risen `heat_c` (>= 15 C) above where the step started, while the station
+           logs the boards' COMPENSATED output; `settle_s` at the start is not judged. The verified
+           drift error E (station.science.verify) is computed when the batch is analysed.
+A profile ends with program and verify by `with_program_verify(profile)`; `fast-thermal-verified`
+is the built-in one.
 """
 
 from __future__ import annotations
@@ -17,8 +26,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from station.positions import POSITION_INDEX, POSITION_NAMES, SFEM24, SIX_POSITION
+from station.science.verify import VerifyCriteria
 
-REQUIREMENTS = ("segment", "static", "none")
+REQUIREMENTS = ("segment", "static", "none", "program", "heat")
 ANALYSES = ("thermal", "sfem", "none")
 
 
@@ -32,6 +42,7 @@ class Step:
     dwell_s: float = 0.0
     settle_s: float = 0.0
     timeout_s: float = 3600.0
+    heat_c: float = 0.0  # require="heat": the rise of every DUT's temperature that ends the step
 
     @property
     def position_name(self) -> str:
@@ -48,6 +59,7 @@ class Step:
             "dwell_s": self.dwell_s,
             "settle_s": self.settle_s,
             "timeout_s": self.timeout_s,
+            "heat_c": self.heat_c,
         }
 
 
@@ -58,6 +70,7 @@ class Profile:
     description: str = ""
     analysis: str = "none"  # what runs at the end: thermal (TDB/TDSF), sfem, none
     builtin: bool = field(default=True, compare=False)
+    verify: VerifyCriteria = field(default_factory=VerifyCriteria)  # pass rule of a heat (verification) step
 
     def __post_init__(self) -> None:
         if not self.steps:
@@ -75,6 +88,20 @@ class Profile:
                 raise ValueError(f"steps[{i}]: require={s.require!r} needs dwell_s > 0")
             if s.require == "static" and s.settle_s + s.dwell_s >= s.timeout_s:
                 raise ValueError(f"steps[{i}]: settle_s + dwell_s must be shorter than timeout_s")
+            if s.require == "program" and self.analysis != "thermal":
+                raise ValueError(f"steps[{i}]: a program step needs analysis='thermal' (coefficients to write)")
+            if s.require == "heat":
+                if s.heat_c < 15.0:
+                    raise ValueError(f"steps[{i}]: a verification must heat at least 15 C (heat_c), got {s.heat_c:g}")
+                if not s.lamp and s.chamber_setpoint_c is None:
+                    raise ValueError(f"steps[{i}]: a heat step needs the lamp on or a chamber set point")
+                if not any(p.require == "program" for p in self.steps[:i]):
+                    raise ValueError(f"steps[{i}]: a verification (heat) step must follow a program step")
+
+    @property
+    def program_step(self) -> int | None:
+        """Index of the program step, None if the profile does not end with program and verify."""
+        return next((i for i, s in enumerate(self.steps) if s.require == "program"), None)
 
     def to_json(self) -> dict:
         return {
@@ -82,6 +109,8 @@ class Profile:
             "description": self.description,
             "analysis": self.analysis,
             "steps": [s.to_json() for s in self.steps],
+            "program_verify": self.program_step is not None,
+            "verify": self.verify.to_json() if self.program_step is not None else None,
         }
 
 
@@ -177,8 +206,38 @@ def _validation() -> Profile:
     )
 
 
+def with_program_verify(
+    profile: Profile,
+    *,
+    name: str | None = None,
+    position: int | str | None = None,
+    heat_c: float = 15.0,
+    settle_s: float = 20.0,
+    timeout_s: float = 2400.0,
+    criteria: VerifyCriteria | None = None,
+) -> Profile:
+    """The profile ending with program and verify (design 4): a program step, then a verification
+    step that heats the plate again by heat_c (lamp on) at `position` (default: where the profile
+    ends, so no turn is needed) while the boards send compensated output."""
+    pos = profile.steps[-1].position if position is None else _pos(position)
+    steps = profile.steps + (
+        Step("program", pos, lamp=False, require="program", timeout_s=600.0),
+        Step("verify hot", pos, lamp=True, require="heat", heat_c=heat_c, settle_s=settle_s, timeout_s=timeout_s),
+    )
+    return Profile(
+        name or f"{profile.name}-verified",
+        steps,
+        description=f"{profile.description}; then program (write, read back, compensation on) and verify "
+                    f"(lamp heats +{heat_c:g} C, compensated drift E judged)",
+        analysis=profile.analysis,
+        builtin=profile.builtin,
+        verify=criteria or VerifyCriteria(),
+    )
+
+
 BUILTIN_PROFILES: dict[str, Profile] = {
-    p.name: p for p in (_fast_thermal(), _six_position(), _sfem24(), _validation())
+    p.name: p for p in (_fast_thermal(), _six_position(), _sfem24(), _validation(),
+                        with_program_verify(_fast_thermal(), name="fast-thermal-verified"))
 }
 
 
@@ -197,7 +256,15 @@ def profile_from_config(name: str, cfg) -> Profile:
         )
         for s in cfg.steps
     )
-    return Profile(name, steps, description=cfg.description, analysis=cfg.analysis, builtin=False)
+    prof = Profile(name, steps, description=cfg.description, analysis=cfg.analysis, builtin=False)
+    pv = getattr(cfg, "program_verify", None)
+    if pv is not None:
+        prof = with_program_verify(
+            prof, name=name, position=pv.position, heat_c=pv.heat_c, settle_s=pv.settle_s, timeout_s=pv.timeout_s,
+            criteria=VerifyCriteria(e_ratio_max=pv.e_ratio_max, e_floor_mg=pv.e_floor_mg,
+                                    full_range_c=pv.full_range_c, curvature_limit_mg=pv.curvature_limit_mg),
+        )
+    return prof
 
 
 def all_profiles(config=None) -> dict[str, Profile]:
@@ -206,3 +273,13 @@ def all_profiles(config=None) -> dict[str, Profile]:
         for name, prof in config.profiles.items():
             out[name] = profile_from_config(name, prof)
     return out
+
+
+def check_profile_name(name: str, config=None) -> None:
+    """A command line's profile that does not exist: one line (StationError) naming the known
+    ones, before any hardware is opened (a newcomer's typo must not end in a traceback)."""
+    from station.types import StationError
+
+    known = all_profiles(config)
+    if name not in known:
+        raise StationError(f"unknown profile {name!r} (known: {', '.join(known)})")

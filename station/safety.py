@@ -6,11 +6,13 @@ configured maximum. A trip latches: the lamp cannot be switched on again until t
 (`reset()`). A failed off-write is retried with backoff, raised as an Alarm event on every failure,
 and retried in the background until it succeeds.
 
-On-time in compressed time: the plant (real or simulated) runs `speed` times faster than the wall
-clock, so lamp on-time is counted as the LARGER of (a) the batch's sample clock since the lamp went
-on (what the boards have lived through) and (b) wall time since the lamp went on times the
-configured speed. (a) is exact when samples flow; (b) still runs when they stop or lag. Taking the
-maximum errs toward switching off early, never late.
+On-time in compressed time: lamp on-time is the batch's sample clock since the lamp went on (what
+the boards have lived through: exact while samples flow, even when the daemon reads them late),
+PLUS wall time times the configured speed since the sample clock last moved (so a stalled stream
+cannot stop the count). It once was max(sample clock, wall x speed): when a loaded daemon lagged
+behind a simulated plant, wall x speed ran thousands of plant seconds ahead of what the boards had
+lived through and tripped whole batches (the simulator now waits for a lagging daemon instead).
+At speed 1 on real hardware both counts agree within the link's buffering.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ class LampGuard:
         retry_delays_s: tuple[float, ...] = DEFAULT_RETRY_DELAYS_S,
         watch_period_s: float = 0.1,
         clock: Callable[[], float] = time.monotonic,
+        watchdog_s: float = 0.0,
     ) -> None:
         self.relay = relay
         self.bus = bus
@@ -65,10 +68,30 @@ class LampGuard:
         self._on_wall: float | None = None
         self._on_sample: float | None = None
         self._sample_now = 0.0
+        self._sample_wall: float | None = None  # wall time the sample clock last moved
         self._lock = asyncio.Lock()
         self._watch_task: asyncio.Task | None = None
         self._retry_task: asyncio.Task | None = None
         self._trip_listeners: list[Callable[[str], None]] = []
+        # Relay supervision: the host watchdog (design 3.3) and what the coil really is.
+        self.watchdog_s = watchdog_s
+        self.watchdog_armed = False
+        self.relay_error: str | None = None  # set at the first failed read/write: state unknown
+        self.relay_failures = 0
+        self._write_seq = 0
+        self._last_ping = -1e9
+
+    @property
+    def state(self) -> str:
+        """'on', 'off' or 'unknown' (the relay did not answer the last read or write)."""
+        if self.relay_error is not None:
+            return "unknown"
+        return "on" if self.is_on else "off"
+
+    @property
+    def ping_period_s(self) -> float:
+        """How often the relay is read: at least every third of the watchdog time (design 3.3)."""
+        return min(1.0, self.watchdog_s / 3.0) if self.watchdog_s > 0 else 1.0
 
     # ---------------------------------------------------------------- state
     def on_trip(self, callback: Callable[[str], None]) -> None:
@@ -79,19 +102,21 @@ class LampGuard:
         """The batch's sample clock (seconds of board time since the batch started)."""
         if batch_sample_s > self._sample_now:
             self._sample_now = batch_sample_s
+            self._sample_wall = self.clock()
 
     def on_time_s(self) -> float:
         if not self.is_on or self._on_wall is None:
             return 0.0
-        wall = (self.clock() - self._on_wall) * self.speed
         sample = self._sample_now - (self._on_sample if self._on_sample is not None else self._sample_now)
-        return max(wall, sample)
+        since = self._on_wall if self._sample_wall is None else max(self._on_wall, self._sample_wall)
+        return sample + (self.clock() - since) * self.speed
 
     def reset(self, batch_id: int) -> None:
         """A new batch: clear a latched trip (the cause is re-checked on every sample)."""
         self.batch_id = batch_id
         self.trip_reason = None
         self._sample_now = 0.0
+        self._sample_wall = None
 
     # ---------------------------------------------------------------- commands
     async def set_lamp(self, on: bool, reason: str) -> None:
@@ -100,8 +125,14 @@ class LampGuard:
             return
         if self.trip_reason is not None:
             raise LampTripped(f"lamp trip latched: {self.trip_reason}")
+        self._write_seq += 1
         async with self._lock:
-            await self.relay.set_lamp(True)
+            try:
+                await self.relay.set_lamp(True)
+            except Exception as exc:
+                self._relay_failed(f"lamp ON write failed: {exc}")
+                raise
+            self._relay_ok()
             if not self.is_on:
                 self._on_wall = self.clock()
                 self._on_sample = self._sample_now
@@ -112,6 +143,7 @@ class LampGuard:
     async def off(self, reason: str) -> bool:
         """Switch off, retrying with backoff. Always writes (the coil may differ from our belief)."""
         was_on = self.is_on
+        self._write_seq += 1
         self.is_on = False  # stop counting and refuse to believe it is on from now
         self._on_wall = None
         async with self._lock:
@@ -130,9 +162,11 @@ class LampGuard:
                 await asyncio.sleep(delay)
             try:
                 await self.relay.set_lamp(False)
+                self._relay_ok()
                 return True
             except Exception as exc:  # DriverError, timeouts, a dropped connection: all the same here
                 self.off_failures += 1
+                self.relay_error = f"lamp OFF write failed: {exc}"
                 text = f"lamp OFF write failed (attempt {attempt + 1}, {reason}): {exc}"
                 log.error(text)
                 self.bus.publish(Alarm(self.batch_id, text=text, severity="critical"))
@@ -160,6 +194,60 @@ class LampGuard:
             for cb in self._trip_listeners:
                 cb(reason)
 
+    # ---------------------------------------------------------------- relay supervision
+    async def arm_watchdog(self) -> bool:
+        """Set the relay's host watchdog, so a daemon that dies cannot leave the lamp on for longer."""
+        if self.watchdog_s <= 0:
+            return False
+        try:
+            await self.relay.set_watchdog(int(round(self.watchdog_s)))
+        except Exception as exc:
+            text = (f"lamp relay host watchdog could not be set ({exc}): if the daemon dies, the lamp "
+                    "stays on until it restarts")
+            log.error(text)
+            self.bus.publish(Alarm(self.batch_id, text=text, severity="warning"))
+            return False
+        self.watchdog_armed = True
+        log.info("lamp relay host watchdog armed: %g s", self.watchdog_s)
+        return True
+
+    def _relay_ok(self) -> None:
+        if self.relay_error is not None:
+            self.bus.publish(Alarm(self.batch_id, text="lamp relay answers again", severity="info"))
+        self.relay_error = None
+        self.relay_failures = 0
+
+    def _relay_failed(self, text: str) -> None:
+        first = self.relay_error is None
+        self.relay_error = text
+        self.relay_failures += 1
+        if first:  # alarm at the first failure, not after a timeout
+            msg = f"lamp relay not answering, lamp state unknown: {text}"
+            log.error(msg)
+            self.bus.publish(Alarm(self.batch_id, text=msg, severity="critical"))
+
+    async def check_relay(self) -> None:
+        """Read the coil (this also refreshes the host watchdog) and compare it with what we commanded."""
+        seq = self._write_seq
+        async with self._lock:
+            try:
+                coil = await asyncio.wait_for(self.relay.read_lamp(), 2.0)
+            except Exception as exc:
+                self._relay_failed(f"reading the lamp coil failed: {exc}")
+                if self.is_on and self.relay_failures >= 3:
+                    self.trip(f"lamp relay unreachable while the lamp is on: {exc}")
+                return
+            self._relay_ok()
+        if seq != self._write_seq:
+            return  # a write went in meanwhile: the read says nothing about it
+        if coil and not self.is_on:
+            text = "lamp coil found ON while the station commanded OFF: switching it off"
+            log.error(text)
+            self.bus.publish(Alarm(self.batch_id, text=text, severity="critical"))
+            await self.off("coil found on")
+        elif not coil and self.is_on:
+            self.trip("lamp coil found OFF while the station commanded ON (relay host watchdog or manual switch)")
+
     # ---------------------------------------------------------------- checks
     def check_dut_temp(self, slot: str, temp_c: float) -> bool:
         """True if it tripped. Called with each block's hottest temperature (lamp on or not)."""
@@ -186,6 +274,10 @@ class LampGuard:
         thermo_fail = 0
         while True:
             self.check_on_time()
+            now = time.monotonic()
+            if now - self._last_ping >= self.ping_period_s:
+                self._last_ping = now
+                await self.check_relay()
             if self.thermometer is not None:
                 try:
                     self.check_plate_temp(await self.thermometer.read_temp_c())

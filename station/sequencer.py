@@ -27,7 +27,9 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
-from drivers.base import Chamber, Fixture
+import numpy as np
+
+from drivers.base import Chamber, DriverError, Fixture
 from station.events import (
     BatchStateChanged,
     EventBus,
@@ -37,7 +39,7 @@ from station.events import (
     StepCompleted,
     StepStarted,
 )
-from station.positions import POSITION_NAMES
+from station.positions import FACING_MAX_ANGLE_DEG, POSITION_NAMES, first_facing
 from station.profiles import Profile, Step
 from station.safety import LampGuard, LampTripped
 from station.types import Identity, SampleBlock, Segment
@@ -48,7 +50,8 @@ log = logging.getLogger("station.sequencer")
 TRANSITIONS: dict[str, tuple[str, ...]] = {
     "created": ("connecting",),
     "connecting": ("step_setup", "analysing"),  # analysing: a resumed batch whose steps were all done
-    "step_setup": ("positioning",),
+    "step_setup": ("positioning", "programming"),
+    "programming": ("step_done",),  # program and verify, part 1 (hw.program_duts)
     "positioning": ("moving", "waiting_operator", "logging"),
     "moving": ("logging",),
     "waiting_operator": ("logging",),
@@ -101,6 +104,8 @@ class DutRun:
     last_wall: float = field(default_factory=time.monotonic)
     n_samples: int = 0
     step_t_start: float = -math.inf  # board time when the current step began logging
+    step_facing: bool = True  # a static step's samples show its position (station.positions.first_facing)
+    facing_scan: int = 0  # blocks already searched for the first facing sample
     step_windows: dict[int, tuple[float, float]] = field(default_factory=dict)  # step -> board time span
     result: dict | None = None
     link_stats: dict = field(default_factory=dict)
@@ -111,6 +116,11 @@ class DutRun:
     time_offset_s: float = 0.0
     hold_calibrator: bool = False  # resumed: samples are stored but not calibrated until logging
     unstored_segments: list[tuple[Segment, int]] = field(default_factory=list)
+    verdict: dict | None = None  # the station's decision (station/judging.py)
+    extra_measurements: list = field(default_factory=list)  # more station.verdicts.Measurement to judge
+    program: dict | None = None  # program and verify: what was written and read back (CRC, comp)
+    verification: dict | None = None  # program and verify: verified drift error E (science.verify)
+    steps_done: int = 0  # steps this DUT completed while live (the page's progress dots, issue 9)
 
     @property
     def serial(self) -> str | None:
@@ -141,7 +151,44 @@ class DutRun:
             "calibrator_state": getattr(self.calibrator, "state", None),
             "link_stats": dict(self.link_stats),
             "result": self.result,
+            "decision": self.verdict,
+            "program": self.program,
+            "verification": self.verification,
+            "steps_done": self.steps_done,
         }
+
+    def temp_rise_c(self, t_from: float, n_edge: int = 8) -> float:
+        """How far this DUT's own temperature has risen since board time t_from (a heat step):
+        median of the latest n_edge samples minus median of the first n_edge after t_from."""
+        tail: list[np.ndarray] = []
+        for b in reversed(self.blocks):
+            if len(b) == 0:
+                continue
+            if b.time_s[-1] <= t_from:
+                break
+            tail.append(b.temp_c[b.time_s > t_from])
+        if not tail:
+            return 0.0
+        temps = np.concatenate(tail[::-1])
+        if len(temps) < 2 * n_edge:
+            return 0.0
+        return float(np.median(temps[-n_edge:]) - np.median(temps[:n_edge]))
+
+
+class _device:
+    """A device call whose failure ends the batch with the device named and what to check, instead
+    of an 'internal error' with a traceback."""
+
+    def __init__(self, name: str, check: str) -> None:
+        self.name, self.check = name, check
+
+    async def __aenter__(self) -> None:
+        return None
+
+    async def __aexit__(self, kind, exc, tb) -> bool:
+        if exc is not None and isinstance(exc, (DriverError, OSError, asyncio.TimeoutError)):
+            raise BatchFailed(f"{self.name} failed: {exc or type(exc).__name__} (check {self.check})") from None
+        return False
 
 
 class Hardware(Protocol):
@@ -161,6 +208,10 @@ class Hardware(Protocol):
     def fault_dut(self, seq: "Sequencer", dut: DutRun, reason: str) -> None: ...
 
     async def analyse(self, seq: "Sequencer") -> None: ...
+
+    async def program_duts(self, seq: "Sequencer") -> None:
+        """Program and verify, part 1: analyse, then write/read back/compensation on per DUT;
+        a DUT whose programming fails is faulted alone (fault_dut)."""
 
 
 class Sequencer:
@@ -202,6 +253,12 @@ class Sequencer:
         self.task: asyncio.Task | None = None
         self.done = asyncio.Event()
         self.ending: str | None = None  # the terminal state being entered (set before cleanup)
+        # Who ended the batch (a token's name for an operator's abort, "station" for an end it
+        # reached by itself, "daemon" for a shutdown): the page says "aborted by Ana at 14:02".
+        self.ended_by: str | None = None
+        for d in duts:  # a resumed batch: the steps before start_step were completed before the crash
+            d.steps_done = max(d.steps_done, start_step)
+        self.storage_error: str | None = None  # set by release_duts: the batch's data is not stored
 
     # ------------------------------------------------------------ helpers
     @property
@@ -235,7 +292,9 @@ class Sequencer:
         self.state = new
         self.history.append((time.time(), old, new))
         log.info("batch %d: %s -> %s %s", self.batch_id, old, new, reason)
-        self.bus.publish(BatchStateChanged(self.batch_id, state=BATCH_STATE[new], reason=reason or f"{old} -> {new}"))
+        # The reason is the batch's error as stored and shown: a normal transition has none (it
+        # once stored "analysing -> finished" as the error of a batch that finished fine).
+        self.bus.publish(BatchStateChanged(self.batch_id, state=BATCH_STATE[new], reason=reason))
 
     def _ensure_live(self) -> None:
         self._check_stop()
@@ -247,15 +306,18 @@ class Sequencer:
         self.task = asyncio.get_running_loop().create_task(self.run(), name=f"batch-{self.batch_id}")
         return self.task
 
-    def stop(self, state: str, reason: str) -> None:
-        """End the batch from outside: 'aborted' (operator), 'interrupted' (shutdown), 'failed' (trip)."""
+    def stop(self, state: str, reason: str, by: str | None = None) -> None:
+        """End the batch from outside: 'aborted' (operator), 'interrupted' (shutdown), 'failed' (trip).
+
+        by: who asked (the token's name for an operator; None: the station itself)."""
         if self.state in TERMINAL or self._stop is not None:
             return
         self._stop = (state, reason)
+        self.ended_by = by or ("daemon" if state == "interrupted" else "station")
         if self.task is not None and not self.task.done():
             self.task.cancel()
 
-    def answer_prompt(self, prompt_id: int, answer: str = "done") -> None:
+    def answer_prompt(self, prompt_id: int, answer: str = "done", by: str | None = None) -> None:
         if self.prompt is None or self._prompt_future is None:
             raise ValueError("no prompt is open for this batch")
         if int(prompt_id) != self.prompt["id"]:
@@ -264,7 +326,8 @@ class Sequencer:
             raise ValueError("answer must be 'done' or 'abort'")
         self.bus.publish(PromptAnswered(self.batch_id, prompt_id=int(prompt_id), answer=answer))
         if answer == "abort":
-            self.stop("aborted", "operator aborted at prompt")
+            who = by or "operator"
+            self.stop("aborted", f"aborted by {who} at the prompt at {wall_text(time.time())}", by=who)
             return
         if not self._prompt_future.done():
             self._prompt_future.set_result(answer)
@@ -298,6 +361,8 @@ class Sequencer:
             await self._end("failed", self.error)
         finally:
             self.ended_wall = time.time()
+            if self.ended_by is None:
+                self.ended_by = "station"
             self.done.set()
         return self.state
 
@@ -305,6 +370,9 @@ class Sequencer:
         if self.state in TERMINAL:
             return
         await self._cleanup(state)
+        if state == "finished" and self.storage_error is not None:
+            state, reason = "failed", f"results not stored: {self.storage_error}"
+            self.error = reason
         self._transition(state, reason)
 
     def _check_stop(self) -> None:
@@ -346,9 +414,28 @@ class Sequencer:
                 chamber_setpoint_c=step.chamber_setpoint_c,
             )
         )
+        if step.require == "program":
+            return "programming"
         if step.chamber_setpoint_c is not None and self.hw.chamber is not None:
-            await self.hw.chamber.set_setpoint_c(step.chamber_setpoint_c)
+            async with _device("thermal chamber", "its power, Modbus address (unit 4) and cable/network"):
+                await self.hw.chamber.set_setpoint_c(step.chamber_setpoint_c)
         return "positioning"
+
+    async def _state_programming(self) -> str:
+        # No heat while writing: the lamp is off (the analysis and the writes take wall time).
+        await self.hw.lamp.off(f"step {self.step_index} program")
+        await self.hw.program_duts(self)
+        self._ensure_live()
+        for d in self.duts:
+            if d.last_t is not None:
+                d.step_windows[self.step_index] = (d.last_t, d.last_t)
+        for d in self.live_duts:
+            d.steps_done += 1
+        self.bus.publish(StepCompleted(
+            self.batch_id, step_index=self.step_index,
+            windows={d.slot: d.step_windows[self.step_index] for d in self.live_duts if self.step_index in d.step_windows},
+        ))
+        return "step_done"
 
     async def _state_positioning(self) -> str:
         step = self.step
@@ -363,10 +450,17 @@ class Sequencer:
         step = self.step
         assert step is not None and self.hw.fixture is not None
         fx = self.hw.fixture
-        await fx.move_to(step.position)
+        what = "its power, emergency stop, Modbus address (unit 3) and cable/network"
+        # The plate leaves its position: samples read during the move are stored with position -1
+        # (unknown) and the status says null, never the position it left (docs/design.md).
+        self.position = None
+        async with _device("fixture", what):
+            await fx.move_to(step.position)
         deadline = time.monotonic() + self.hw.fixture_timeout_s
         while True:
-            if await fx.position() == step.position and not await fx.moving():
+            async with _device("fixture", what):
+                reached = await fx.position() == step.position and not await fx.moving()
+            if reached:
                 break
             if time.monotonic() > deadline:
                 raise BatchFailed(
@@ -381,6 +475,7 @@ class Sequencer:
         assert step is not None
         self._prompt_counter += 1
         pid = self.batch_id * 1000 + self._prompt_counter
+        self.position = None  # the operator turns the plate: unknown until confirmed (as during a move)
         text = f"turn the plate to {step.position_name}"
         self.prompt = {"id": pid, "text": text, "position": step.position, "position_name": step.position_name,
                        "step_index": self.step_index}
@@ -398,7 +493,8 @@ class Sequencer:
         step = self.step
         assert step is not None
         # Lamp per step, once the plate is where the step wants it.
-        await self.hw.lamp.set_lamp(step.lamp, f"step {self.step_index} {step.name}")
+        async with _device("lamp relay", "its power, Modbus address (unit 1) and cable/network"):
+            await self.hw.lamp.set_lamp(step.lamp, f"step {self.step_index} {step.name}")
         self.step_clock_start = self.clock_s()
         resumed_step = self.step_index == self.start_step and self.start_step > 0
         for d in self.duts:
@@ -406,6 +502,11 @@ class Sequencer:
             if resumed_step and step.require == "segment":
                 # The step was interrupted: a segment it logged (at its position) before the crash counts.
                 d.step_t_start = -math.inf
+            # A static step counts from the first sample that faces its position, not from the
+            # newest sample received when the fixture reported it reached: in compressed time the
+            # boards' bytes can lag the plant by more than the settle time.
+            d.step_facing = not (step.require == "static" and step.position is not None)
+            d.facing_scan = len(d.blocks)
         while True:
             self._ensure_live()
             pending = [d for d in self.live_duts if not self.dut_step_done(d, step)]
@@ -416,16 +517,22 @@ class Sequencer:
             # stall watchdog's (wall time) to fault.
             late = [(d, e) for d in pending if (e := self._step_elapsed_s(d)) >= step.timeout_s]
             if late:
-                need = {"segment": "a segment", "static": f"{step.dwell_s:g} s static", "none": "its dwell"}[step.require]
+                need = {"segment": "a segment", "static": f"{step.dwell_s:g} s static", "none": "its dwell",
+                        "heat": f"a +{step.heat_c:g} C rise"}[step.require]
                 for d, elapsed in late:
+                    why = need if d.step_facing else (
+                        f"its output facing position {step.position_name} (gravity never within "
+                        f"{FACING_MAX_ANGLE_DEG:g} deg of it: DUT not seated, mounted turned, or the fixture did not move)")
                     self.hw.fault_dut(
-                        self, d, f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {need}"
+                        self, d, f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {why}"
                     )
                 continue
             await self._wait()
         for d in self.duts:
             if d.last_t is not None:
                 d.step_windows[self.step_index] = (d.step_t_start, d.last_t)
+        for d in self.live_duts:
+            d.steps_done += 1
         self.bus.publish(StepCompleted(
             self.batch_id, step_index=self.step_index,
             windows={d.slot: d.step_windows[self.step_index] for d in self.live_duts
@@ -445,10 +552,33 @@ class Sequencer:
                 st == self.step_index and seg.position == step.position and seg.t_end_s > d.step_t_start
                 for seg, st in zip(d.segments, d.segment_steps)
             )
+        if d.last_t is not None and not math.isfinite(d.step_t_start) and d.t0 is not None:
+            # No sample had arrived when the step began logging (a step that needs no move, a slow
+            # link): the DUT's first sample of the batch starts its dwell, instead of never.
+            d.step_t_start = d.t0
         if d.last_t is None or not math.isfinite(d.step_t_start):
             return False
+        if not d.step_facing and not self._find_facing(d, step):
+            return False
+        if step.require == "heat":
+            return d.last_t - d.step_t_start >= step.settle_s and d.temp_rise_c(d.step_t_start) >= step.heat_c
         need = step.dwell_s + (step.settle_s if step.require == "static" else 0.0)
         return d.last_t - d.step_t_start >= need
+
+    @staticmethod
+    def _find_facing(d: DutRun, step: Step) -> bool:
+        """Search the blocks that arrived since the last look for the first sample facing the
+        step's position; when found, the step's settle and dwell start at it."""
+        blocks = d.blocks[d.facing_scan:]
+        d.facing_scan += len(blocks)
+        for blk in blocks:
+            later = blk.time_s > d.step_t_start
+            k = first_facing(blk.acc_g[later], step.position)
+            if k is not None:
+                d.step_t_start = float(blk.time_s[later][k])
+                d.step_facing = True
+                return True
+        return False
 
     async def _state_step_done(self) -> str:
         if self.step_index + 1 < len(self.profile.steps):
@@ -462,8 +592,50 @@ class Sequencer:
         return "finished"
 
     # ------------------------------------------------------------ reporting
+    def waiting_for(self) -> str | None:
+        """What the batch is waiting for right now, in the operator's words (None once it ended):
+        a newcomer must see why nothing seems to happen (issue 9)."""
+        if self.state in TERMINAL:
+            return None
+        step = self.step
+        if self.state in ("created", "connecting"):
+            return "boards"
+        if self.state == "waiting_operator":
+            return "operator"
+        if self.state in ("positioning", "moving"):
+            return "fixture"
+        if self.state == "step_setup":
+            return "chamber" if step is not None and step.chamber_setpoint_c is not None else "step"
+        if self.state == "logging" and step is not None:
+            return WAITING_FOR_REQUIRE.get(step.require, step.require)
+        return {"programming": "programming", "analysing": "analysis", "step_done": "next step"}.get(self.state)
+
+    def dut_waiting_for(self, d: DutRun) -> str | None:
+        """The batch's waiting_for for one DUT: 'other DUTs' once it has what the step needs."""
+        if not d.live or self.state in TERMINAL:
+            return None
+        step = self.step
+        if self.state == "logging" and step is not None:
+            if self.dut_step_done(d, step):
+                return "other DUTs"
+            if not d.step_facing:
+                return f"facing {step.position_name}"
+        return self.waiting_for()
+
+    def dut_counts(self) -> dict[str, int]:
+        """DUTs per end state, live ones as 'running': an aborted batch has none running."""
+        counts = {"running": 0, "done": 0, "faulted": 0, "interrupted": 0}
+        for d in self.duts:
+            key = "running" if d.live else d.state
+            counts[key] = counts.get(key, 0) + 1
+        return counts
+
     def status(self) -> dict:
         step = self.step
+        now = time.time()
+        slots = [d.status() for d in self.duts]
+        for d, st in zip(self.duts, slots):
+            st["waiting_for"] = self.dut_waiting_for(d)
         return {
             "id": self.batch_id,
             "profile": self.profile.name,
@@ -478,14 +650,46 @@ class Sequencer:
             "sample_time_s": self.clock_s(),
             "step_elapsed_s": max(0.0, self.clock_s() - self.step_clock_start) if self.state == "logging" else 0.0,
             "lamp_on": self.hw.lamp.is_on,
+            "lamp_state": self.hw.lamp.state,  # 'unknown' while the relay does not answer
+            "lamp_relay_error": self.hw.lamp.relay_error,
             "lamp_on_time_s": self.hw.lamp.on_time_s(),
             "prompt": self.prompt,
             "error": self.error,
             "started": self.started_wall,
             "ended": self.ended_wall,
+            "ended_by": self.ended_by if self.ended_wall is not None else None,
+            "ended_at": iso_utc(self.ended_wall) if self.ended_wall is not None else None,
+            "elapsed_s": max(0.0, (self.ended_wall if self.ended_wall is not None else now) - self.started_wall),
+            "waiting_for": self.waiting_for(),
+            "analysis": self.profile.analysis,
+            "note": result_note(self.profile),
+            "counts": self.dut_counts(),
             "transitions": [{"time": t, "from": a, "to": b} for t, a, b in self.history],
-            "slots": [d.status() for d in self.duts],
+            "slots": slots,
         }
+
+
+# What a logging step waits for, by its `require` (profiles.Step), as the page shows it.
+WAITING_FOR_REQUIRE = {"heat": "temperature rise", "static": "static dwell", "segment": "segment", "none": "dwell"}
+
+
+def wall_text(t: float) -> str:
+    """A wall time as the operator reads it in a message: '2026-11-23 14:02:05 UTC'."""
+    return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(t))
+
+
+def iso_utc(t: float) -> str:
+    """RFC 3339 UTC with seconds, as the REST API gives times."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
+
+
+def result_note(profile: Profile) -> str | None:
+    """Said on the page for a profile without analysis: its DUTs end 'done' with no coefficients,
+    which a newcomer otherwise takes for a failed calibration."""
+    if profile.analysis != "none":
+        return None
+    return (f"profile {profile.name} logs data only: it yields no calibration result "
+            "(no TDB/TDSF, no SFEM); review the runs' logs and plots")
 
 
 def annotate_segment(seg: Segment, position: int | None) -> Segment:

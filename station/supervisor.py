@@ -28,11 +28,12 @@ import numpy as np
 
 from drivers.base import BoardDriver, Chamber, DriverError, Fixture, LampRelay, Thermometer
 from station.config import ModbusDevice, SlotConfig, StationConfig
-from station.events import DutResult, EventBus, SamplesReceived, SegmentLogged, SlotStateChanged
+from station import judging
+from station.events import Alarm, DutResult, EventBus, SamplesReceived, SegmentLogged, SlotStateChanged
 from station.positions import GRAVITY_DIRECTIONS
 from station.profiles import Profile, all_profiles
 from station.safety import LampGuard
-from station.sequencer import TERMINAL, DutRun, Sequencer, annotate_segment
+from station.sequencer import TERMINAL, DutRun, Sequencer, annotate_segment, wall_text
 from station.types import SampleBlock, StationError
 
 log = logging.getLogger("station.supervisor")
@@ -73,7 +74,7 @@ class MemoryDb:
         pass
 
 
-def open_database(url: str | None) -> Any:
+def open_database(url: str | None, station: str = "") -> Any:
     """db.Database(url) upgraded to head, or MemoryDb for url None / 'memory://'."""
     if url is None or url.startswith("memory"):
         return MemoryDb()
@@ -85,14 +86,20 @@ def open_database(url: str | None) -> Any:
         except ImportError:
             log.warning("db package not available: batch ids are kept in memory only")
             return MemoryDb()
-    if url.startswith("sqlite:///"):
-        from pathlib import Path
+    try:
+        if url.startswith("sqlite:///"):
+            from pathlib import Path
 
-        path = Path(url[len("sqlite:///"):])
-        if str(path) not in ("", ":memory:"):
-            path.parent.mkdir(parents=True, exist_ok=True)
-    database = Database(url)
-    database.upgrade()
+            path = Path(url[len("sqlite:///"):])
+            if str(path) not in ("", ":memory:"):
+                path.parent.mkdir(parents=True, exist_ok=True)
+        database = Database(url, station=station)
+        database.upgrade()
+    except StationError:
+        raise
+    except Exception as exc:  # a bad path, an unwritable file, a server that is down: one line
+        reason = getattr(exc, "orig", None) or exc
+        raise StationError(f"database {url}: {type(reason).__name__}: {reason}".rstrip()) from None
     return database
 
 
@@ -186,11 +193,13 @@ class Station:
             max_plate_temp_c=cfg.limits.max_plate_temp_c,
             speed=cfg.timing.speed,
             thermometer=thermometer,
+            watchdog_s=cfg.limits.relay_watchdog_s,
         )
         self.lamp.on_trip(self._on_lamp_trip)
         # Safe state first: whatever the last process left, the lamp is off.
         if not await self.lamp.off("daemon start"):
             raise StationError(f"lamp relay ({cfg.lamp.link}) did not accept the OFF command")
+        await self.lamp.arm_watchdog()
         self.lamp.start()
         self._start_writer()
         self._started = True
@@ -204,6 +213,8 @@ class Station:
         self._closed = True
         for rt in list(self.batches.values()):
             rt.seq.stop("interrupted", reason)
+        if self.lamp is not None:  # lamp off first, before anything that can take time
+            await self.lamp.off(reason)
         for rt in list(self.batches.values()):
             if rt.seq.task is not None:
                 try:
@@ -244,7 +255,8 @@ class Station:
         except ImportError:
             log.warning("db.writer not available: samples/segments/results are not stored")
             return
-        self.writer = DbWriter(self.db)
+        loop = asyncio.get_running_loop()
+        self.writer = DbWriter(self.db, on_storage=lambda reason: loop.call_soon_threadsafe(self._on_storage, reason))
         q = self.bus.subscribe(maxsize=100000, drop=False)
 
         async def forward() -> None:
@@ -278,6 +290,38 @@ class Station:
             except Exception:
                 log.exception("closing db writer")
             self.writer = None
+
+    def _on_storage(self, reason: str | None) -> None:
+        """The writer's storage failed (reason) or recovered (None): tell the operator at once."""
+        if reason is not None:
+            text = (f"database write failing: {reason}. Results are held in memory and retried; "
+                    "free disk space / check the database. A batch ending now is not reported finished.")
+            self.bus.publish(Alarm(0, text=text, severity="critical"))
+        else:
+            self.bus.publish(Alarm(0, text="database writes work again: held results stored", severity="info"))
+
+    def storage_status(self) -> str:
+        """'ok', 'none' (no database) or 'error: ...' while the writer cannot store."""
+        w = self.writer
+        if w is None:
+            return "none" if isinstance(self.db, MemoryDb) else "ok"
+        if w.failing is not None:
+            return f"error: writes failing: {w.failing} ({w.backlog} events waiting)"
+        return "ok"
+
+    async def _stored_before_end(self, timeout_s: float = 15.0) -> str | None:
+        """Wait until everything of the batch so far is committed. None if stored, else why not."""
+        w = self.writer
+        if w is None:
+            return None
+        q = self._writer_queue
+        for _ in range(int(timeout_s / 0.01)):
+            if q.empty() or w.failing is not None:
+                break
+            await asyncio.sleep(0.01)
+        if w.failing is None and await asyncio.to_thread(w.flush, timeout_s):
+            return None
+        return w.failing or f"database writes did not complete within {timeout_s:g} s"
 
     async def flush_db(self) -> None:
         """Wait until every event published so far is committed (tests, --once summary)."""
@@ -382,6 +426,13 @@ class Station:
     # ================================================================== facade
     def profiles(self) -> list[str]:
         return list(self._profiles)
+
+    def profiles_info(self) -> list[dict]:
+        """What GET /api/profiles lists: name, description, analysis kind, step count (the page
+        shows the description so a newcomer can choose; 'none' means no calibration result)."""
+        return [{"name": p.name, "description": p.description or None, "analysis": p.analysis,
+                 "n_steps": len(p.steps), "builtin": p.builtin, "program_verify": p.program_step is not None}
+                for p in self._profiles.values()]
 
     def profile(self, name: str) -> dict:
         if name not in self._profiles:
@@ -498,17 +549,22 @@ class Station:
         except (KeyError, ValueError, TypeError):
             raise KeyError(f"unknown batch {batch_id}") from None
 
-    def abort(self, batch_id: int, reason: str = "operator") -> None:
+    def abort(self, batch_id: int, reason: str = "", by: str = "operator") -> None:
+        """End a batch for an operator. The batch's error says who and when ("aborted by Ana at
+        2026-11-23 14:02:05 UTC", then the reason if one was given): ended_by / ended_at."""
         rt = self._batch(batch_id)
         if rt.seq.state in TERMINAL:
             raise ValueError(f"batch {batch_id} has already ended ({rt.seq.state})")
-        rt.seq.stop("aborted", reason)
+        text = f"aborted by {by} at {wall_text(time.time())}"
+        if reason and reason != "operator":
+            text += f": {reason}"
+        rt.seq.stop("aborted", text, by=by)
 
     def prompt(self, batch_id: int) -> dict | None:
         return self._batch(batch_id).seq.prompt
 
-    def answer_prompt(self, batch_id: int, prompt_id: int, answer: str = "done") -> None:
-        self._batch(batch_id).seq.answer_prompt(prompt_id, answer)
+    def answer_prompt(self, batch_id: int, prompt_id: int, answer: str = "done", by: str | None = None) -> None:
+        self._batch(batch_id).seq.answer_prompt(prompt_id, answer, by=by)
 
     def batch_status(self, batch_id: int) -> dict:
         rt = self._batch(batch_id)
@@ -518,6 +574,7 @@ class Station:
             drv = drivers.get(s["slot"])
             if drv is not None and hasattr(drv, "stats"):
                 s["link_stats"] = drv.stats.as_dict()
+        st.update(judging.batch_extras(self, rt.seq))
         return st
 
     def batch_marker(self, batch_id: int) -> tuple:
@@ -525,6 +582,14 @@ class Station:
         transition, step and DUT state change."""
         seq = self._batch(batch_id).seq
         return (seq.state, len(seq.history), seq.step_index, tuple(d.state for d in seq.duts))
+
+    def lamp_status(self) -> dict:
+        """What the page and health show of the lamp: commanded, real state (or unknown), watchdog."""
+        lamp = self.lamp
+        if lamp is None:
+            return {"state": "unknown", "relay_error": "station not started"}
+        return {"state": lamp.state, "on_commanded": lamp.is_on, "relay_error": lamp.relay_error,
+                "watchdog_s": lamp.watchdog_s if lamp.watchdog_armed else 0, "trip": lamp.trip_reason}
 
     def batch_ids(self) -> list[int]:
         return sorted(self.batches)
@@ -588,6 +653,13 @@ class Station:
             d.unstored_segments.clear()
             if d.calibrator is None:
                 d.calibrator = self.calibrator_factory()
+            # Samples still held from the board's previous run (read after its last block until
+            # its STOP took effect) would open this run with that run's tail and a gap of the time
+            # between the batches (issue 9: the plot's first sample).
+            discard = getattr(slot.driver, "discard_held", None)  # test doubles may not have it
+            dropped = discard() if discard is not None else 0
+            if dropped:
+                log.info("batch %d slot %s: %d samples of the previous run discarded", seq.batch_id, d.slot, dropped)
             try:
                 await slot.driver.start()  # type: ignore[union-attr]
             except DriverError as exc:
@@ -612,6 +684,11 @@ class Station:
             for t in late:
                 log.error("batch %d: pump %s did not stop within 10 s", seq.batch_id, t.get_name())
         rt.pumps.clear()
+        finished = (seq.ending or seq.state) == "finished"
+        # A DUT whose data the database did not take is not 'done' (nor is the batch 'finished').
+        why = await self._stored_before_end() if finished else None
+        if why is not None:
+            seq.storage_error = why
 
         async def stop_one(d: DutRun) -> None:
             slot = self.slots[d.slot]
@@ -622,12 +699,19 @@ class Station:
                     pass
                 d.link_stats = slot.driver.stats.as_dict() if hasattr(slot.driver, "stats") else {}
             if d.live:
-                d.state = "done" if (seq.ending or seq.state) == "finished" else "interrupted"
+                if why is not None:
+                    d.state, d.fault_reason = "faulted", f"results not stored: {why}"
+                elif finished:
+                    d.state = "done"
+                else:  # every end carries a reason: the batch's own
+                    d.state = "interrupted"
+                    d.fault_reason = f"batch {seq.ending or seq.state}: {seq.error or 'no reason given'}"
                 self._publish_dut(seq, d)
             if slot.state == "busy":
                 slot.state = "identified"
 
         await asyncio.gather(*(stop_one(d) for d in seq.duts))
+        judging.judge_unjudged(self, seq)  # faulted / incomplete DUTs: verdict error
 
     def fault_dut(self, seq: Sequencer, d: DutRun, reason: str) -> None:
         if not d.live:
@@ -671,9 +755,23 @@ class Station:
                     self.fault_dut(seq, d, f"{d.link}: link lost: {exc}")
                     await self._close_driver(slot)
                     return
+                except asyncio.CancelledError:
+                    raise
+                except Exception as exc:  # noqa: BLE001 - a driver bug must fault its slot, never kill the pump silently
+                    log.exception("slot %s: reading %s failed", d.slot, d.link)
+                    self.fault_dut(seq, d, f"{d.link}: board data could not be read: {type(exc).__name__}: {exc}")
+                    await self._close_driver(slot)
+                    return
                 now = time.monotonic()
                 if len(block):
-                    self._ingest(seq, d, block, now)
+                    try:
+                        self._ingest(seq, d, block, now)
+                    except Exception as exc:  # noqa: BLE001 - same: this slot only, with a reason
+                        log.exception("slot %s: processing a block from %s failed", d.slot, d.link)
+                        self.fault_dut(seq, d, f"{d.link}: board data could not be processed: "
+                                               f"{type(exc).__name__}: {exc}")
+                        await self._close_driver(slot)
+                        return
                     bad0 = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped
                     ok0 = stats.frames_ok
                 elif now - d.last_wall > timing.stall_timeout_s:
@@ -732,7 +830,18 @@ class Station:
         seq.notify()
 
     # ================================================================== results
+    async def program_duts(self, seq: Sequencer) -> None:
+        """Program and verify, part 1 (station/program_verify.py)."""
+        from station import program_verify
+
+        await program_verify.program_duts(self, seq)
+
     async def analyse(self, seq: Sequencer) -> None:
+        from station import program_verify
+
+        if program_verify.after_programming(seq):  # the first pass was analysed in the program step
+            await program_verify.verify_duts(self, seq)
+            return
         if not self.analyse_results:
             return
         kind = seq.profile.analysis
@@ -745,13 +854,15 @@ class Station:
             async with sem:
                 try:
                     if kind == "thermal":
-                        res = await asyncio.to_thread(_thermal_result, d)
+                        res = await asyncio.to_thread(_thermal_result, d, judging.operating_range_c(self, d.identity))
                         d.result = res
-                        self.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", thermal=res))
+                        self.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", thermal=res,
+                                                   verdict=judging.judge_result(self, seq, d)))
                     elif kind == "sfem":
                         res = await asyncio.to_thread(_sfem_result, d, seq.profile)
                         d.result = res
-                        self.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", sfem=res))
+                        self.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", sfem=res,
+                                                   verdict=judging.judge_result(self, seq, d)))
                 except StationError as exc:  # InsufficientData and friends: this DUT only
                     self.fault_dut(seq, d, f"analysis: {exc}")
 
@@ -762,15 +873,17 @@ def _identity_dict(ident: Any) -> dict:
     return {k: getattr(ident, k) for k in ("serial", "sensor", "fw", "ug_per_lsb", "t_lsb_per_c", "t_lsb_at_25c", "odr_hz")}
 
 
-def _thermal_result(d: DutRun) -> dict:
+def _thermal_result(d: DutRun, operating_range_c: float = 70.0) -> dict:
     """Streaming (the live calibrator) and offline results of one DUT, as `station calibrate --json`."""
-    block = SampleBlock.concat(d.blocks)
+    # list() first: this runs in a worker thread while the pump may still append blocks; a copy
+    # (atomic under the GIL) keeps the three columns of concat from seeing different lists
+    block = SampleBlock.concat(list(d.blocks))
     try:
         from station.science.thermal_calibration import calibrate
     except ImportError:
         calibrate = None
     if calibrate is not None:
-        res = dict(calibrate(block))
+        res = dict(calibrate(block, operating_range_c=operating_range_c))
     else:  # science not landed: the live streaming result only
         r = d.calibrator.result()
         res = {"axes": r.to_json()["axes"], "streaming": r.to_json()}
@@ -791,7 +904,7 @@ def _sfem_result(d: DutRun, profile: Profile) -> dict:
     for i, s in enumerate(profile.steps):
         if s.require == "static":
             groups.setdefault((s.chamber_setpoint_c, s.lamp), []).append(i)
-    full = SampleBlock.concat(d.blocks)
+    full = SampleBlock.concat(list(d.blocks))  # a snapshot: the pump may still append (worker thread)
     out: dict = {"temperatures": []}
     for (setpoint, lamp), idxs in groups.items():
         means, refs, temps = [], [], []

@@ -26,6 +26,17 @@ class Identity:
     t_lsb_at_25c: float = 0.0
     odr_hz: float = 3.125
 
+    def __post_init__(self) -> None:
+        # A NaN or zero scale would turn every sample into NaN and blind the over-temperature
+        # check of this DUT: such an identity is refused where it is decoded (a malformed frame).
+        for name in ("ug_per_lsb", "t_lsb_per_c", "t_lsb_at_25c", "odr_hz"):
+            value = getattr(self, name)
+            if not np.isfinite(value):
+                raise ValueError(f"identity {name} is not a finite number: {value!r}")
+        if self.ug_per_lsb <= 0 or self.odr_hz <= 0 or self.t_lsb_per_c == 0:
+            raise ValueError(f"identity out of range: ug_per_lsb {self.ug_per_lsb:g} (> 0), "
+                             f"t_lsb_per_c {self.t_lsb_per_c:g} (!= 0), odr_hz {self.odr_hz:g} (> 0)")
+
     def acc_g(self, counts: np.ndarray) -> np.ndarray:
         """Raw acceleration counts to g."""
         return np.asarray(counts, dtype=np.float64) * (self.ug_per_lsb / 1e6)
@@ -64,6 +75,7 @@ class SampleBlock:
 
     @staticmethod
     def concat(blocks: list["SampleBlock"]) -> "SampleBlock":
+        blocks = list(blocks)  # one snapshot: a list another task appends to must not skew the columns
         if not blocks:
             return SampleBlock(np.empty(0), np.empty((0, 3)), np.empty(0))
         return SampleBlock(

@@ -37,7 +37,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--verbose", "-v", action="store_true")
 
 
+# Sign-in tokens of the demo station (printed at start and in the README's quick start).
+DEMO_TOKENS: tuple[dict, ...] = (
+    {"token": "demo-operator-token", "role": "operator", "name": "demo"},
+    {"token": "demo-admin-token", "role": "admin", "name": "demo"},
+    {"token": "demo-mes-token", "role": "mes", "name": "demo"},
+)
+
+
 def sim_config(sim, *, speed: float, db_url: str, fixture: bool = True, thermometer: bool = True,
+               chamber: bool = True,
                http_host: str = "127.0.0.1", http_port: int = 8080, limits: dict | None = None,
                timing: dict | None = None, profiles: dict | None = None) -> dict:
     """A station config (as the TOML would give it) pointing at a running SimStation's links."""
@@ -53,14 +62,14 @@ def sim_config(sim, *, speed: float, db_url: str, fixture: bool = True, thermome
         "timing": {"speed": speed, "stall_timeout_s": 10.0, **(timing or {})},
         "slots": slots,
         "lamp": {"tcp": tcp, "unit": 1},
-        "tokens": [{"token": "demo-operator-token", "role": "operator", "name": "demo"},
-                   {"token": "demo-admin-token", "role": "admin", "name": "demo"},
-                   {"token": "demo-mes-token", "role": "mes", "name": "demo"}],
+        "tokens": [dict(t) for t in DEMO_TOKENS],
     }
     if fixture:
         cfg["fixture"] = {"tcp": tcp, "unit": 3}
     if thermometer:
         cfg["thermometer"] = {"tcp": tcp, "unit": 2}
+    if chamber:  # every instrument of design 3.3 is simulated, so every built-in profile runs
+        cfg["chamber"] = {"tcp": tcp, "unit": 4}
     if profiles:
         cfg["profiles"] = profiles
     return cfg
@@ -102,8 +111,20 @@ def results_table(status: dict, truths: dict | None = None) -> tuple[str, dict]:
                 entry.update(err_tdb_mg_per_c=e_tdb, err_tdsf_ppm_per_c=e_tdsf,
                              true_tdb_mg_per_c=[float(x) for x in t.tdb_mg_per_c],
                              true_tdsf_ppm_per_c=[float(x) for x in t.tdsf_ppm_per_c])
+        elif res.get("temperatures"):  # SFEM (sfem-24): the residual before -> after, per temperature
+            temps = res["temperatures"]
+            row += "SFEM " + "  ".join(
+                f"{t['temp_c']:.0f} C: {t['fit']['rmse_before_mg']:.1f} -> {t['fit']['rmse_after_mg']:.2f} mg"
+                for t in temps)
+            entry["sfem"] = [{"temp_c": t["temp_c"], "rmse_before_mg": t["fit"]["rmse_before_mg"],
+                              "rmse_after_mg": t["fit"]["rmse_after_mg"]} for t in temps]
         elif s["fault_reason"]:
             row += s["fault_reason"]
+        v = s.get("decision")
+        if v:  # the station's decision (station/verdicts.py)
+            row += f"  {v['verdict'].upper()} {v.get('grade') or ''} ({v.get('reason') or ''})"
+            entry.update(verdict=v["verdict"], grade=v.get("grade"), tray=v.get("tray"), reason=v.get("reason"),
+                         attempt=v.get("attempt"))
         lines.append(row)
         summary["duts"][s["slot"]] = entry
     return "\n".join(lines), summary
@@ -112,13 +133,14 @@ def results_table(status: dict, truths: dict | None = None) -> tuple[str, dict]:
 async def serve_web(station, host: str, port: int):
     """The web app in this event loop (same loop as the daemon: the facade is not thread-safe).
 
-    Returns (server, task) or (None, None) when web/app.py is not available.
+    A web app that cannot be imported is a hard error (one line, non-zero exit), never a warning:
+    a daemon without its page looks alive to an operator who cannot reach it.
     """
     try:
         from web.app import create_app
     except ImportError as exc:
-        logging.getLogger("station").warning("web app not available (%s): no operator page", exc)
-        return None, None
+        raise StationError(f"the operator page cannot be served: {exc} "
+                           "(the installation is incomplete: run `pip install .` or ./scripts/setup.sh)") from exc
     import contextlib
 
     import uvicorn
@@ -128,10 +150,11 @@ async def serve_web(station, host: str, port: int):
         def capture_signals(self):  # the daemon owns SIGINT/SIGTERM (lamp off first)
             yield
 
+    sock = _listen_socket(host, port)  # our own bind: a taken port is one clear line, not uvicorn's exit(3)
     app = create_app(station)
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on")
     server = _Server(config)
-    task = asyncio.get_running_loop().create_task(server.serve(), name="http")
+    task = asyncio.get_running_loop().create_task(server.serve(sockets=[sock]), name="http")
     for _ in range(200):
         if server.started or task.done():
             break
@@ -140,6 +163,26 @@ async def serve_web(station, host: str, port: int):
         exc = task.exception() if not task.cancelled() else None
         raise StationError(f"cannot serve HTTP on {host}:{port}: {exc or 'server exited'}")
     return server, task
+
+
+def _listen_socket(host: str, port: int):
+    import socket
+
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+        sock = socket.socket(family, kind, proto)
+    except (OSError, UnicodeError) as exc:
+        raise StationError(f"cannot serve HTTP on {host}:{port}: {exc}") from None
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(addr)
+        sock.listen(128)
+    except OSError as exc:
+        sock.close()
+        raise StationError(f"cannot serve HTTP on {host}:{port}: {exc.strerror or exc} (is another station "
+                           "or program using this port? choose another with --port)") from None
+    sock.setblocking(False)
+    return sock
 
 
 async def stop_web(server, task) -> None:
@@ -178,6 +221,10 @@ def run(args: argparse.Namespace) -> int:
         raise StationError("--can: at most 127 CAN boards on one bus")
     if args.speed <= 0:
         raise StationError("--speed must be > 0")
+    if not args.no_batch or args.once:  # the demo's config has the built-in profiles only
+        from station.profiles import check_profile_name
+
+        check_profile_name(args.profile)
     return asyncio.run(_main(args))
 
 
@@ -193,9 +240,12 @@ async def _main(args: argparse.Namespace) -> int:
                           effects=tuple(args.effect)) as sim:
         cfg = parse_config(sim_config(sim, speed=args.speed, db_url=db_url, fixture=not args.no_fixture,
                                       http_host=args.host, http_port=args.port), "<demo>")
-        db = open_database(cfg.database_url)
+        db = open_database(cfg.database_url, station=cfg.name)
         if hasattr(db, "mark_interrupted"):
             db.mark_interrupted("station restarted")
+        from station.limits_audit import record_limit_changes
+
+        record_limit_changes(db, cfg)  # a limit set edited in the config since the last start: audited
         station = Station(cfg, db=db)
         server = task = None
         rc = 0
@@ -215,6 +265,8 @@ async def _main(args: argparse.Namespace) -> int:
                     print(f"station demo: operator page on http://{args.host}:{args.port}/ "
                           f"({args.serial} serial + {args.can} CAN boards, speed x{args.speed:g}, db {db_url})",
                           flush=True)
+                    print("station demo: sign in with one of these tokens: "
+                          + ", ".join(f"{t['role']}: {t['token']}" for t in DEMO_TOKENS), flush=True)
             batch_id = None
             if not args.no_batch or args.once:
                 batch_id = station.start_batch(args.profile, None, "demo")
@@ -239,6 +291,13 @@ async def _main(args: argparse.Namespace) -> int:
                     print(f"batch {batch_id} {status['state']} {status['error']} in {summary['wall_s']:.1f} s wall, "
                           f"{status['sample_time_s']:.0f} s sample time")
                     print(table, flush=True)
+                    if status.get("note"):  # e.g. a validation batch: no calibration result is expected
+                        print(status["note"], flush=True)
+                    dec = status.get("decision") or {}
+                    if dec.get("judged"):
+                        print("verdicts: " + ", ".join(f"{k} {n}" for k, n in dec["verdicts"].items())
+                              + " | grades: " + ", ".join(f"{k} {n}" for k, n in sorted(dec["grades"].items())), flush=True)
+                        summary["decision"] = dec
                     if args.json_out:
                         import json
 
@@ -249,8 +308,8 @@ async def _main(args: argparse.Namespace) -> int:
         finally:
             if hands is not None:
                 hands.cancel()
+            await station.close("daemon shutdown")  # lamp off first, then the web server
             await stop_web(server, task)
-            await station.close("daemon shutdown")
             if hasattr(db, "dispose"):
                 db.dispose()
         return rc

@@ -43,6 +43,10 @@ def run(args: argparse.Namespace) -> int:
         raise StationError("--once needs --start-batch PROFILE or --resume BATCH")
     if args.start_batch and args.resume:
         raise StationError("--start-batch and --resume exclude each other")
+    if args.start_batch:
+        from station.profiles import check_profile_name
+
+        check_profile_name(args.start_batch, cfg)
     return asyncio.run(_main(args, cfg))
 
 
@@ -52,13 +56,16 @@ async def _main(args: argparse.Namespace, cfg) -> int:
     stop = asyncio.Event()
     install_stop_signals(stop)
     try:
-        db = open_database(cfg.database_url)
+        db = open_database(cfg.database_url, station=cfg.name)
     except StationError:
         raise
     except Exception as exc:  # SQLAlchemy: bad URL, unwritable file, server down
         raise StationError(f"database {cfg.database_url}: {exc}") from None
     if hasattr(db, "mark_interrupted"):
         db.mark_interrupted("station restarted")
+    from station.limits_audit import record_limit_changes
+
+    record_limit_changes(db, cfg)  # a limit set edited in the config since the last start: audited
     station = Station(cfg, db=db)
     server = task = None
     rc = 0
@@ -99,6 +106,8 @@ async def _main(args: argparse.Namespace, cfg) -> int:
                 status = station.batch_status(batch_id)
                 print(f"batch {batch_id} {status['state']} {status['error']}")
                 print(results_table(status)[0], flush=True)
+                if status.get("note"):  # e.g. a validation batch: no calibration result is expected
+                    print(status["note"], flush=True)
                 rc = 0 if status["state"] == "finished" else 1
             else:
                 done.cancel()
@@ -107,8 +116,8 @@ async def _main(args: argparse.Namespace, cfg) -> int:
             await stop.wait()
             rc = 0
     finally:
+        await station.close("daemon shutdown")  # lamp off first, then the web server
         await stop_web(server, task)
-        await station.close("daemon shutdown")
         if hasattr(db, "dispose"):
             db.dispose()
     return rc

@@ -46,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _fit_lines(f: SfemFit) -> list[str]:
     lines = [
         f"temperature {f.temp_c:.2f} C  {f.method} fit  {f.n_positions} positions  "
-        f"|a|-1g RMSE before {f.rmse_before_mg:.3f} mg  after {f.rmse_after_mg:.4f} mg"
+        f"|a|-1g RMSE before {f.rmse_before_mg:.3f} mg  after {f.rmse_after_mg:.4f} mg (in-sample)"
+        + ("" if f.rmse_heldout_mg is None else f"  held-out {f.rmse_heldout_mg:.4f} mg ({f.heldout_method})")
         + ("" if f.rmse_direction_mg is None else f"  direction RMSE {f.rmse_direction_mg:.3f} mg")
     ]
     axes = ("x", "y", "z")

@@ -1,6 +1,7 @@
 """`station simulate`: logs of simulated DUTs (design 5.1) plus their true parameters (truth.json).
 
     station simulate --out DIR [--duts N] [--profile NAME] [--sensor S] [--effect NAME ...] [--seed S]
+                     [--noise realistic|white|lis3dsh|adxl355]
 """
 
 from __future__ import annotations
@@ -31,13 +32,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="NAME",
         help=f"switch on a hidden effect (repeatable, or comma separated): {', '.join(HIDDEN_EFFECTS)}",
     )
+    from drivers.sim.physics import DEFAULT_NOISE, NOISE_NAMES
+
+    parser.add_argument("--noise", default=DEFAULT_NOISE, metavar="NAME",
+                        help=f"noise model: {', '.join(NOISE_NAMES)} (default {DEFAULT_NOISE}: bias random walk and "
+                             f"flicker of the sensor's class; white = the ideal part)")
     parser.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
     parser.add_argument("--odr", type=float, default=None, metavar="HZ", help="output data rate (default: the sensor's)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.sim.physics import SENSORS, check_effects, draw_population, population_to_json
+    from drivers.sim.physics import SENSORS, check_effects, draw_population, noise_model, population_to_json
     from drivers.sim.profiles import PROFILES, run_profile, step_table
     from drivers.sim.world import EnvConfig, SimWorld
     from station.logfile import write_log
@@ -50,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         raise StationError(f"--duts must be at least 1 (got {args.duts})")
     if args.odr is not None and args.odr <= 0:
         raise StationError(f"--odr must be positive (got {args.odr:g})")
+    nm = noise_model(args.noise, args.sensor)  # validates the name
     effects = check_effects([e.strip() for item in args.effect for e in item.split(",") if e.strip()])
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -61,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     truths = draw_population(args.duts, args.seed, sensor=args.sensor, effects=effects)
     env = EnvConfig()
-    world = SimWorld(truths, env=env, odr_hz=args.odr, seed=args.seed)
+    world = SimWorld(truths, env=env, odr_hz=args.odr, seed=args.seed, noise=args.noise)
     t0 = time.perf_counter()
     progress, done = _progress(args.quiet, args.profile)
     try:
@@ -77,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         sensor=args.sensor,
         seed=args.seed,
         effects=list(effects),
+        noise={"requested": args.noise, **nm.to_json()},
         odr_hz=world.odr_hz,
         env=env.to_json(),
         steps=step_table(args.profile),
@@ -86,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     n = len(logs[0]) if logs else 0
     print(
         f"wrote {len(logs)} logs ({n} samples, {n / world.odr_hz / 60:.0f} min each, profile {args.profile}, "
-        f"effects {','.join(effects) or 'none'}) and truth.json to {out} "
+        f"effects {','.join(effects) or 'none'}, noise {nm.name}) and truth.json to {out} "
         f"[simulated in {sim_s:.1f} s, total {time.perf_counter() - t0:.1f} s]"
     )
     return 0

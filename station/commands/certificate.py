@@ -1,0 +1,56 @@
+"""`station certificate SERIAL [--db PATH|URL] [--out FILE]`: the calibration certificate (PDF) of
+a DUT's result run (station/certificate.py): identity, station, operator, firmware, profile and
+limits version, coefficients with uncertainties, verdict and grade, and the fit plot.
+
+--db takes a SQLite file path or any SQLAlchemy URL; without it, the URL comes from $STATION_DB_URL
+or the station default, as for `station db`.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from station.types import StationError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("serial", metavar="SERIAL", help="DUT serial number")
+    parser.add_argument("--db", metavar="PATH", help="SQLite file or database URL (default: $STATION_DB_URL or "
+                        "sqlite:///var/station.db)")
+    parser.add_argument("--out", metavar="FILE", help="PDF to write (default: certificate-SERIAL.pdf)")
+
+
+def db_url(value: str | None) -> str:
+    from station.commands.db import database_url
+
+    if not value:
+        return database_url(argparse.Namespace())
+    if "://" in value:
+        return value
+    path = Path(value)
+    if not path.exists():
+        raise StationError(f"{path}: no such database file")
+    return f"sqlite:///{path.resolve()}"
+
+
+def run(args: argparse.Namespace) -> int:
+    from db.database import Database
+    from station.certificate import certificate_for, render_pdf
+
+    db = Database(db_url(args.db))
+    try:
+        db.check()
+        try:
+            cert = certificate_for(db, args.serial)
+        except LookupError as exc:
+            raise StationError(str(exc)) from None
+        if cert is None:
+            raise StationError(f"no DUT with serial {args.serial!r} in {db}")
+        out = Path(args.out or f"certificate-{args.serial}.pdf")
+        out.write_bytes(render_pdf(cert))
+    finally:
+        db.dispose()
+    print(f"{out}: certificate of {cert.serial}, verdict {cert.verdict or 'not judged'}, run {cert.run_id}, "
+          f"station {cert.station}")
+    return 0

@@ -1,0 +1,216 @@
+"""Program and verify (design 4): write the calibration into every board, prove it is stored, and
+measure that the compensation works on the part.
+
+The supervisor only calls the two entry points (it stays a facade):
+  program_duts(station, seq)  the `program` step: thermal analysis of the first pass, then per live
+                              DUT in parallel: stop its stream and let the link drain, write
+                              TDB/TDSF, read back and compare CRC and values, switch on-board
+                              compensation on and confirm it (BoardDriver.program_thermal, 3
+                              tries), start the stream again (compensated). A DUT without a thermal result or whose
+                              write fails (CRC mismatch, refused, no reply, read-back differs) is
+                              faulted ALONE with the named reason; the others go on.
+  verify_duts(station, seq)   at the end of the batch: for every programmed DUT, the compensated
+                              samples of the `heat` (verification) step after its settle time ->
+                              station.science.verify.verify_compensated, with the uncompensated E of
+                              the same orientation from the first pass as "before".
+Both publish events (DutProgrammed, DutVerified) that the writer stores and the web shows.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from drivers.base import CalibrationError, DriverError
+from station.events import DutProgrammed, DutVerified
+from station.science.verify import drift_before_mg, verify_compensated
+from station.types import AXES, SampleBlock
+
+log = logging.getLogger("station.program_verify")
+
+
+def uses_program_verify(profile: Any) -> bool:
+    return getattr(profile, "program_step", None) is not None
+
+
+def after_programming(seq: Any) -> bool:
+    """True once the batch is past its program step (the end-of-batch analysis is the verification)."""
+    ps = getattr(seq.profile, "program_step", None)
+    return ps is not None and seq.step_index > ps
+
+
+def coefficients(result: dict | None) -> tuple[list[float], list[float]] | None:
+    """(tdb_mg_per_c[3], tdsf_ppm_per_c[3]) of a thermal result (the `axes` the station reports)."""
+    if not result or not isinstance(result.get("axes"), dict):
+        return None
+    try:
+        tdb = [float(result["axes"][a]["tdb_mg_per_c"]) for a in AXES]
+        tdsf = [float(result["axes"][a]["tdsf_ppm_per_c"]) for a in AXES]
+    except (KeyError, TypeError, ValueError):
+        return None
+    if not all(np.isfinite(tdb + tdsf)):
+        return None
+    return tdb, tdsf
+
+
+QUIET_S = 0.3  # the link is drained when nothing arrived for this long
+DRAIN_MAX_S = 20.0
+
+
+async def _quiesce(drv: Any) -> bool:
+    """Stop the board's stream and wait until its link is drained, so that the calibration replies
+    do not queue behind a backlog of sample frames (a slow host, a busy CAN bus, compressed time):
+    the reply timeouts then measure the board, not the backlog. Flash writes stall a board's
+    sampling anyway. Returns False if the link never went quiet within DRAIN_MAX_S."""
+    try:
+        await drv.stop()
+    except DriverError:
+        pass  # the ack may sit behind the backlog: draining below still applies
+    loop = asyncio.get_running_loop()
+    end = loop.time() + DRAIN_MAX_S
+    while loop.time() < end:
+        if time.monotonic() - drv.last_rx_wall >= QUIET_S:
+            return True
+        await asyncio.sleep(0.05)
+    return False
+
+
+async def program_duts(station: Any, seq: Any) -> None:
+    """The program step (see module doc)."""
+    await station.analyse(seq)  # the first pass's TDB/TDSF (faults the DUTs whose analysis fails)
+    duts = [d for d in seq.duts if d.live]
+
+    async def one(d: Any) -> None:
+        # Every DUT with a result is written and verified, whatever its first-pass verdict: the
+        # verification is measured evidence (a part the fit already rejects for curvature shows
+        # its residual drift), and the final verdict takes both (_rejudge_with_verification).
+        coeffs = coefficients(d.result)
+        if coeffs is None:
+            d.program = {"programmed": False, "error_kind": "no_result", "error": "no thermal result to write"}
+            station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=d.program))
+            station.fault_dut(seq, d, "program: no thermal result to write")
+            return
+        tdb, tdsf = coeffs
+        drv = station.slots[d.slot].driver
+        if drv is not None:
+            await _quiesce(drv)
+        info: dict = {"tdb_mg_per_c": tdb, "tdsf_ppm_per_c": tdsf, "method": (d.result or {}).get("axes_method", "")}
+        try:
+            if drv is None:
+                raise DriverError(f"{d.link}: link closed")
+            rep = await drv.program_thermal(tdb, tdsf, compensation=True)
+        except CalibrationError as exc:
+            info.update(programmed=False, error_kind=exc.kind, error=str(exc), attempts=exc.attempts, comp=False)
+            d.program = info
+            station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=info))
+            station.fault_dut(seq, d, f"program: {exc.kind}: {exc}")
+            return
+        except DriverError as exc:
+            info.update(programmed=False, error_kind="link", error=str(exc), comp=False)
+            d.program = info
+            station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=info))
+            station.fault_dut(seq, d, f"program: link: {exc}")
+            return
+        info.update(programmed=True, **rep.to_json())
+        d.program = info
+        try:
+            await drv.start()  # streaming again, now compensated
+        except DriverError as exc:
+            station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=info))
+            station.fault_dut(seq, d, f"program: restart after programming failed: {exc}")
+            return
+        if rep.retries:
+            log.warning("batch %d slot %s programmed after retries: %s", seq.batch_id, d.slot, "; ".join(rep.retries))
+        station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=info))
+
+    await asyncio.gather(*(one(d) for d in duts))
+
+
+def _verify_one(blocks: list, segments: list, t_start: float, t_end: float | None, profile: Any, heat_index: int,
+                program_index: int, comp_from_t: float | None = None) -> dict:
+    """Pure part of the verification of one DUT (runs in a worker thread on snapshots):
+    blocks = [(SampleBlock, step index)], segments = [(Segment, step index)]."""
+    step = profile.steps[heat_index]
+    block = SampleBlock.concat([b for b, st in blocks if st == heat_index])
+    t0 = t_start + step.settle_s if np.isfinite(t_start) else -np.inf
+    if comp_from_t is not None:  # never judge a sample the board may have sent before compensation was on
+        t0 = max(t0, comp_from_t)
+    m = block.time_s > t0
+    segs = [(s.t_end_s, s.acc_mean_g, s.temp_mean_c) for s, st in segments
+            if st < program_index and s.position == step.position]
+    segs.sort(key=lambda x: x[0])
+    before = None
+    if len(segs) >= 2:
+        before = drift_before_mg(np.array([s[1] for s in segs]), np.array([s[2] for s in segs]),
+                                 profile.verify.full_range_c)
+    res = verify_compensated(block.acc_g[m], block.temp_c[m], before, profile.verify)
+    out = res.to_json()
+    out["step_index"] = heat_index
+    out["duration_s"] = float(t_end - t_start) if np.isfinite(t_start) and t_end is not None else None
+    out["before_source"] = (f"{len(segs)} first-pass segment(s) at position {step.position_name}, uncompensated"
+                            if before is not None else "none: fewer than two first-pass segments at this position")
+    return out
+
+
+async def verify_duts(station: Any, seq: Any) -> None:
+    """Verified E for every programmed DUT (see module doc); a DUT the verification cannot judge
+    gets passed=False with the reason, never a silent pass."""
+    profile = seq.profile
+    program_index = profile.program_step
+    heat_index = next((i for i in range(program_index + 1, len(profile.steps)) if profile.steps[i].require == "heat"), None)
+    if heat_index is None:
+        return
+    duts = [d for d in seq.duts if d.live]
+
+    async def one(d: Any) -> None:
+        if not (d.program and d.program.get("programmed")):
+            # e.g. a batch resumed after its program step: this session did not program the board,
+            # so its output cannot be judged as compensated. Said so, never passed silently.
+            out = {"passed": False, "flags": ["no programming record for this run in this session (batch resumed "
+                                              "after the program step?): not verified"],
+                   "e_before_mg": None, "e_after_mg": None, "axes": {}}
+            d.verification = out
+            station.bus.publish(DutVerified(seq.batch_id, slot=d.slot, serial=d.serial or "", verification=out))
+            return
+        try:
+            blocks = list(zip(d.blocks, d.block_steps))  # snapshots taken in the loop: pumps append
+            segments = list(zip(d.segments, d.segment_steps))
+            t_start, t_end = d.step_windows.get(heat_index, (d.step_t_start, d.last_t))
+            comp_t = d.program.get("comp_from_t")
+            comp_t = None if comp_t is None else float(comp_t) + d.time_offset_s
+            out = await asyncio.to_thread(_verify_one, blocks, segments, t_start, t_end, profile, heat_index,
+                                          program_index, comp_t)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            out = {"passed": False, "flags": [f"verification could not be computed: {exc}"], "e_before_mg": None,
+                   "e_after_mg": None, "axes": {}}
+        d.verification = out
+        if not out["passed"]:
+            log.warning("batch %d slot %s verification failed: %s", seq.batch_id, d.slot, "; ".join(out["flags"]))
+        station.bus.publish(DutVerified(seq.batch_id, slot=d.slot, serial=d.serial or "", verification=out))
+        _rejudge_with_verification(station, seq, d, out)
+
+    await asyncio.gather(*(one(d) for d in duts))
+
+
+def _rejudge_with_verification(station: Any, seq: Any, d: Any, out: dict) -> None:
+    """The verdict takes the verified figures (design 4: the verified E is what the verdict uses):
+    E_FS of the compensated output per axis, and how many axes failed the verification's rules."""
+    from station import judging
+    from station.verdicts import Measurement
+
+    extra = [Measurement("verified_drift_error_fs_pct", float(v), "%FS", a, None, "program-and-verify")
+             for a, v in (out.get("e_after_fs_pct") or {}).items() if v is not None and np.isfinite(v)]
+    axes = out.get("axes") or {}
+    failed = sum(1 for ax in axes.values() if not ax.get("passed", False)) if axes else (0 if out["passed"] else 3)
+    extra.append(Measurement("verify_failed_axes", float(failed), "axes", None, None, "program-and-verify"))
+    try:
+        judging.rejudge(station, seq, d, extra)
+    except Exception:  # the verification is stored either way; a judging bug must not end the batch
+        log.exception("batch %d slot %s: verdict after verification failed", seq.batch_id, d.slot)
+
+
+__all__ = ["program_duts", "verify_duts", "uses_program_verify", "after_programming", "coefficients"]
