@@ -12,19 +12,28 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from station.types import StationError
 from web import __version__
 from web.auth import TokenStore, install_log_redaction
+from web.guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
 from web.mes_outbox import MesOutbox, OutboxConfig
 from web.repo import NoRepository, WebRepository
 from web.routes import batches, duts, events, results, runs, station as station_routes
 from web.routes import diagnostics as diagnostics_routes
+from web.routes import records as records_routes
+from web.schemas import install_openapi
+from web.sse import DEFAULT_MAX_EVENT_STREAMS
 
 STATIC_DIR = Path(__file__).parent / "static"
+# The station's icon: a thermometer-red dot on the page's dark blue (served as /favicon.ico).
+FAVICON_SVG = (b'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 16 16">'
+               b'<rect width="16" height="16" rx="3" fill="#1d3557"/><circle cx="8" cy="8" r="4" fill="#e63946"/></svg>')
 log = logging.getLogger("station.web")
 
 # The page loads only its own files: no CDN, no inline script.
@@ -88,11 +97,14 @@ def create_app(
     tokens: TokenStore | None = None,
     outbox: OutboxConfig | None | bool = True,
     sse_interval_s: float = 0.5,
+    max_body_bytes: int | None = None,
+    max_event_streams: int | None = None,
 ) -> FastAPI:
     """station: the daemon's facade (station.supervisor.Station or anything with its methods).
 
     repo: storage for history/MES (default: built from station.db); tokens: default from
     station.config; outbox: True = from config ([mes] webhook_url), an OutboxConfig, or False/None.
+    max_body_bytes / max_event_streams: default from station.config [http].
     """
     config = getattr(station, "config", None)
     if repo is None:
@@ -131,6 +143,12 @@ def create_app(
     app.state.tokens = tokens
     app.state.sse_interval_s = sse_interval_s
     app.state.outbox = None
+    http_cfg = getattr(config, "http", None)
+    if max_body_bytes is None:
+        max_body_bytes = getattr(http_cfg, "max_body_bytes", None) or DEFAULT_MAX_BODY_BYTES
+    if max_event_streams is None:
+        max_event_streams = getattr(http_cfg, "max_event_streams", None) or DEFAULT_MAX_EVENT_STREAMS
+    app.state.max_event_streams = int(max_event_streams)
 
     @app.exception_handler(RequestValidationError)
     async def _on_validation(request: Request, exc: RequestValidationError):
@@ -139,15 +157,24 @@ def create_app(
             content={"detail": _validation_message(exc), "errors": _jsonable_errors(exc)},
         )
 
+    @app.exception_handler(StarletteHTTPException)
+    async def _on_http_error(request: Request, exc: StarletteHTTPException):
+        if exc.status_code == 405:  # Starlette names only the first matching route's methods
+            exc.headers = {**(exc.headers or {}), "Allow": ", ".join(_allowed_methods(app, request.scope))}
+        return await http_exception_handler(request, exc)
+
     @app.exception_handler(StationError)
     async def _on_station_error(request: Request, exc: StationError):
         return JSONResponse(status_code=409, content={"detail": str(exc)})
 
-    app.add_middleware(SecurityHeaders)
+    app.add_middleware(RequestGuard, max_body_bytes=max_body_bytes)  # token and size before the body
+    app.add_middleware(SecurityHeaders)  # added last = outermost: its headers go on the guard's answers too
 
     for module in (station_routes, batches, duts, runs, results, events):
         app.include_router(module.router)
     app.include_router(diagnostics_routes.router)  # model diagnostics of stored runs (issue 6)
+    app.include_router(records_routes.router)  # audit trail, yield and SPC (issue 13)
+    results.register_webhooks(app)  # the MES webhook payload in the OpenAPI (issue 12)
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
@@ -155,12 +182,32 @@ def create_app(
     async def index():
         return FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-cache"})
 
+    @app.get("/favicon.ico", include_in_schema=False)
+    async def favicon():
+        """Browsers ask for it on every page: answered (a small SVG) instead of a 404 in every log."""
+        return Response(FAVICON_SVG, media_type="image/svg+xml", headers={"Cache-Control": "max-age=86400"})
+
     @app.get("/docs", include_in_schema=False)
     async def api_docs():
         """The API reference, rendered from /openapi.json by the station's own script."""
         return FileResponse(STATIC_DIR / "api.html", headers={"Cache-Control": "no-cache"})
 
+    install_openapi(app)
     return app
+
+
+def _allowed_methods(app: FastAPI, scope) -> list[str]:
+    """Every method some route serves at this path (for the Allow header of a 405): asks each
+    route whether it would fully match the request with that method (routers included with a
+    prefix answer for their own routes)."""
+    from starlette.routing import Match
+
+    allowed = []
+    for method in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"):
+        probe = {**scope, "method": method}
+        if any(route.matches(probe)[0] == Match.FULL for route in app.router.routes):
+            allowed.append(method)
+    return allowed
 
 
 def _jsonable_errors(exc: RequestValidationError) -> list[dict]:

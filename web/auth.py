@@ -13,7 +13,8 @@ import re
 from dataclasses import dataclass
 from typing import Any, Iterable
 
-from fastapi import HTTPException, Request, status
+from fastapi import HTTPException, Request, Security, status
+from fastapi.security import APIKeyQuery, HTTPBearer
 
 ROLES = ("operator", "mes", "admin")
 
@@ -129,10 +130,18 @@ def authenticate(request: Request, allow_query_token: bool = False) -> Principal
     return principal
 
 
+# Declared for the OpenAPI document only (securitySchemes + each operation's `security`): they
+# never reject (auto_error=False); `authenticate` does, with its own messages.
+BEARER_SCHEME = HTTPBearer(auto_error=False, scheme_name="bearer",
+                           description="a station token from the config ([[tokens]]); roles operator, mes, admin")
+QUERY_TOKEN_SCHEME = APIKeyQuery(name="token", auto_error=False, scheme_name="query_token",
+                                 description="the same token as ?token= (only GET /api/events: EventSource cannot send headers)")
+
+
 def require(roles: frozenset[str], *, allow_query_token: bool = False):
     """FastAPI dependency factory: authenticate, then check the role."""
 
-    async def dependency(request: Request) -> Principal:  # async: no thread-pool hop per request
+    def check(request: Request) -> Principal:
         principal = authenticate(request, allow_query_token=allow_query_token)
         if principal.role not in roles:
             raise HTTPException(
@@ -141,6 +150,14 @@ def require(roles: frozenset[str], *, allow_query_token: bool = False):
             )
         request.state.principal = principal
         return principal
+
+    if allow_query_token:
+        async def dependency(request: Request, _bearer=Security(BEARER_SCHEME),
+                             _query=Security(QUERY_TOKEN_SCHEME)) -> Principal:
+            return check(request)
+    else:
+        async def dependency(request: Request, _bearer=Security(BEARER_SCHEME)) -> Principal:  # async: no thread-pool hop
+            return check(request)
 
     return dependency
 

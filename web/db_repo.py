@@ -97,9 +97,20 @@ class DbRepository(WebRepository):
         b["error"] = b.get("reason") or None
         b["slots"] = [
             {"slot": r["slot"], "serial": r["serial"], "state": r["state"], "segments": r.get("n_segments", 0),
-             "error": r.get("fault_reason") or None, "run_id": r["id"]}
+             "error": r.get("fault_reason") or None, "run_id": r["id"], "program_verify": r.get("program_verify"),
+             **{k: r.get(k) for k in ("attempt", "verdict", "grade", "tray", "reason", "limits_name", "limits_version")}}
             for r in b.pop("runs", [])
         ]
+        b["sorting"] = [{k: sl.get(k) for k in ("slot", "serial", "verdict", "grade", "tray", "reason", "attempt")}
+                        for sl in b["slots"] if sl.get("verdict")]
+        from station.verdicts import summarize
+
+        b["decision"] = summarize(sl if sl.get("verdict") else None for sl in b["slots"])
+        counts = {"running": 0, "done": 0, "faulted": 0, "interrupted": 0}  # as the live status counts
+        for sl in b["slots"]:
+            key = "running" if sl["state"] in ("connecting", "identified", "running") else sl["state"]
+            counts[key] = counts.get(key, 0) + 1
+        b["counts"] = counts
         b["stored"] = True
         return b
 
@@ -114,9 +125,10 @@ class DbRepository(WebRepository):
         except KeyError:
             return None
 
-    def results_since(self, after_id: int = 0, since_time: float | None = None, limit: int = 100) -> list[dict]:
+    def results_since(self, after_id: int = 0, since_time: float | None = None, limit: int = 100,
+                      station: str | None = None) -> list[dict]:
         t = None if since_time is None else datetime.fromtimestamp(since_time, tz=timezone.utc)
-        rows = R.results_since(self.db, after_id, limit, since_time=t)
+        rows = R.results_since(self.db, after_id, limit, since_time=t, station=station)
         for r in rows:
             r["idempotency_key"] = result_key(r["run_id"], r["id"])
             if not r.get("created_at"):
@@ -163,6 +175,24 @@ class DbRepository(WebRepository):
                 d.pop("payload", None)
                 out.append(d)
             return out
+
+    def yields(self, batch_id: int | None = None) -> dict:
+        return R.yields(self.db, batch_id)
+
+    def audit_append(self, actor: str, action: str, target: str = "", detail: dict | None = None) -> None:
+        R.audit_append(self.db, actor, action, target, detail)
+
+    def audit_list(self, limit: int = 100, before_id: int | None = None, station: str | None = None) -> list[dict]:
+        return R.audit_list(self.db, limit, before_id, station)
+
+    def judged_runs(self, limit: int = 5000, station: str | None = None) -> list[dict]:
+        return R.judged_runs(self.db, limit, station)
+
+    def certificate_pdf(self, serial: str) -> bytes | None:
+        from station.certificate import certificate_for, render_pdf
+
+        cert = certificate_for(self.db, serial)
+        return None if cert is None else render_pdf(cert)
 
     def health(self) -> str:
         try:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import httpx
 
-from station.events import DutResult
+from station.events import DutResult, DutVerdict
 from web.repo import WebRepository
 from web.views import clean
 
@@ -70,7 +70,8 @@ def payload_of(result: dict, station_name: str) -> dict:
     return clean(
         {
             "idempotency_key": result["idempotency_key"],
-            "station": station_name,
+            # the station that measured it: with one shared database, any station's worker may send it
+            "station": result.get("station") or station_name,
             "result_id": result.get("id"),
             "serial": result.get("serial"),
             "run_id": result.get("run_id"),
@@ -81,6 +82,10 @@ def payload_of(result: dict, station_name: str) -> dict:
             "streaming": thermal.get("streaming") if isinstance(thermal, dict) else None,
             "offline": thermal.get("offline") if isinstance(thermal, dict) else None,
             "sfem": result.get("sfem"),
+            # the station's decision (issue 12): verdict pass/marginal/fail/error, grade (bin), tray,
+            # plain-words reason, the serial's attempt number and the limits set it was judged by
+            **{k: result.get(k) for k in ("verdict", "grade", "tray", "reason", "attempt", "limits_name",
+                                          "limits_version")},
         }
     )
 
@@ -125,7 +130,7 @@ class MesOutbox:
         try:
             while True:
                 ev = await q.get()
-                if isinstance(ev, DutResult):
+                if isinstance(ev, (DutResult, DutVerdict)):
                     # the db writer commits in batches; look again shortly after
                     await asyncio.sleep(0.2)
                     self.wake()

@@ -44,8 +44,10 @@ class WebRepository(abc.ABC):
 
     # --- MES ---------------------------------------------------------------------------------
     @abc.abstractmethod
-    def results_since(self, after_id: int = 0, since_time: float | None = None, limit: int = 100) -> list[dict]:
-        """Finished-DUT results with id > after_id (and created at/after since_time), oldest first.
+    def results_since(self, after_id: int = 0, since_time: float | None = None, limit: int = 100,
+                      station: str | None = None) -> list[dict]:
+        """Finished-DUT results with id > after_id (and created at/after since_time, and of that
+        station when given), oldest first.
 
         Each: {"id", "idempotency_key", "serial", "run_id", "batch_id", "slot", "created_at",
         "thermal", "sfem"}.
@@ -72,6 +74,36 @@ class WebRepository(abc.ABC):
     def outbox_list(self, limit: int = 100) -> list[dict]:
         return []
 
+    def yields(self, batch_id: int | None = None) -> dict:
+        """First-pass and final yield (db.repository.yields)."""
+        from fastapi import HTTPException
+
+        raise HTTPException(status_code=503, detail="this station runs without a database: no yields")
+
+    def audit_append(self, actor: str, action: str, target: str = "", detail: dict | None = None) -> None:
+        """Record one audited REST action (web/audit.py); without a database only the log has it."""
+        import logging
+
+        logging.getLogger("station.web.audit").info("audit %s by %s: %s %s", action, actor, target, detail or {})
+
+    def audit_list(self, limit: int = 100, before_id: int | None = None, station: str | None = None) -> list[dict]:
+        from fastapi import HTTPException
+
+        raise HTTPException(status_code=503, detail="this station runs without a database: no audit trail")
+
+    def judged_runs(self, limit: int = 5000, station: str | None = None) -> list[dict]:
+        """Judged runs with their verdict checks, oldest first (db.repository.judged_runs)."""
+        from fastapi import HTTPException
+
+        raise HTTPException(status_code=503, detail="this station runs without a database: no SPC")
+
+    def certificate_pdf(self, serial: str) -> bytes | None:
+        """The calibration certificate (PDF) of a serial (station/certificate.py); None for an
+        unknown serial; LookupError for a serial without a stored result."""
+        from fastapi import HTTPException
+
+        raise HTTPException(status_code=503, detail="this station runs without a database: no certificates")
+
     def health(self) -> str:
         return "ok"
 
@@ -89,7 +121,7 @@ class NoRepository(WebRepository):
 
         raise HTTPException(status_code=503, detail="this station runs without a database: no history or results")
 
-    search_duts = dut = runs_of_dut = run = segments = run_log = results_since = _none  # type: ignore[assignment]
+    search_duts = dut = runs_of_dut = run = segments = run_log = results_since = certificate_pdf = _none  # type: ignore[assignment]
     outbox_enqueue = outbox_due = outbox_mark_delivered = outbox_mark_failed = _none  # type: ignore[assignment]
 
     def outbox_list(self, limit: int = 100) -> list[dict]:

@@ -7,9 +7,9 @@ breaking the contract; the fields named here are the ones clients may rely on.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 SLOT_PATTERN = r"^[A-Za-z0-9_.:\-/]{1,64}$"
 
@@ -18,14 +18,74 @@ class _Out(BaseModel):
     model_config = ConfigDict(extra="allow")
 
 
+VerdictName = Literal["pass", "marginal", "fail", "error"]
+
+
+class DecisionFields(_Out):
+    """The station's decision on a DUT run (station/verdicts.py); null while it is not judged."""
+
+    verdict: VerdictName | None = Field(
+        default=None, description="pass | marginal (an uncertainty interval crosses a limit, or a value is in a "
+        "marginal band) | fail | error (faulted, incomplete or not measured: never pass)")
+    grade: str | None = Field(default=None, description="bin from the product's config: e.g. A, B; "
+                              "'hold' for marginal, 'reject' for fail, 'retest' for error")
+    tray: str | None = Field(default=None, description="where the operator puts the board")
+    reason: str | None = Field(default=None, description="plain words, e.g. 'z TDSF -612 ppm/C, limit -500'")
+    attempt: int | None = Field(default=None, description="the serial's attempt number (retest: 2, 3, ...)")
+    limits_name: str | None = Field(default=None, description="limits set the DUT was judged by")
+    limits_version: str | None = Field(default=None, description="version of that limits set")
+
+
+class DecisionSummary(_Out):
+    judged: int = 0
+    verdicts: dict[str, int] = Field(default_factory=dict, description="count per verdict")
+    grades: dict[str, int] = Field(default_factory=dict, description="count per grade")
+
+
+class SortingEntry(_Out):
+    slot: str
+    serial: str | None = None
+    verdict: VerdictName | None = None
+    grade: str | None = None
+    tray: str | None = None
+    reason: str | None = None
+    attempt: int | None = None
+
+
+class TimeLeft(_Out):
+    step_s: float | None = Field(default=None, description="sample seconds left in the step (estimate)")
+    batch_s: float | None = Field(default=None, description="sample seconds left in the batch (estimate)")
+    step_wall_s: float | None = Field(default=None, description="wall seconds left in the step")
+    batch_wall_s: float | None = Field(default=None, description="wall seconds left in the batch")
+
+
+class YieldOut(BaseModel):
+    batch_id: int | None = None
+    duts: int = Field(description="DUTs judged at least once")
+    attempts: int
+    retested: int = Field(description="DUTs with more than one judged attempt")
+    first_pass: int = Field(description="DUTs whose first judged attempt passed")
+    final_pass: int = Field(description="DUTs whose latest valid (non-error) attempt passed")
+    first_pass_yield: float | None
+    final_yield: float | None
+
+
 class BatchCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     profile: str = Field(min_length=1, max_length=64, description="profile name, see GET /api/profiles")
-    slots: list[str] | None = Field(
-        default=None, description="slots to test; null = every connected slot", max_length=1024
+    slots: list[Annotated[str, Field(min_length=1, max_length=64, pattern=r"\S")]] | None = Field(
+        default=None, description="slots to test; null = every connected slot", min_length=1, max_length=1024
     )
     operator: str = Field(min_length=1, max_length=100, description="operator name or badge id")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _empty_slots(cls, data: Any) -> Any:
+        """Before the schema's minItems, so the message says what null means."""
+        if isinstance(data, dict) and data.get("slots") == []:
+            raise ValueError("slots must be null (every slot) or a non-empty list of slot names")
+        return data
 
     @field_validator("slots")
     @classmethod
@@ -59,7 +119,7 @@ class StepInfo(_Out):
     count: int | None = Field(default=None, description="number of steps of the profile")
 
 
-class SlotStatus(_Out):
+class SlotStatus(DecisionFields):
     slot: str
     serial: str | None = None
     state: str | None = None
@@ -67,6 +127,16 @@ class SlotStatus(_Out):
     error: str | None = Field(default=None, description="fault reason, when faulted")
     temp_c: float | None = None
     samples: int | None = None
+    program: dict[str, Any] | None = Field(default=None, description="program and verify: written, read back "
+                                           "(crc, readback_crc, readback_identical), comp, attempts, retries; or error_kind/error")
+    verification: dict[str, Any] | None = Field(default=None, description="program and verify: passed, e_before_mg, "
+                                                "e_after_mg per axis, flags (named residual drift), per-axis detail")
+    run_id: int | None = Field(default=None, description="this DUT's run in this batch")
+    plot_url: str | None = Field(default=None, description="the plot of THIS run (/api/runs/{run_id}/plot.png): "
+                                 "never the serial's latest run, so an interrupted DUT shows its own data")
+    steps_done: int = Field(default=0, description="profile steps this DUT completed (progress dots)")
+    waiting_for: str | None = Field(default=None, description="what this DUT's current step waits for; "
+                                    "'other DUTs' once it has what the step needs; null when not live")
 
 
 class BatchStatus(_Out):
@@ -78,6 +148,24 @@ class BatchStatus(_Out):
     slots: list[SlotStatus] = []
     error: str | None = None
     prompt: dict[str, Any] | None = None
+    lamp_on: bool | None = Field(default=None, description="what the station last commanded")
+    lamp_state: Literal["on", "off", "unknown"] | None = Field(
+        default=None, description="'unknown' while the lamp relay does not answer reads or writes")
+    decision: DecisionSummary | None = Field(default=None, description="verdict and grade counts")
+    sorting: list[SortingEntry] = Field(default=[], description="which slot goes to which tray")
+    time_left: TimeLeft | None = None
+    elapsed_s: float | None = Field(default=None, description="wall seconds since the batch started (to its end)")
+    waiting_for: str | None = Field(
+        default=None, description="what the current step waits for: boards, fixture, operator, chamber, "
+        "temperature rise, static dwell, segment, dwell, programming, analysis; null once ended")
+    ended_by: str | None = Field(default=None, description="who ended the batch: the token's name for an abort, "
+                                 "'station' for an end it reached itself, 'daemon' for a shutdown; null while running")
+    ended_at: str | None = Field(default=None, description="when the batch ended (RFC 3339 UTC); null while running")
+    analysis: str | None = Field(default=None, description="the profile's analysis: thermal, sfem or none")
+    note: str | None = Field(default=None, description="what the profile does not give, e.g. no calibration result "
+                             "for analysis 'none' (validation)")
+    counts: dict[str, int] | None = Field(default=None, description="DUTs per state: running (live), done, "
+                                          "faulted, interrupted")
 
 
 class Prompt(_Out):
@@ -103,7 +191,7 @@ class AxisThermalOut(_Out):
     tdsf_ppm_per_c: float | None = None
 
 
-class DutOut(_Out):
+class DutOut(DecisionFields):
     serial: str
     sensor: str | None = None
     run_id: int | None = Field(default=None, description="run the results come from (latest with results)")
@@ -115,6 +203,8 @@ class DutOut(_Out):
     streaming: dict[str, Any] | None = Field(default=None, description="streaming algorithm result")
     offline: dict[str, Any] | None = Field(default=None, description="offline fit result")
     sfem: dict[str, Any] | None = None
+    program_verify: dict[str, Any] | None = Field(default=None, description="latest run's program and verify: "
+                                                  "programmed, crc, comp_on, verified, e_before_mg, e_after_mg, flags")
 
 
 class DutSummary(_Out):
@@ -126,8 +216,12 @@ class DutSummary(_Out):
     last_at: str | None = None
 
 
-class RunOut(_Out):
+class RunOut(DecisionFields):
     id: int
+    station: str | None = None
+    verdict_detail: dict[str, Any] | None = Field(
+        default=None, description="the decision with every check (measurement, axis, value, sigma, low, high, "
+        "outcome, reason)")
     batch_id: int | None = None
     slot: str | None = None
     serial: str | None = None
@@ -155,21 +249,41 @@ class SegmentOut(_Out):
     step_index: int | None = None
 
 
-class ResultOut(_Out):
+class ResultOut(DecisionFields):
     id: int
     idempotency_key: str
     serial: str
     run_id: int | None = None
     batch_id: int | None = None
+    station: str | None = Field(default=None, description="the station that measured it (config `name`)")
     slot: str | None = None
     created_at: str | None = None
     thermal: dict[str, Any] | None = None
     sfem: dict[str, Any] | None = None
+    program_verify: dict[str, Any] | None = None
 
 
 class ResultsPage(BaseModel):
     results: list[ResultOut]
     next: str | None = Field(description="cursor for the next page (pass as since=); null when this page is the last")
+
+
+class MesResultPayload(DecisionFields):
+    """The body of each MES webhook POST (one per stored result or verdict; the same
+    Idempotency-Key header on every retry)."""
+
+    idempotency_key: str
+    station: str
+    result_id: int | None = Field(default=None, description="the results feed cursor of this record")
+    serial: str
+    run_id: int | None = None
+    batch_id: int | None = None
+    slot: str | None = None
+    created_at: str | None = None
+    thermal: dict[str, AxisThermalOut] | None = Field(default=None, description="per axis: TDB mg/C, TDSF ppm/C")
+    streaming: dict[str, Any] | None = None
+    offline: dict[str, Any] | None = None
+    sfem: dict[str, Any] | None = None
 
 
 class Health(BaseModel):
@@ -190,6 +304,10 @@ class SlotOut(_Out):
 class ProfileOut(_Out):
     name: str
     description: str | None = None
+    analysis: str | None = Field(default=None, description="what runs at the end: thermal (TDB/TDSF), sfem, or "
+                                 "none (logs data only: no calibration result)")
+    n_steps: int | None = Field(default=None, description="number of steps")
+    builtin: bool | None = Field(default=None, description="built into the station (not from the config)")
 
 
 class OutboxEntry(_Out):
@@ -200,13 +318,115 @@ class OutboxEntry(_Out):
     last_error: str | None = None
 
 
+class AuditEntry(_Out):
+    id: int
+    at: str = Field(description="when (UTC, ISO 8601)")
+    station: str = Field(description="the station that handled the request (config `name`)")
+    actor: str = Field(description="the token's name (never the token)")
+    action: str = Field(description="batch.start | batch.abort | prompt.answer | batch.resume | limits.change")
+    target: str = Field(description="what it acted on, e.g. 'batch 12'")
+    detail: dict[str, Any] = Field(default_factory=dict, description="what the request carried")
+
+
+class SpcOut(_Out):
+    """station/spc.py SpcReport plus the parameters available and the yield tables."""
+
+    parameter: str
+    unit: str = ""
+    parameters: list[str] = Field(default_factory=list, description="every judged measurement with values")
+    points: list[dict[str, Any]] = Field(default_factory=list, description="run_id, batch_id, station, slot, serial, "
+                                         "at, value, low, high, verdict; oldest first")
+    chart: dict[str, Any] = Field(description="individuals chart: mean, mr_bar, sigma_within, ucl, lcl, mr_ucl, "
+                                  "moving_ranges, out_of_control (point indices)")
+    capability: dict[str, Any] = Field(description="n, low, high, mean, sigma_within, sigma_overall, cpk, ppk, "
+                                       "out_of_spec")
+    histogram: dict[str, Any]
+    slots: list[dict[str, Any]] = Field(default_factory=list, description="per slot: n, mean, values")
+    yield_: dict[str, list[dict[str, Any]]] = Field(default_factory=dict, alias="yield",
+                                                     description="per batch, day (UTC), product and station: judged, "
+                                                     "passed, marginal, failed, errors, yield_pct")
+
+
 class ErrorOut(BaseModel):
     detail: str = Field(description="what went wrong, one line for a person")
 
 
-def error_responses(*codes: int) -> dict:
+class ValidationIssue(BaseModel):
+    loc: list[str] = Field(description="where: 'body', 'query', 'path' then the field")
+    msg: str
+    type: str
+
+
+class ValidationErrorOut(BaseModel):
+    """A 422 as it is sent: one line for a person, and (for input that failed the schema) the
+    individual problems. Replaces FastAPI's default `HTTPValidationError` in the document."""
+
+    detail: str = Field(description="what is wrong with the input, one line for a person")
+    errors: list[ValidationIssue] | None = Field(default=None, description="each problem, when the schema check found them")
+
+
+_WHAT = {401: "missing, malformed or invalid token", 403: "the token's role may not do this",
+         404: "unknown id", 409: "not possible in the current state", 413: "request body too large",
+         422: "invalid input", 429: "too many requests of this kind at once: retry after Retry-After seconds",
+         503: "no database"}
+RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before retrying", "schema": {"type": "integer"}}}
+
+
+def error_responses(*codes: int, what: dict[int, str] | None = None) -> dict:
     """OpenAPI `responses=` for a router: the error answers its routes give, all {"detail": "..."}."""
-    what = {401: "missing, malformed or invalid token", 403: "the token's role may not do this",
-            404: "unknown id", 409: "not possible in the batch's current state", 422: "invalid input",
-            503: "no database"}
-    return {c: {"model": ErrorOut, "description": what.get(c, "error")} for c in codes}
+    what = {**_WHAT, **(what or {})}
+    out = {}
+    for c in codes:
+        out[c] = {"model": ValidationErrorOut if c == 422 else ErrorOut, "description": what.get(c, "error")}
+        if c in (429, 503):
+            out[c]["headers"] = RETRY_AFTER
+    return out
+
+
+def install_openapi(app) -> None:
+    """Make /openapi.json describe what is sent (a schemathesis run checks every answer against it):
+
+    - every 422 is a `ValidationErrorOut` (FastAPI documents its own list-shaped default, which the
+      app's handler replaces with {"detail": "...", "errors": [...]});
+    - an operation with a request body can also answer 413 (web/guard.py) and 401 (the token is
+      checked before the body is read)."""
+    from fastapi.openapi.utils import get_openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema:
+            return app.openapi_schema
+        doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes,
+                          webhooks=app.webhooks.routes, tags=app.openapi_tags)
+        comps = doc.setdefault("components", {}).setdefault("schemas", {})
+        ref = "#/components/schemas/ValidationErrorOut"
+        for name, sch in ValidationErrorOut.model_json_schema(ref_template="#/components/schemas/{model}").get("$defs", {}).items():
+            comps.setdefault(name, sch)
+        main = ValidationErrorOut.model_json_schema(ref_template="#/components/schemas/{model}")
+        main.pop("$defs", None)
+        comps["ValidationErrorOut"] = main
+        err_ref = {"$ref": "#/components/schemas/ErrorOut"}
+        comps.setdefault("ErrorOut", ErrorOut.model_json_schema())
+        for item in doc.get("paths", {}).values():
+            for op in item.values():
+                if not isinstance(op, dict) or "responses" not in op:
+                    continue
+                resp = op["responses"]
+                if "422" in resp:
+                    resp["422"]["content"] = {"application/json": {"schema": {"$ref": ref}}}
+                if "requestBody" in op:
+                    resp.setdefault("401", {"description": _WHAT[401], "content": {"application/json": {"schema": err_ref}}})
+                    resp.setdefault("413", {"description": _WHAT[413], "content": {"application/json": {"schema": err_ref}}})
+        for item in (doc.get("webhooks") or {}).values():
+            for op in item.values():
+                # FastAPI gives the webhook its own 422 (HTTPValidationError): that would be the MES's
+                # answer, which the station does not read (2xx: stored; anything else: retried)
+                if isinstance(op, dict):
+                    (op.get("responses") or {}).pop("422", None)
+        text = __import__("json").dumps(doc)
+        for name in ("HTTPValidationError", "ValidationError"):
+            if f'"#/components/schemas/{name}"' not in text:
+                comps.pop(name, None)
+        app.openapi_schema = doc
+        return doc
+
+    app.openapi = openapi

@@ -13,8 +13,47 @@ import json
 import time
 from typing import Any, AsyncIterator
 
+from starlette.responses import StreamingResponse
+
 from station.events import SamplesReceived
 from web.views import call, clean
+
+DEFAULT_MAX_EVENT_STREAMS = 32  # a station has a few pages and an MES; each stream costs a bus queue
+STREAM_RETRY_AFTER_S = 5
+
+
+class StreamLimiter:
+    """Open event streams of one app, capped: each holds a bus subscription (up to 20,000 queued
+    events) and a task, so any read token could otherwise open them without end."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = int(limit)
+        self.open = 0
+
+    def try_acquire(self) -> bool:
+        if self.open >= self.limit:
+            return False
+        self.open += 1
+        return True
+
+    def release(self) -> None:
+        self.open = max(0, self.open - 1)
+
+
+class LimitedStreamingResponse(StreamingResponse):
+    """Releases its stream slot when the response ends however it ends (client gone before the
+    first byte, cancelled, finished): the generator's own `finally` would not run if it never
+    started."""
+
+    def __init__(self, *args, limiter: StreamLimiter, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._limiter = limiter
+
+    async def __call__(self, scope, receive, send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self._limiter.release()
 
 
 def format_sse(data: dict, event_id: int | None = None) -> bytes:

@@ -75,12 +75,19 @@ def _first(d: dict, *keys, default=None):
     return default
 
 
+DECISION_FIELDS = ("verdict", "grade", "tray", "reason", "attempt", "limits_name", "limits_version")
+
+
 def slot_view(raw: dict | Any, name: str | None = None, *, cleaned: bool = True) -> dict:
     d = dict(raw) if isinstance(raw, dict) else {"state": str(raw)}
     segs = _first(d, "segments", "segments_logged", "n_segments", default=0)
     if isinstance(segs, (list, tuple)):
         segs = len(segs)
     out = dict(d)
+    decision = d.get("decision")
+    if isinstance(decision, dict):  # the station's verdict (station/judging.py), flat for clients
+        for k in DECISION_FIELDS:
+            out.setdefault(k, decision.get(k))
     out.update(
         slot=str(_first(d, "slot", "name", default=name or "")),
         serial=_first(d, "serial"),
@@ -88,6 +95,9 @@ def slot_view(raw: dict | Any, name: str | None = None, *, cleaned: bool = True)
         segments=int(segs or 0),
         error=_first(d, "error", "fault_reason", "fault") or None,
     )
+    run_id = d.get("run_id")
+    if isinstance(run_id, int) and not isinstance(run_id, bool):
+        out["plot_url"] = f"/api/runs/{run_id}/plot.png"  # by run, never by the serial's latest run
     return clean(out) if cleaned else out
 
 

@@ -7,6 +7,7 @@ import time
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
+from web import audit
 from web.auth import require_control, require_read
 from web.schemas import Ack, BatchCreate, BatchCreated, BatchStatus, Prompt, PromptAnswer, error_responses
 from web.views import batch_view, call, prompt_view
@@ -25,6 +26,8 @@ async def start_batch(body: BatchCreate, request: Request, response: Response):
             raise HTTPException(status_code=409, detail=f"batch {other} is already running on this station "
                                 "(one plate, one lamp): wait for it to end or abort it")
     batch_id = await call(station.start_batch, body.profile, body.slots, body.operator)
+    await audit.record(request, audit.BATCH_START, f"batch {int(batch_id)}",
+                       {"profile": body.profile, "slots": body.slots, "operator": body.operator})
     response.headers["Location"] = f"/api/batches/{batch_id}"
     return {"id": int(batch_id)}
 
@@ -82,9 +85,11 @@ async def get_batch(request: Request, batch_id: int = BatchId):
     return Response(body, media_type="application/json")
 
 
-@router.post("/{batch_id}/abort", response_model=Ack, dependencies=[Depends(require_control)])
-async def abort_batch(request: Request, batch_id: int = BatchId):
-    await call(request.app.state.station.abort, batch_id, reason="operator", conflict=True)
+@router.post("/{batch_id}/abort", response_model=Ack)
+async def abort_batch(request: Request, batch_id: int = BatchId, principal=Depends(require_control)):
+    """The batch records who aborted it (the token's name) and when: ended_by, ended_at, error."""
+    await call(request.app.state.station.abort, batch_id, by=principal.name, conflict=True)
+    await audit.record(request, audit.BATCH_ABORT, f"batch {batch_id}", {"reason": "operator"})
     _status_cache(request).pop(batch_id, None)
     return {"ok": True, "detail": f"batch {batch_id} aborted"}
 
@@ -95,9 +100,13 @@ async def get_prompt(request: Request, batch_id: int = BatchId):
     return prompt_view(await call(request.app.state.station.prompt, batch_id))
 
 
-@router.post("/{batch_id}/prompt", response_model=Ack, dependencies=[Depends(require_control)])
-async def answer_prompt(body: PromptAnswer, request: Request, batch_id: int = BatchId):
-    await call(request.app.state.station.answer_prompt, batch_id, body.prompt_id, body.answer, conflict=True)
+@router.post("/{batch_id}/prompt", response_model=Ack)
+async def answer_prompt(body: PromptAnswer, request: Request, batch_id: int = BatchId,
+                        principal=Depends(require_control)):
+    await call(request.app.state.station.answer_prompt, batch_id, body.prompt_id, body.answer, by=principal.name,
+               conflict=True)
+    await audit.record(request, audit.PROMPT_ANSWER, f"batch {batch_id}",
+                       {"prompt_id": body.prompt_id, "answer": body.answer})
     _status_cache(request).pop(batch_id, None)
     return {"ok": True, "detail": f"prompt {body.prompt_id} answered"}
 
@@ -108,5 +117,6 @@ async def resume_batch(request: Request, batch_id: int = BatchId):
     one: the same DUT runs go on (their stored samples and segments are kept). 409 when the batch
     is not interrupted or another batch is running."""
     bid = await call(request.app.state.station.resume_batch, batch_id, "operator (resume)", conflict=True)
+    await audit.record(request, audit.BATCH_RESUME, f"batch {batch_id}", {"resumed_as": int(bid)})
     _status_cache(request).pop(batch_id, None)
     return {"id": int(bid)}

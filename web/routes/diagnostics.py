@@ -10,14 +10,24 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
+from station.diagnostics.effects import REGISTRY
 from station.types import StationError
 from web.auth import require_read
-from web.diag_plots import PLOTS, DiagnosisCache, check_effects, plot_png, report_json
+from web.diag_plots import PLOTS, Busy, DiagnosisCache, check_effects, report_json
+from web.schemas import error_responses
 from web.views import not_found
 
-router = APIRouter(prefix="/api/runs", tags=["diagnostics"])
+router = APIRouter(prefix="/api/runs", tags=["diagnostics"], responses=error_responses(
+    401, 403, 404, 409, 422, 429, 503,
+    what={404: "unknown run, run without a log, or unknown plot", 409: "the run's log cannot be diagnosed (too short, no temperature swing)",
+          429: "too many diagnoses or plots running or waiting: retry after Retry-After seconds"}))
 RunId = Path(ge=1, le=2**62, description="run id")
-Add = Query(default=[], description="effect to add to the model (repeatable, in staircase order)")
+Add = Query(default=[], description="effect to add to the model (repeatable, in staircase order)",
+            json_schema_extra={"items": {"type": "string", "enum": sorted(REGISTRY)}})
+
+
+def _busy(exc: Busy) -> HTTPException:
+    return HTTPException(status_code=429, detail=str(exc), headers={"Retry-After": str(exc.retry_after_s)})
 
 
 def _cache(request: Request) -> DiagnosisCache:
@@ -37,6 +47,8 @@ async def _report(request: Request, run_id: int, add: list[str]):
         rep = await run_in_threadpool(_cache(request).get, run_id, effects, lambda: repo.run_log(run_id))
     except StationError as exc:  # the log cannot be diagnosed (too short, no temperature swing)
         raise HTTPException(status_code=409, detail=f"run {run_id}: {exc}") from None
+    except Busy as exc:
+        raise _busy(exc) from None
     if rep is None:
         raise not_found(f"run {run_id} (or its log)")
     return rep
@@ -68,7 +80,10 @@ async def run_diagnosis_plot(request: Request, run_id: int = RunId, plot: str = 
     if plot not in PLOTS:
         raise not_found(f"plot {plot!r} (known: {', '.join(PLOTS)})")
     rep = await _report(request, run_id, add)
-    png = await run_in_threadpool(plot_png, rep, plot)
+    try:
+        png = await run_in_threadpool(_cache(request).png, run_id, check_effects(add), plot, rep)
+    except Busy as exc:
+        raise _busy(exc) from None
     return Response(png, media_type="image/png", headers={"Cache-Control": "no-cache"})
 
 

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Path, Query, Request
+import re
+
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
 
 from web.auth import require_read
-from web.schemas import DutOut, DutSummary, RunOut, error_responses
+from web.schemas import DutOut, DutSummary, ErrorOut, RunOut, error_responses
 from web.views import clean, dut_view, not_found
 
 router = APIRouter(prefix="/api/duts", tags=["duts"], responses=error_responses(401, 403, 404, 503))
@@ -36,3 +39,20 @@ async def dut_runs(request: Request, serial: str = Serial):
     if runs is None:
         raise not_found(f"DUT {serial}")
     return [clean(r) for r in runs]
+
+
+@router.get("/{serial}/certificate.pdf", dependencies=[Depends(require_read)], response_class=Response,
+            responses={200: {"content": {"application/pdf": {}}, "description": "the certificate, one A4 page"},
+                       409: {"model": ErrorOut, "description": "the DUT has no stored result yet"}})
+async def dut_certificate(request: Request, serial: str = Serial):
+    """Calibration certificate of the DUT's result run (its latest valid attempt): identity,
+    station, operator, firmware, profile and limits version, coefficients with uncertainties,
+    verdict and grade, fit plot (station/certificate.py)."""
+    try:
+        pdf = await run_in_threadpool(request.app.state.repo.certificate_pdf, serial)
+    except LookupError as exc:
+        raise HTTPException(status_code=409, detail=str(exc).strip("'\"")) from None
+    if pdf is None:
+        raise not_found(f"DUT {serial}")
+    return Response(pdf, media_type="application/pdf",
+                    headers={"Content-Disposition": f'inline; filename="certificate-{re.sub(r"[^A-Za-z0-9._-]", "_", serial)}.pdf"'})

@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Path, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
 from station.logfile import format_log
 from web.auth import require_read
+from web.diag_plots import BoundedCache, Busy
 from web.plots import render_run_png
 from web.schemas import RunOut, SegmentOut, error_responses
 from web.views import clean, dut_view, not_found
 
-router = APIRouter(prefix="/api/runs", tags=["runs"], responses=error_responses(401, 403, 404, 503))
+router = APIRouter(prefix="/api/runs", tags=["runs"], responses=error_responses(
+    401, 403, 404, 422, 429, 503, what={429: "too many plots being rendered: retry after Retry-After seconds"}))
 RunId = Path(ge=1, le=2**62, description="run id")
 
 
@@ -69,7 +71,29 @@ def _plot(repo, run_id: int) -> bytes | None:
     dependencies=[Depends(require_read)],
 )
 async def run_plot(request: Request, run_id: int = RunId):
-    png = await run_in_threadpool(_plot, request.app.state.repo, run_id)
+    """A finished run's plot is rendered once (LRU); any plot is refused with 429 + Retry-After
+    while RUN_PLOTS_AT_ONCE others are being rendered (a render takes seconds of CPU)."""
+    repo = request.app.state.repo
+    run = await run_in_threadpool(repo.run, run_id)
+    if run is None:
+        raise not_found(f"run {run_id}")
+    finished = run.get("finished_at")
+    key = (run_id, run.get("state"), str(finished), run.get("fault_reason"))
+    try:
+        png = await run_in_threadpool(_plot_cache(request).get, key, lambda: _plot(repo, run_id), store=finished is not None)
+    except Busy as exc:
+        raise HTTPException(status_code=429, detail=str(exc), headers={"Retry-After": str(exc.retry_after_s)}) from None
     if png is None:
         raise not_found(f"run {run_id}")
     return Response(png, media_type="image/png", headers={"Cache-Control": "no-cache"})
+
+
+RUN_PLOT_CACHE_SIZE = 32
+RUN_PLOTS_AT_ONCE = 2
+
+
+def _plot_cache(request: Request) -> BoundedCache[bytes]:
+    cache = getattr(request.app.state, "run_plot_cache", None)
+    if cache is None:
+        cache = request.app.state.run_plot_cache = BoundedCache("run plot", RUN_PLOT_CACHE_SIZE, RUN_PLOTS_AT_ONCE)
+    return cache

@@ -8,10 +8,11 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.concurrency import run_in_threadpool
 
 from web.auth import require_read
-from web.schemas import Health, ProfileOut, SlotOut
+from web.schemas import Health, ProfileOut, SlotOut, error_responses
 from web.views import call, clean, slot_view
 
 router = APIRouter(prefix="/api", tags=["station"])
+AUTHED = error_responses(401, 403)
 
 
 @router.get("/health", response_model=Health)
@@ -25,23 +26,30 @@ async def health(request: Request):
             db_state = await run_in_threadpool(repo.health)
         except Exception as exc:  # noqa: BLE001 - health reports, never raises
             db_state = f"error: {type(exc).__name__}"
-    return {"status": "ok", "version": __version__, "time": time.time(), "db": db_state}
+    lamp = None
+    station = getattr(request.app.state, "station", None)
+    if station is not None and hasattr(station, "lamp_status"):
+        lamp = station.lamp_status()
+    if station is not None and hasattr(station, "storage_status") and db_state == "ok":
+        db_state = station.storage_status()  # reads may work while writes fail (disk full)
+    return {"status": "ok", "version": __version__, "time": time.time(), "db": db_state, "lamp": lamp}
 
 
-@router.get("/slots", response_model=list[SlotOut], dependencies=[Depends(require_read)])
+@router.get("/slots", response_model=list[SlotOut], responses=AUTHED, dependencies=[Depends(require_read)])
 async def slots(request: Request):
     return [slot_view(s) for s in await call(request.app.state.station.slots_status)]
 
 
-@router.get("/profiles", response_model=list[ProfileOut], dependencies=[Depends(require_read)])
+@router.get("/profiles", response_model=list[ProfileOut], responses=AUTHED, dependencies=[Depends(require_read)])
 async def profiles(request: Request):
-    out = []
-    for p in await call(request.app.state.station.profiles):
-        out.append({"name": p} if isinstance(p, str) else clean(dict(p)))
-    return out
+    """Every profile with its description, analysis kind and step count."""
+    station = request.app.state.station
+    info = getattr(station, "profiles_info", None)
+    listed = await call(info) if info is not None else await call(station.profiles)
+    return [{"name": p} if isinstance(p, str) else clean(dict(p)) for p in listed]
 
 
-@router.get("/me", dependencies=[], response_model=dict)
+@router.get("/me", response_model=dict, responses=AUTHED)
 async def me(request: Request, principal=Depends(require_read)):
     """Who the token belongs to (name and role): the page shows it and hides what the role may not do."""
     return {"name": principal.name, "role": principal.role}

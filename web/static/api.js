@@ -32,11 +32,15 @@ async function main() {
   const spec = await (await fetch("/openapi.json")).json();
   document.getElementById("api-info").textContent = `${spec.info.title} ${spec.info.version}`;
   const box = document.getElementById("api-paths");
-  for (const [path, ops] of Object.entries(spec.paths)) {
+  // REST paths, then the webhooks the station itself POSTs (the MES result payload)
+  const entries = [...Object.entries(spec.paths).map(([p, ops]) => [p, ops, false]),
+    ...Object.entries(spec.webhooks || {}).map(([name, ops]) => [name, ops, true])];
+  for (const [path, ops, hook] of entries) {
     for (const [method, op] of Object.entries(ops)) {
-      const card = el("article", "run-card api-op");
+      const card = el("article", "run-card api-op" + (hook ? " api-webhook" : ""));
       const left = el("div", "");
-      left.append(el("h3", "", el("span", "api-method api-" + method, method.toUpperCase()), " ", el("code", "", path)));
+      left.append(el("h3", "", el("span", "api-method api-" + method, method.toUpperCase()), " ",
+        hook ? el("span", "muted", "webhook, station → your URL: ") : null, el("code", "", path)));
       if (op.summary) left.append(el("div", "", op.summary));
       if (op.description) left.append(el("p", "muted", op.description));
       const params = (op.parameters || []).map((p) => el("li", "", el("code", "", p.name), ` (${p.in}) ${refName(p.schema)}`,

@@ -14,7 +14,11 @@ const S = {
   es: null,
   pollTimer: null,
   finalBatch: true,
+  sorting: [],             // [{slot, serial, verdict, grade, tray, reason, attempt}] of the batch
 };
+
+const VERDICT_FIELDS = ["verdict", "grade", "tray", "reason", "attempt", "limits_name", "limits_version"];
+const VERDICT_WORD = { pass: "PASS", marginal: "MARGINAL", fail: "FAIL", error: "ERROR" };
 
 const FINAL = new Set(["finished", "aborted", "failed", "interrupted"]);
 const STATE_LABEL = { identified: "ready", disconnected: "no DUT", busy: "running", idle: "idle" };
@@ -107,28 +111,91 @@ function renderSlots() {
       box.append(card);
     }
     const state = s.state || "idle";
-    card.className = "slot-card st-" + state;
+    card.className = "slot-card st-" + state + (s.verdict && inBatch(name) ? " has-verdict v-" + s.verdict : "");
     card.dataset.state = state;
+    if (s.verdict && inBatch(name)) card.dataset.verdict = s.verdict; else delete card.dataset.verdict;
     const active = inBatch(name) && S.batchId;
     const acc = Array.isArray(s.acc_g) ? s.acc_g.map((v) => fmt(v, 3)).join("  ") : "–";
+    // one dot per profile step, lit for the steps this DUT has actually completed (not segments)
     const need = S.stepCount || 4;
-    const dots = el("span", { class: "dots", "aria-hidden": "true" });
-    for (let i = 0; i < need; i++) dots.append(el("span", { class: i < (s.segments || 0) ? "dot on" : "dot" }));
+    const done = s.steps_done ?? 0;
+    const dots = el("span", { class: "dots", "aria-hidden": "true", title: `${done} of ${need} steps done` });
+    for (let i = 0; i < Math.min(need, 40); i++) dots.append(el("span", { class: i < done ? "dot on" : "dot" }));
     card.replaceChildren(...[
       el("header", {}, el("h2", {}, name), el("span", { class: "st" }, STATE_LABEL[state] || state)),
       el("div", { class: "serial" }, s.serial || "no DUT", s.sensor ? el("span", { class: "muted" }, " · " + s.sensor) : null),
       active ? el("div", { class: "live" },
         el("span", { class: "temp" }, s.temp_c === undefined || s.temp_c === null ? "– °C" : fmt(s.temp_c, 1) + " °C"),
-        el("span", { class: "segbox" }, "Segments ", el("b", { class: "segments" }, String(s.segments || 0)), dots)) : null,
+        el("span", { class: "segbox" }, "Segments ", el("b", { class: "segments" }, String(s.segments || 0)), " · Steps ", dots)) : null,
       active ? el("dl", {},
         el("dt", {}, "Acc x y z (g)"), el("dd", { class: "acc" }, acc),
         el("dt", {}, "Samples"), el("dd", { class: "samples" }, String(s.samples ?? 0)),
       ) : el("div", { class: "muted" }, S.batchId && !S.finalBatch ? "not in this batch" : ""),
-      s.error ? el("div", { class: "fault" }, "Fault: " + s.error) : null,
+      active && s.verdict ? verdictBlock(s) : null,
+      active && !s.verdict && s.tempHist && s.tempHist.length > 1 ? sparkline(s.tempHist) : null,
+      active && s.waiting_for && !S.finalBatch ? el("div", { class: "waiting muted" }, "waiting for ", el("b", { class: "waiting-for" }, s.waiting_for)) : null,
+      s.error && !s.verdict ? el("div", { class: "fault" }, "Fault: " + s.error) : null,
       active && s.result ? resultTable(s.result) : null,
-      active && s.plotUrl ? el("img", { class: "plot-thumb", src: s.plotUrl, alt: "plot of " + (s.serial || name), onclick: () => showPlot(s.plotUrl) }) : null,
+      active && (s.program || s.verification) ? programVerifyTable(s.program, s.verification) : null,
+      active && s.plotUrl ? el("img", { class: "plot-thumb", src: s.plotUrl, alt: s.plotAlt || "plot of " + (s.serial || name), onclick: () => showPlot(s.plotUrl) }) : null,
     ].filter((c) => c !== null && c !== undefined && c !== false));
   }
+}
+
+// The decision, big enough to read from two metres: verdict word, grade, tray, reason.
+function verdictBlock(s) {
+  return el("div", { class: "verdict v-" + s.verdict, "data-verdict": s.verdict },
+    el("div", { class: "verdict-head" },
+      el("span", { class: "verdict-word" }, VERDICT_WORD[s.verdict] || s.verdict),
+      s.grade ? el("span", { class: "grade" + (s.grade.length > 2 ? " long" : ""), title: "grade" }, s.grade) : null),
+    el("div", { class: "reason" }, s.reason || ""),
+    el("div", { class: "tray-line" }, "→ ", el("b", { class: "tray" }, s.tray || "–"),
+      s.attempt > 1 ? el("span", { class: "attempt" }, ` · attempt ${s.attempt}`) : null));
+}
+
+// Live temperature of one slot (the last few minutes), an SVG line with its range.
+function sparkline(hist) {
+  const w = 360, h = 60;
+  const ts = hist.map((p) => p[1]);
+  const lo = Math.min(...ts), hi = Math.max(...ts);
+  const span = Math.max(hi - lo, 1);
+  const t0 = hist[0][0], t1 = hist[hist.length - 1][0] || t0 + 1;
+  const pts = hist.map(([t, v]) => `${((t - t0) / Math.max(t1 - t0, 1e-9) * w).toFixed(1)},${(h - 4 - (v - lo) / span * (h - 8)).toFixed(1)}`).join(" ");
+  // numbers only go into the markup; the HTML parser puts <svg> in the SVG namespace by itself
+  const box = el("div", { class: "spark-box" });
+  box.innerHTML = `<svg viewBox="0 0 ${w} ${h}" class="spark" role="img" aria-label="temperature ${fmt(lo, 1)} to ${fmt(hi, 1)} °C">`
+    + `<polyline points="${pts}"></polyline></svg>`;
+  box.append(el("span", { class: "muted" }, `${fmt(lo, 1)}–${fmt(hi, 1)} °C`));
+  return box;
+}
+
+function clock(sec) {
+  if (sec === null || sec === undefined || Number.isNaN(Number(sec))) return "–";
+  const s = Math.max(0, Math.round(Number(sec)));
+  const h = Math.floor(s / 3600), m = Math.floor((s % 3600) / 60), r = s % 60;
+  return (h ? h + ":" + String(m).padStart(2, "0") : String(m)) + ":" + String(r).padStart(2, "0");
+}
+
+// Which slot goes to which tray: one row per tray, the slots in it.
+function renderSorting(b) {
+  const box = $("sorting");
+  const list = S.sorting || [];
+  box.classList.toggle("hidden", !list.length);
+  if (!list.length) return;
+  const trays = new Map();
+  for (const e of list) {
+    const key = e.tray || e.grade || e.verdict;
+    if (!trays.has(key)) trays.set(key, []);
+    trays.get(key).push(e);
+  }
+  const rank = { pass: 0, marginal: 1, fail: 2, error: 3 };
+  const rows = [...trays.entries()].sort((a, b2) => (rank[a[1][0].verdict] - rank[b2[1][0].verdict]) || a[0].localeCompare(b2[0]));
+  $("trays").replaceChildren(...rows.map(([tray, es]) => el("div", { class: "tray-row v-" + es[0].verdict, "data-tray": tray },
+    el("div", { class: "tray-name" }, tray),
+    el("div", { class: "tray-slots" }, ...es.map((e) => el("span", { class: "tray-slot", "data-slot": e.slot, title: e.reason || "" },
+      e.slot, el("small", {}, " " + (e.serial || ""))))))));
+  const d = (b && b.decision && b.decision.verdicts) || {};
+  $("yield-line").textContent = `${d.pass || 0} pass · ${d.marginal || 0} marginal · ${d.fail || 0} fail · ${d.error || 0} error`;
 }
 
 function axesOf(o) {
@@ -174,24 +241,61 @@ function resultTable(result) {
   return wrap;
 }
 
+// Program and verify (design 4): programmed (CRC read back), compensation on, verified E per axis.
+function programVerifyTable(p, v) {
+  const wrap = el("div", { class: "program-verify" });
+  if (p) {
+    const ok = p.programmed && p.readback_identical !== false;
+    wrap.append(el("div", { class: "programmed " + (ok ? "ok" : "bad") },
+      ok ? `Programmed · CRC ${p.crc}` + (p.attempts > 1 ? ` (${p.attempts} tries)` : "") + " · compensation " + (p.comp ? "on" : "OFF")
+         : `Not programmed: ${p.error_kind || "error"}`));
+  }
+  if (v && v.e_after_mg) {
+    const rows = ["x", "y", "z"].map((ax) => {
+      const a = (v.axes || {})[ax] || {};
+      return el("tr", { "data-axis": ax, class: a.passed === false ? "bad" : "" }, el("td", {}, ax),
+        el("td", { class: "e-before" }, fmt((v.e_before_mg || {})[ax], 1)), el("td", { class: "e-after" }, fmt(v.e_after_mg[ax], 1)));
+    });
+    wrap.append(el("table", { class: "results verify" },
+      el("thead", {}, el("tr", {}, el("th", {}, "axis"), el("th", {}, "E before mg"), el("th", {}, "E verified mg"))),
+      el("tbody", {}, ...rows)));
+    wrap.append(el("div", { class: "verdict " + (v.passed ? "ok" : "bad") }, v.passed ? "Verified" : "Verification failed"));
+    for (const f of v.flags || []) wrap.append(el("div", { class: "flag" }, f));
+  }
+  return wrap;
+}
+
 function showPlot(url) {
   $("plot-img").src = url;
   $("plot-dialog").showModal();
 }
 
+// The plot of THIS slot's run in this batch (by run id, from the batch status): never the serial's
+// latest run, so an interrupted or faulted DUT shows its own data.
 async function loadPlot(slot) {
   const s = slotState(slot);
-  if (!s.serial || s.plotUrl || s.plotLoading) return;
+  if (!s.runId || s.plotUrl || s.plotLoading) return;
   s.plotLoading = true;
   try {
-    const runs = await api(`/api/duts/${encodeURIComponent(s.serial)}/runs`);
-    const run = runs.find((r) => r.batch_id === S.batchId);
-    if (!run || !(run.thermal || run.sfem)) return;  // not stored yet: the next poll retries
-    s.runId = run.id;
-    s.result = storedResult(run);
-    s.plotUrl = await blobUrl(`/api/runs/${run.id}/plot.png`);
+    const run = await api(`/api/runs/${s.runId}`);
+    // Not stored to its end yet (samples, state, result still being written): the next poll retries,
+    // so the card never keeps a plot of half a run. A run's end is stored after its result.
+    if (!run.finished_at) return;
+    if (run.thermal || run.sfem) s.result = storedResult(run);
+    s.plotAlt = `plot of ${s.serial || slot} run ${s.runId} (${run.state})`;
+    s.plotUrl = await blobUrl(s.plotPath || `/api/runs/${s.runId}/plot.png`);
     renderSlots();
   } catch (e) { /* retried on the next poll */ } finally { s.plotLoading = false; }
+}
+
+// The chosen profile in words: its description, step count, and what it yields.
+function describeProfile() {
+  const p = S.profiles && S.profiles.get($("profile").value);
+  const box = $("profile-desc");
+  if (!box) return;
+  if (!p) { box.textContent = ""; return; }
+  const yields = { thermal: "TDB/TDSF calibration result", sfem: "SFEM result", none: "no calibration result (logs data only)" };
+  box.textContent = `${p.description || p.name} · ${p.n_steps ?? "?"} steps · ${yields[p.analysis] || p.analysis || ""}`;
 }
 
 // ---- batch -----------------------------------------------------------------------------------
@@ -210,9 +314,12 @@ function showControls() {
   $("new-batch").classList.toggle("hidden", !S.finalBatch || !S.batchId || !canControl());
 }
 
-function setLamp(on) {
-  $("lamp").textContent = on ? "ON" : "OFF";
-  $("lamp").className = "chip " + (on ? "lamp-on" : "lamp-off");
+function setLamp(on, state) {
+  // state 'unknown': the relay does not answer, the lamp may be on whatever was commanded.
+  const unknown = state === "unknown";
+  $("lamp").textContent = unknown ? "UNKNOWN" : (on ? "ON" : "OFF");
+  $("lamp").className = "chip " + (unknown ? "lamp-unknown" : (on ? "lamp-on" : "lamp-off"));
+  $("lamp").title = unknown ? "lamp relay not answering: lamp state unknown" : "";
 }
 
 function applyBatch(b) {
@@ -223,19 +330,45 @@ function applyBatch(b) {
   if (b.step && b.step.index !== null && b.step.index !== undefined) {
     $("batch-step").textContent = `${b.step.index + 1} / ${b.step.count ?? "?"} · ${b.step.name ?? ""}`;
   }
-  if (b.lamp_on !== undefined) setLamp(b.lamp_on);
-  $("batch-error").textContent = b.error || "";
+  if (b.lamp_on !== undefined) setLamp(b.lamp_on, b.lamp_state);
+  $("batch-error").textContent = b.error || "";  // e.g. "aborted by Ana at 2026-11-23 14:02:05 UTC"
+  $("batch-note").textContent = b.note || "";
+  $("batch-note").classList.toggle("hidden", !b.note);
+  $("batch-elapsed").textContent = clock(b.elapsed_s);
+  $("batch-waiting").textContent = b.waiting_for || "–";
   S.batchSlots = (b.slots || []).map((sl) => sl.slot);
   const counts = { running: 0, done: 0, faulted: 0 };
   for (const sl of b.slots || []) {
     const s = slotState(sl.slot);
-    for (const k of ["serial", "state", "segments", "samples", "sensor"]) if (sl[k] !== null && sl[k] !== undefined) s[k] = sl[k];
+    for (const k of ["serial", "state", "segments", "samples", "sensor", "program", "verification", "steps_done"]) if (sl[k] !== null && sl[k] !== undefined) s[k] = sl[k];
+    s.waiting_for = sl.waiting_for || null;
+    if (sl.run_id && sl.run_id !== s.runId) { s.runId = sl.run_id; delete s.plotUrl; delete s.result; }
+    s.plotPath = sl.plot_url || null;
+    const pv = sl.program_verify;  // a stored batch: the run's program_verify row
+    if (pv && !sl.program) {
+      s.program = { programmed: pv.programmed, crc: pv.crc, readback_identical: pv.readback_identical, comp: pv.comp_on,
+        attempts: pv.attempts, error_kind: pv.error_kind };
+      if (pv.verified !== null && pv.verified !== undefined) {
+        s.verification = { passed: pv.verified, e_before_mg: pv.e_before_mg, e_after_mg: pv.e_after_mg, flags: pv.flags };
+      }
+    }
+    for (const k of VERDICT_FIELDS) s[k] = sl[k] ?? null;
     s.error = sl.error || "";
-    if (sl.state in counts) counts[sl.state] += 1; else counts.running += 1;
-    if (s.state === "done" && !s.plotUrl) loadPlot(sl.slot);
+    if (sl.state in counts) counts[sl.state] += 1;
+    else if (sl.state === "interrupted") counts.interrupted = (counts.interrupted || 0) + 1;
+    else if (!FINAL.has(sl.state)) counts.running += 1;
+    if (["done", "interrupted", "faulted"].includes(s.state) && !s.plotUrl) loadPlot(sl.slot);
   }
-  $("batch-counts").textContent = `${counts.running} running · ${counts.done} done · ${counts.faulted} faulted`;
+  const c = b.counts || counts;  // the station's own count: no DUT runs once the batch ended
+  $("batch-counts").textContent = `${c.running || 0} running · ${c.done || 0} done · ${c.faulted || 0} faulted`
+    + (c.interrupted ? ` · ${c.interrupted} interrupted` : "");
   S.finalBatch = FINAL.has(b.state);
+  const left = b.time_left || {};
+  $("step-left").textContent = S.finalBatch ? "–" : clock(left.step_wall_s);
+  $("batch-left").textContent = S.finalBatch ? "–" : clock(left.batch_wall_s);
+  for (const id of ["time-left-step", "time-left-batch"]) $(id).classList.toggle("hidden", S.finalBatch);
+  S.sorting = b.sorting || [];
+  renderSorting(b);
   showControls();
   if (b.prompt && b.prompt.prompt_id !== undefined) showPrompt(b.prompt);
   else hidePrompt();
@@ -268,7 +401,9 @@ async function startBatch() {
   try {
     const r = await api("/api/batches", { method: "POST", body });
     for (const s of S.slots.values()) {
-      delete s.result; delete s.plotUrl; delete s.temp_c; delete s.acc_g;
+      delete s.result; delete s.plotUrl; delete s.temp_c; delete s.acc_g; delete s.tempHist; delete s.program; delete s.verification;
+      delete s.runId; delete s.plotPath; delete s.waiting_for; s.steps_done = 0;
+      for (const k of VERDICT_FIELDS) s[k] = null;
       s.segments = 0; s.samples = 0; s.error = "";
     }
     S.batchSlots = body.slots || [...S.slots.keys()];
@@ -355,6 +490,11 @@ function onEvent(ev) {
         if (v.batch_id !== S.batchId) continue;
         const s = slotState(name);
         s.temp_c = v.temp_c; s.acc_g = v.acc_g;
+        if (typeof v.temp_c === "number") {
+          s.tempHist = s.tempHist || [];
+          s.tempHist.push([Date.now() / 1000, v.temp_c]);
+          if (s.tempHist.length > 600) s.tempHist.splice(0, s.tempHist.length - 600);
+        }
         if (v.serial) s.serial = v.serial;
       }
       break;
@@ -379,6 +519,9 @@ function onEvent(ev) {
       setTimeout(() => loadPlot(ev.slot), 700);
       break;
     }
+    case "DutVerdict": pollBatch(); break;
+    case "DutProgrammed": slotState(ev.slot).program = ev.program; break;
+    case "DutVerified": slotState(ev.slot).verification = ev.verification; break;
     case "PromptRaised": showPrompt(ev); break;
     case "PromptAnswered": if (S.prompt && S.prompt.prompt_id === ev.prompt_id) hidePrompt(); break;
     case "LampChanged": setLamp(ev.on); break;
@@ -435,6 +578,18 @@ async function showDut(serial) {
     const runs = await api(`/api/duts/${encodeURIComponent(serial)}/runs`);
     if (seq !== showDutSeq) return;
     box.replaceChildren(el("h2", {}, serial));
+    if (runs.some((r) => r.result_seq != null || r.verdict)) {
+      // the calibration certificate of the serial's result run (PDF, station/certificate.py)
+      const msg = el("span", { class: "muted cert-msg" });
+      box.append(el("div", { class: "actions" },
+        el("button", { type: "button", class: "btn certificate", "data-serial": serial, onclick: async () => {
+          msg.textContent = "";
+          try {
+            const url = await blobUrl(`/api/duts/${encodeURIComponent(serial)}/certificate.pdf`);
+            const a = el("a", { href: url, download: `certificate-${serial}.pdf` }); document.body.append(a); a.click(); a.remove();
+          } catch (e) { msg.textContent = e.message; }
+        } }, "Certificate (PDF)"), msg));
+    }
     if (!runs.length) box.append(el("p", { class: "muted" }, "No run stored."));
     for (const r of runs) {
       const plotBox = el("div", { class: "plot-box" });
@@ -442,6 +597,9 @@ async function showDut(serial) {
         el("h3", {}, `Run ${r.id} · ${r.state ?? ""}`),
         el("div", { class: "muted" }, `batch ${r.batch_id ?? "–"} · slot ${r.slot ?? "–"} · ${r.profile ?? ""}`),
         el("div", { class: "muted" }, `${when(r.started_at)} → ${when(r.finished_at)}`),
+        r.verdict ? el("div", { class: "run-verdict v-" + r.verdict, "data-verdict": r.verdict },
+          `${VERDICT_WORD[r.verdict] || r.verdict}${r.grade ? " · grade " + r.grade : ""} · attempt ${r.attempt ?? "?"}`
+          + (r.reason ? " · " + r.reason : "") + (r.limits_name ? ` · limits ${r.limits_name} v${r.limits_version}` : "")) : null,
         r.fault_reason ? el("div", { class: "fault" }, "Fault: " + r.fault_reason) : null,
         (r.thermal || r.sfem) ? resultTable(storedResult(r)) : el("div", { class: "muted" }, "no result"),
         el("div", { class: "actions" },
@@ -459,10 +617,11 @@ async function showDut(serial) {
 }
 
 function showView(name) {
-  for (const v of ["live", "history"]) {
+  for (const v of ["live", "history", "records"]) {
     $("view-" + v).classList.toggle("hidden", v !== name);
     $("tab-" + v).classList.toggle("active", v === name);
   }
+  if (name === "records" && window.loadRecords) window.loadRecords();  // records.js
 }
 
 // ---- start-up --------------------------------------------------------------------------------
@@ -478,6 +637,8 @@ async function boot() {
     const [profiles, slots, batches] = await Promise.all([api("/api/profiles"), api("/api/slots"), api("/api/batches?limit=1")]);
     const sel = $("profile");
     sel.replaceChildren(...profiles.map((p) => el("option", { value: p.name }, p.description ? `${p.name} — ${p.description}` : p.name)));
+    S.profiles = new Map(profiles.map((p) => [p.name, p]));
+    describeProfile();
     const picks = $("slot-picks");
     picks.replaceChildren(...slots.map((s) => el("label", { class: "slot-pick" },
       el("input", { type: "checkbox", value: s.slot, checked: s.state !== "faulted" && s.state !== "disconnected" ? "checked" : null }), s.slot)));
@@ -512,12 +673,19 @@ document.addEventListener("DOMContentLoaded", () => {
   $("save-token").addEventListener("click", saveToken);
   $("token").addEventListener("keydown", (e) => { if (e.key === "Enter") saveToken(); });
   $("start").addEventListener("click", startBatch);
+  $("profile").addEventListener("change", describeProfile);
   $("abort").addEventListener("click", abortBatch);
   $("pick-all").addEventListener("click", () => pickAll(true));
   $("pick-none").addEventListener("click", () => pickAll(false));
   $("new-batch").addEventListener("click", () => {
     setBatch(null);
-    for (const s of S.slots.values()) { delete s.result; delete s.plotUrl; s.segments = 0; s.error = ""; }
+    for (const s of S.slots.values()) {
+      delete s.result; delete s.plotUrl; delete s.tempHist; s.segments = 0; s.error = "";
+      delete s.runId; delete s.plotPath; delete s.waiting_for; s.steps_done = 0;
+      for (const k of VERDICT_FIELDS) s[k] = null;
+    }
+    S.sorting = [];
+    renderSorting(null);
     api("/api/slots").then((slots) => { for (const s of slots) slotState(s.slot).state = s.state; renderSlots(); }).catch(() => {});
   });
   $("prompt-confirm").addEventListener("click", confirmPrompt);

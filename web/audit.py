@@ -1,0 +1,37 @@
+"""The audit trail of REST actions (issue 13): who (the token's name, never the token) did what to
+which batch, with what the request carried: batch start, abort, prompt answers, resume.
+
+`record(request, ...)` is called by the route once the action was done, so the trail holds what
+happened, not what was attempted. The action has happened by then: a storage failure while
+recording is logged loudly but does not turn the operator's successful abort into an error.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import Request
+from fastapi.concurrency import run_in_threadpool
+
+log = logging.getLogger("station.web.audit")
+
+# The audited actions (the `action` column).
+BATCH_START = "batch.start"
+BATCH_ABORT = "batch.abort"
+PROMPT_ANSWER = "prompt.answer"
+BATCH_RESUME = "batch.resume"
+LIMITS_CHANGE = "limits.change"
+
+
+def actor_of(request: Request) -> str:
+    principal = getattr(request.state, "principal", None)
+    return getattr(principal, "name", None) or "unknown"
+
+
+async def record(request: Request, action: str, target: str, detail: dict[str, Any] | None = None) -> None:
+    actor = actor_of(request)
+    try:
+        await run_in_threadpool(request.app.state.repo.audit_append, actor, action, target, detail or {})
+    except Exception:  # noqa: BLE001 - see the module docstring
+        log.critical("audit: could not record %s by %s on %s %s", action, actor, target, detail, exc_info=True)
