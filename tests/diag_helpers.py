@@ -14,6 +14,7 @@ import numpy as np
 from drivers.sim.physics import DutTruth, draw_population
 from drivers.sim.world import EnvConfig, SimWorld
 from station.diagnostics.model import DiagnosticModel, prepare, window_rms
+from station.diagnostics.ranking import diagnose
 from station.logfile import DutLog
 from station.positions import GRAVITY_DIRECTIONS
 
@@ -31,9 +32,10 @@ SINGLE_RATE: list[Step] = [
 
 
 def sim_logs(effects=(), n_duts: int = 1, seed: int = 3, profile: list[Step] | None = None,
-             truths: list[DutTruth] | None = None) -> tuple[list[DutLog], list[DutTruth]]:
+             truths: list[DutTruth] | None = None, noise: str = "white",
+             odr_hz: float | None = None) -> tuple[list[DutLog], list[DutTruth]]:
     truths = truths or draw_population(n_duts, seed, effects=tuple(effects))
-    world = SimWorld(truths, env=EnvConfig(), seed=seed)
+    world = SimWorld(truths, env=EnvConfig(), seed=seed, noise=noise, odr_hz=odr_hz)
     chunks = []
     for pos, lamp, sp, ramp, dur in profile or MULTI:
         world.position = pos
@@ -125,9 +127,100 @@ def compare_params(params: dict, truths: list[DutTruth]) -> list[dict]:
     return rows
 
 
-def validation_logs(effects=(), n_duts: int = 1, seed: int = 3) -> tuple[list[DutLog], list[DutTruth]]:
+def validation_logs(effects=(), n_duts: int = 1, seed: int = 3, noise: str = "white",
+                    odr_hz: float | None = None) -> tuple[list[DutLog], list[DutTruth]]:
     """Logs of the simulator's `validation` profile (drivers/sim/profiles.py) and their truth."""
     from drivers.sim.profiles import run_profile
 
     truths = draw_population(n_duts, seed, effects=tuple(effects))
-    return run_profile(SimWorld(truths, env=EnvConfig(), seed=seed), "validation"), truths
+    return run_profile(SimWorld(truths, env=EnvConfig(), seed=seed, noise=noise, odr_hz=odr_hz), "validation"), truths
+
+
+# A PX4/ArduPilot-style single-orientation sweep: the board flat (P) in a chamber from 25 C down to
+# -17 C, up to 74 C and back, twice, at 2 then 1 C/min (two rates tell lag from hysteresis).
+def _sweep() -> list[Step]:
+    out: list[Step] = [(0, False, -17.0, 2.0, 42 / 2 * 60 + 600)]
+    for rate in (2.0, 1.0):
+        leg = 91.0 / rate * 60.0 + 600.0
+        out += [(0, False, 74.0, rate, leg), (0, False, -17.0, rate, leg)]
+    return out
+
+
+SWEEP: list[Step] = _sweep()
+
+# A short validation-like profile for fast tests: power-up, then one full cycle 25 -> 60 -> -10 -> 25 C
+# in each of five orientations (P, +x, -y, +z, N) at 2 and 4 C/min: two ramp rates; cross-axis and
+# scale nonlinearity identifiable and told apart (with four orientations Acc0_i^2 is an affine
+# function of the three Acc0_j, so scale_nonlinearity would be nested in cross_axis).
+def _short_validation() -> list[Step]:
+    out: list[Step] = [(0, False, 25.0, 2.0, 1200.0)]
+    for pos, rate in ((0, 2.0), (2, 4.0), (5, 2.0), (6, 4.0), (1, 4.0)):
+        out += [(pos, False, 60.0, rate, 35 / rate * 60 + 600), (pos, False, -10.0, rate, 70 / rate * 60 + 600),
+                (pos, False, 25.0, rate, 35 / rate * 60 + 300)]
+    return out
+
+
+SHORT_VALIDATION: list[Step] = _short_validation()
+
+
+# ---- shared by tests/test_diagnostics.py and tests/test_diagnostics_batch8.py ------------------
+FLOOR_FACTOR = 1.15
+
+
+class Outcome:
+    """What a test needs from one diagnosis (the full report holds ~100 MB of residuals)."""
+
+    def __init__(self, logs, truths, rep):
+        self.doc = rep.to_json()
+        self.serials = rep.serials
+        self.floor_window = pooled_floor(logs, truths, "window")
+        self.floor_sample = pooled_floor(logs, truths, "sample")
+        self.truths = truths
+        self.models = rep.models()
+        self.base_models = [DiagnosticModel.from_fit(d.serial, f, d.t_power_on_s)
+                            for d, f in zip(rep.data, rep.baseline.fits)]
+        self.logs = logs
+
+    @property
+    def ranking(self):
+        return self.doc["ranking"]
+
+    @property
+    def admitted(self):
+        return [r["effect"] for r in self.ranking if r["admitted"]]
+
+
+def validation_cache():
+    """diagnose(validation-profile logs with one hidden effect, add=[that effect]), cached."""
+    cache: dict = {}
+
+    def get(effect: str, n_duts: int = 1) -> Outcome:
+        key = (effect, n_duts)
+        if key not in cache:
+            effs = () if effect == "none" else (effect,)
+            logs, truths = validation_logs(effs, n_duts=n_duts)
+            cache[key] = Outcome(logs, truths, diagnose(logs, add=list(effs)))
+        return cache[key]
+
+    return get
+
+
+def assert_found_and_floor(o: "Outcome", effect: str):
+    names = [r["effect"] for r in o.ranking]
+    assert names[0] == effect, (effect, [(r["effect"], r["heldout_rms_mg"]) for r in o.ranking[:3]])
+    assert o.admitted[0] == effect and o.ranking[0]["flags"] == []
+    assert effect not in {c for p in o.doc["confusable"] for c in p["effects"]}
+    base = o.doc["baseline"]["heldout_rms_mg"]
+    step = o.doc["staircase"][-1]
+    assert step["model"] == f"+{effect}" and step["effects"] == [effect]
+    # the effect is plainly visible to the baseline ...
+    assert base > 3.0 * o.floor_window, (base, o.floor_window)
+    # ... and adding it brings the held-out RMS to the noise floor (held-out = whole legs: a single
+    # warm-up transient cannot be predicted for the fold that holds out the power-on leg)
+    if effect != "self_heating":
+        assert step["heldout_rms_mg"] <= FLOOR_FACTOR * o.floor_window, (step["heldout_rms_mg"], o.floor_window)
+        assert step["heldout_rms_per_sample_mg"] <= FLOOR_FACTOR * o.floor_sample
+    else:
+        assert step["heldout_rms_mg"] < 0.97 * base  # the gate: held-out lower by >= 3 %
+    assert step["rms_mg"] <= step["heldout_rms_mg"] * 1.05  # in-sample never much worse than held-out
+    assert o.doc["admitted_staircase"][-1]["heldout_rms_mg"] < base

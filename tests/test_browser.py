@@ -46,6 +46,8 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
             foreign, errors = [], []
             page.on("request", lambda r: None if r.url.startswith((live.url, "blob:", "data:")) else foreign.append(r.url))
             page.on("pageerror", lambda e: errors.append(str(e)))
+            requested = []
+            page.on("request", lambda r: requested.append(r.url))
             page.set_default_timeout(20_000)
             page.goto(live.url + "/")
 
@@ -54,6 +56,11 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
             page.click("#save-token")
             page.wait_for_selector("#slot-picks input[value='s3']")
             page.select_option("#profile", "fast-thermal")
+            # the chosen profile is described: what it is, how many steps, what it yields
+            desc = page.inner_text("#profile-desc")
+            assert "martinez2022" in desc and "4 steps" in desc and "TDB/TDSF" in desc, desc
+            # the long descriptions do not widen the page beyond the screen
+            assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
             page.fill("#operator", "Ana")
             page.locator("#slot-picks input[value='s3']").uncheck()
             for slot in SELECTED:
@@ -69,6 +76,7 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
             # first prompt: the plate to P; the operator turns it and confirms on the page
             page.wait_for_selector("#prompt-banner:not(.hidden)")
             assert "turn the plate" in page.inner_text("#prompt-text")
+            page.wait_for_function("() => document.querySelector('#batch-waiting').textContent === 'operator'")
             page.screenshot(path=str(ARTIFACTS / "browser-prompt.png"))
             page.click("#prompt-confirm")
             page.wait_for_selector("#prompt-banner.hidden", state="attached")
@@ -118,6 +126,8 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
                         assert shown_tdb == pytest.approx(dut["thermal"][ax]["tdb_mg_per_c"], abs=0.0006)
                         assert shown_tdsf == pytest.approx(dut["thermal"][ax]["tdsf_ppm_per_c"], abs=0.06)
             assert "Fault" not in page.inner_text("#slots")
+            for slot in SELECTED:  # progress dots: every step of the profile done
+                assert card(page, slot).locator(".dot.on").count() == 4
             page.screenshot(path=str(ARTIFACTS / "browser-results.png"), full_page=True)
 
             # history: search by part of a serial, every run of the DUT, a plot of a run
@@ -155,7 +165,29 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
             with httpx.Client(base_url=live.url, timeout=10) as api:
                 st2 = api.get(f"/api/batches/{second}", headers=auth("operator")).json()
             assert st2["state"] == "aborted" and st2["lamp_on"] is False
+            # after the abort nothing runs, the error says who and when, and each interrupted DUT
+            # shows the plot of its own run of this batch (by run id)
+            page.wait_for_function("() => /aborted by test-operator at \\d{4}-/.test(document.querySelector('#batch-error').textContent)")
+            page.wait_for_function(f"() => document.querySelector('#batch-counts').textContent"
+                                   f" === '0 running · 0 done · 0 faulted · {len(st2['slots'])} interrupted'")
+            for s in st2["slots"]:
+                page.wait_for_function(
+                    f"() => {{ const i = document.querySelector('.slot-card[data-slot=\"{s['slot']}\"] img.plot-thumb');"
+                    " return i && i.complete && i.naturalWidth > 0; }")
+                assert f"{live.url}/api/runs/{s['run_id']}/plot.png" in requested
+                # the plot of that run, loaded once the run was stored to its end (never half a run)
+                alt = card(page, s["slot"]).locator("img.plot-thumb").get_attribute("alt")
+                assert alt == f"plot of {s['serial']} run {s['run_id']} (interrupted)", alt
+            page.screenshot(path=str(ARTIFACTS / "browser-aborted.png"), full_page=True)
             assert page.is_visible("#start")  # ready for the next batch
+            # the same page on the line's small panel PC screen (800x480): nothing wider than it
+            page.set_viewport_size({"width": 800, "height": 480})
+            page.wait_for_timeout(200)
+            assert page.evaluate("() => document.documentElement.scrollWidth") <= 800
+            assert page.is_visible("#batch-counts") and page.is_visible("#start")
+            page.screenshot(path=str(ARTIFACTS / "browser-aborted-800x480.png"))
+            page.set_viewport_size({"width": 1280, "height": 800})
+            page.screenshot(path=str(ARTIFACTS / "browser-aborted-1280x800.png"))
 
             # the API reference is the station's own page too (no Swagger UI from a CDN)
             page.goto(live.url + "/docs")

@@ -23,3 +23,23 @@ def test_missing_log_file_is_one_line_without_traceback(tmp_path):
         lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
         assert len(lines) == 1, (cmd, out.stderr)
         assert "missing.csv" in lines[0]
+
+
+def test_unknown_profile_is_one_line_and_non_zero_before_any_hardware():
+    """demo --once and serve --start-batch with a profile that does not exist (issue 9)."""
+    from pathlib import Path
+
+    example = Path(__file__).resolve().parents[1] / "station.example.toml"
+    for args in (("demo", "--once", "--profile", "nope"), ("serve", "--config", str(example), "--start-batch", "nope")):
+        out = _station(*args)
+        assert out.returncode != 0, args
+        assert "Traceback" not in out.stderr, (args, out.stderr)
+        lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and "unknown profile 'nope'" in lines[0] and "fast-thermal" in lines[0], (args, out.stderr)
+
+
+def test_a_validation_batch_says_it_yields_no_calibration_result():
+    out = _station("demo", "--once", "--profile", "validation", "--no-web", "--speed", "1000", "--serial", "1",
+                   "--can", "0", "--db", "memory://")
+    assert out.returncode == 0, out.stderr
+    assert "finished" in out.stdout and "no calibration result" in out.stdout, out.stdout

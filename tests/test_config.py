@@ -62,7 +62,7 @@ def test_builtin_profiles_are_data():
     assert [(s.position_name, s.lamp) for s in ft.steps] == [("P", False), ("P", True), ("N", True), ("N", False)]
     assert ft.analysis == "thermal"
     assert len(BUILTIN_PROFILES["sfem-24"].steps) == 24 * 3
-    assert set(BUILTIN_PROFILES) == {"fast-thermal", "six-position", "sfem-24", "validation"}
+    assert set(BUILTIN_PROFILES) == {"fast-thermal", "six-position", "sfem-24", "validation", "fast-thermal-verified"}
 
 
 @pytest.mark.parametrize(
@@ -107,3 +107,10 @@ def test_parse_dict_and_site_profile_overrides_builtin():
     }
     cfg = parse_config(data)
     assert len(all_profiles(cfg)["fast-thermal"].steps) == 1
+
+
+def test_example_config_product_is_the_one_used_for_lis3dsh():
+    cfg = load_config(ROOT / "station.example.toml")
+    spec = cfg.product_for("LIS3DSH")
+    assert (spec.name, spec.version) == ("LIS3DSH-line", "1")
+    assert [g.name for g in spec.grades] == ["A", "B"]

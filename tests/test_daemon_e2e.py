@@ -5,6 +5,7 @@ coil is read back from the Modbus server, rows from the database.
 """
 
 import asyncio
+import re
 import os
 import signal
 import sys
@@ -159,7 +160,8 @@ async def test_abort_switches_lamp_coil_off(tmp_path):
             assert sim.world.lamp_on
             st.abort(bid, reason="operator pressed abort")
             status = await st.wait_batch(bid, timeout_s=10)
-            assert status["state"] == "aborted" and status["error"] == "operator pressed abort"
+            assert status["state"] == "aborted" and status["ended_by"] == "operator"
+            assert re.fullmatch(r"aborted by operator at \S+ \S+ UTC: operator pressed abort", status["error"])
             assert await coil(sim) is False
             with pytest.raises(KeyError):
                 st.batch_status(9999)
@@ -291,3 +293,32 @@ def _to_toml(cfg: dict) -> str:
             lines.append(f'[[profiles."{name}".steps]]')
             lines += [f"{kk} = {val(x)}" for kk, x in step.items()]
     return "\n".join(lines) + "\n"
+
+
+@pytest.mark.timeout(240)
+async def test_demo_station_runs_sfem_24_with_its_simulated_chamber(tmp_path):
+    """The demo simulates every instrument of design 3.3 (the chamber included), so sfem-24 runs
+    and its SFEM per temperature step reaches the database and the results API's shape."""
+    from db.repository import batch_detail
+
+    async with SimStation(n_serial=1, n_can=0, seed=12, speed=4000.0) as sim:
+        async with daemon(sim, tmp_path, 4000.0) as st:
+            bid = st.start_batch("sfem-24", None, "pytest")
+            status = await st.wait_batch(bid, timeout_s=200)
+            assert status["state"] == "finished", status["error"]
+            slot = status["slots"][0]
+            assert slot["state"] == "done", slot
+            temps = slot["result"]["temperatures"]
+            assert [round(t["setpoint_c"]) for t in temps] == [25, 45, 65]
+            truth = sim.truths[0]
+            for t in temps:
+                assert t["temp_c"] > t["setpoint_c"] - 5
+            # Every step: the SFEM removes the frame errors down to the noise (~0.03 mg here). (The
+            # 65 C step once left 5-13 mg: samples of the previous position, 45 deg away, that
+            # arrived after the fixture reported the move; static steps now start at the first
+            # sample facing their position, station.positions.first_facing.)
+            for t in temps:
+                assert t["fit"]["rmse_after_mg"] < 0.01 * t["fit"]["rmse_before_mg"], t["setpoint_c"]
+            await st.flush_db()
+            run = batch_detail(st.db, bid)["runs"][0]
+            assert run["serial"] == truth.serial

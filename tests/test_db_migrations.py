@@ -21,7 +21,9 @@ from station.logfile import ACC_DECIMALS, TEMP_DECIMALS
 from station.types import SampleBlock, StationError
 from db_helpers import SFEM_JSON, THERMAL_JSON, lis3dsh_stream, pg_database, pg_reachable, segment
 
-TABLES = {"dut", "batch", "dut_run", "segment", "thermal_result", "sfem_result", "sample_chunk", "outbox", "alembic_version"}
+TABLES = {"dut", "batch", "dut_run", "segment", "thermal_result", "sfem_result", "sample_chunk", "outbox", "alembic_version",
+          "result_counter", "audit",
+          "program_verify"}
 
 
 def _assert_schema_matches_models(db: Database) -> None:

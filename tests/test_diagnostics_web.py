@@ -78,6 +78,19 @@ def test_diagnosis_plots_are_pngs(client):
     assert client.get("/api/runs/1/diagnosis/nonsense.png", headers=AUTH).status_code == 404
 
 
+def test_diagnosis_plots_are_rendered_once_and_the_caches_are_bounded(client):
+    """Issue 10: plots were rendered on every request. A repeat is served from the PNG cache
+    (same bytes, no render); both caches stay within their sizes."""
+    pngs = client.app.state.diagnosis_cache.pngs
+    first = client.get("/api/runs/1/diagnosis/ranking.png", params={"add": "bias_t2"}, headers=AUTH)
+    rendered = pngs.computed
+    again = client.get("/api/runs/1/diagnosis/ranking.png", params={"add": "bias_t2"}, headers=AUTH)
+    assert again.status_code == 200 and again.content == first.content
+    assert pngs.computed == rendered
+    cache = client.app.state.diagnosis_cache
+    assert len(cache.reports) <= cache.reports.size and len(pngs) <= pngs.size
+
+
 def test_model_download_compensates(client):
     r = client.get("/api/runs/1/diagnosis/model.json", params={"add": "bias_t2"}, headers=AUTH)
     assert r.status_code == 200, r.text

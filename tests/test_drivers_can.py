@@ -60,10 +60,12 @@ async def rig(request):
 
 async def test_identity_and_samples_by_node(rig):
     kind, adapter, sims, bus, boards = rig
-    if kind == "slcan":
-        assert adapter.is_open and adapter.bitrate_cmd == "S6"  # python-can sent S6 then O
     for n, b in boards.items():
         assert await b.identify() == _ident(n)
+    if kind == "slcan":
+        # python-can writes S6 then O without waiting for the adapter's ack; a round
+        # trip (identify above) proves the adapter has processed both, in order.
+        assert adapter.is_open and adapter.bitrate_cmd == "S6"
     for b in boards.values():
         await b.start()
     await asyncio.sleep(0.2)  # START frames reach the boards

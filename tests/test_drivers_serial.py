@@ -183,3 +183,34 @@ async def test_pyserial_url_without_fd_uses_reader_thread():
         assert len(blk) == 1 and blk.time_s[0] == pytest.approx(5e-6)
     finally:
         await drv.close()
+
+
+@pytest.mark.parametrize("body", [
+    "D,1,2,99999999999999999999,0,0,25",   # count beyond int64: once an OverflowError in read_block
+    "D,1,2,0,0,0,4294967296",              # temperature count beyond int32
+    "D,4294967296,2,0,0,0,25",             # seq beyond uint32
+    "D,1,18446744073709551616,0,0,0,25",   # t_us beyond uint64
+])
+async def test_checksum_valid_out_of_range_frame_is_counted_and_skipped(board, body):
+    """A frame that passes the checksum but holds a number outside its field is malformed: counted,
+    skipped, and the samples around it arrive (the slot lives on)."""
+    sim, drv = board
+    await drv.start()
+    t, acc, temp = _stream(20)
+    sim.feed(t[:10], acc[:10], temp[:10])
+    sim.inject_garbage(sf.encode(body))
+    sim.feed(t[10:], acc[10:], temp[10:])
+    blk = await _collect(drv, 20)
+    assert len(blk) == 20
+    np.testing.assert_allclose(blk.acc_g, acc * 60e-6, rtol=1e-12)
+    assert drv.stats.frames_malformed == 1
+
+
+@pytest.mark.parametrize("fields", [("nan", "1", "0", "3.125"), ("60", "0", "0", "3.125"),
+                                    ("60", "1", "inf", "3.125"), ("0", "1", "0", "3.125"),
+                                    ("60", "1", "0", "-1")])
+def test_identity_with_nan_or_zero_scale_is_malformed(fields):
+    """A NaN/zero scale would make every sample NaN and blind the over-temperature check."""
+    parser = sf.FrameParser()
+    frames = parser.feed(sf.encode(",".join(("I", "SN1", "LIS3DSH", "1", *fields))))
+    assert frames == [] and parser.stats.frames_malformed == 1

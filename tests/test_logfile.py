@@ -62,3 +62,24 @@ def test_malformed_row_is_reported():
 def test_no_header():
     with pytest.raises(StationError, match="no header"):
         parse_log("# serial: X\n")
+
+
+@pytest.mark.parametrize("row,needle", [
+    ("0,0,0,1,25,1e300,0", "line 4: lamp = 1e+300 must be 0 or 1"),
+    ("0,0,0,1,25,1,1e300", "line 4: position = 1e+300 must be an integer"),
+    ("0,0,0,1,25,1,2.5", "line 4: position = 2.5"),
+    ("0,nan,0,1,25,1,0", "line 4: ax_g = nan is not a finite number"),
+    ("0,0,0,1,inf,1,0", "line 4: temp_c = inf is not a finite number"),
+    ("-inf,0,0,1,25,1,0", "line 4: time_s = -inf"),
+])
+def test_non_finite_samples_and_out_of_range_lamp_or_position_name_the_line(row, needle):
+    """Issue 10: these were accepted (NaN/inf samples) or silently cast to int64 min."""
+    text = "# serial: X\ntime_s,ax_g,ay_g,az_g,temp_c,lamp,position\n0,0,0,1,25,0,-1\n" + row + "\n1,0,0,1,25,1,5\n"
+    with pytest.raises(StationError) as err:
+        parse_log(text, "bad.csv")
+    assert str(err.value).startswith("bad.csv: ") and needle in str(err.value)
+
+
+def test_unknown_position_and_both_lamp_states_are_accepted():
+    log = parse_log("time_s,ax_g,ay_g,az_g,temp_c,lamp,position\n0,0,0,1,25,0,-1\n1,0,0,1,25,1,5\n")
+    assert log.position.tolist() == [-1, 5] and log.lamp.tolist() == [0, 1]

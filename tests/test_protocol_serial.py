@@ -113,6 +113,33 @@ def test_clock_unwrapper_uint32_wrap():
     assert [u.update(v) for v in (2**40, 2**40 + 5)] == [2**40, 2**40 + 5]
 
 
+def test_one_corrupt_clock_value_is_an_outlier_not_a_wrap():
+    """t_us = 0xFFFFFFFF between two samples 20 ms apart once counted as a 32-bit wrap and moved
+    the rest of that DUT's run 4,295 s later."""
+    u = sf.ClockUnwrapper()
+    got = [u.update(v) for v in (1_000_000, 1_020_000, 0xFFFFFFFF, 1_060_000, 1_080_000)]
+    assert got == [1_000_000, 1_020_000, None, 1_060_000, 1_080_000]  # the outlier's period counts
+    assert u.offset == 0 and u.outliers == 1 and u.jumps == 0
+
+
+def test_a_wrap_with_lost_samples_is_still_a_wrap():
+    u = sf.ClockUnwrapper()
+    assert u.update(2**32 - 640_000) == 2**32 - 640_000
+    assert u.update(2**32 - 320_000) == 2**32 - 320_000
+    assert u.update(640_000, steps=3) == 2**32 + 640_000  # two samples lost across the wrap
+    assert u.update(0xFFFFFFFF) is None  # an outlier right after the wrap is not a second wrap
+    assert u.update(1_280_000) == 2**32 + 1_280_000 and u.offset == 2**32
+
+
+def test_a_real_clock_jump_costs_one_sample_then_the_new_timeline_is_taken():
+    u = sf.ClockUnwrapper()
+    got = [u.update(v) for v in (5_000_000, 5_020_000, 300_000, 320_000, 340_000)]  # board reset
+    assert got == [5_000_000, 5_020_000, None, 320_000, 340_000]  # 300_000: dropped as an outlier
+    assert u.jumps == 1 and u.offset == 0
+    u.reset_period()  # ODR changed from 50 Hz to 10 Hz: the first new step is taken as the period
+    assert [u.update(v) for v in (440_000, 540_000, 640_000)] == [440_000, 540_000, 640_000]
+
+
 def test_board_side_parser_reads_commands():
     p = sf.FrameParser(board_side=True)
     frames = p.feed(sf.cmd_id() + sf.cmd_odr(6.25) + sf.cmd_start() + sf.encode("BOGUS"))

@@ -80,7 +80,7 @@ def closed_loop_fast_thermal(truths: list[DutTruth], seed: int) -> tuple[list[Du
     Each DUT's own streaming calibrator (the MCU algorithm, fed live) says when its segment of the
     step is logged. Returns the logs and the duration actually given to each step.
     """
-    world = SimWorld(truths, seed=seed)
+    world = SimWorld(truths, seed=seed, noise="white")
     cals = [StreamingCalibrator() for _ in truths]
     parts: list[dict[str, np.ndarray]] = []
     durations = []
@@ -189,7 +189,7 @@ def fast_thermal_acceptance(n: int = N_DUTS, seed: int = SEED) -> ThermalAccepta
 def open_loop_fast_thermal(n: int = N_DUTS, seed: int = SEED) -> ThermalAcceptance:
     """`station simulate --profile fast-thermal`: fixed step durations, no sequencer."""
     truths = population(n, seed)
-    logs = run_profile(SimWorld(truths, seed=seed), "fast-thermal")
+    logs = run_profile(SimWorld(truths, seed=seed, noise="white"), "fast-thermal")
     return _calibrate_all(truths, logs, [s.duration_s for s in fast_thermal_steps()])
 
 
@@ -200,7 +200,7 @@ def open_loop_fast_thermal(n: int = N_DUTS, seed: int = SEED) -> ThermalAcceptan
 def six_position_sections(truths: list[DutTruth], seed: int) -> list[dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
     """Per DUT, per six-position orientation: the (acc (n,3), temp (n,)) samples of the last
     HOLD_TAIL_S of each chamber hold, in time order."""
-    logs = run_profile(SimWorld(truths, seed=seed + 1), "six-position")
+    logs = run_profile(SimWorld(truths, seed=seed + 1, noise="white"), "six-position")
     table = step_table("six-position")
     out = []
     for log in logs:
@@ -264,7 +264,7 @@ SFEM_FLOORS = {"b": 5e-6, "scale": 5e-6, "alpha": 5e-6, "rotvec_rad": 5e-6, "A":
 
 
 def sfem_acceptance(truths: list[DutTruth], seed: int) -> list[SfemCase]:
-    logs = run_profile(SimWorld(truths, seed=seed + 2), "sfem-24")
+    logs = run_profile(SimWorld(truths, seed=seed + 2, noise="white"), "sfem-24")
     cases = []
     for truth, log in zip(truths, logs):
         rec = fit_sfem_record(log.time_s, log.acc_g, log.temp_c, log.ref_dir, log.position)

@@ -273,23 +273,31 @@ class Clock:
         return self.t
 
 
-async def test_lamp_on_time_is_conservative_in_compressed_time():
+async def test_lamp_on_time_follows_samples_and_runs_on_wall_time_when_they_stop():
     bus = EventBus()
     clock = Clock()
     g = LampGuard(MemRelay(), bus, max_on_s=600.0, max_dut_temp_c=85, max_plate_temp_c=90, speed=50.0, clock=clock)
     g.note_sample_time(100.0)
     await g.set_lamp(True, "t")
-    # the plant lags (only 200 s of samples in 10 wall s at speed 50 = 500 s): wall x speed counts
-    g.note_sample_time(300.0)
+    # samples flow, late (200 s of samples in 10 wall s at speed 50): what the boards lived through counts
     clock.t += 10.0
-    assert g.on_time_s() == pytest.approx(500.0)
+    g.note_sample_time(300.0)
+    assert g.on_time_s() == pytest.approx(200.0)
+    # the stream stops: from the last sample on, wall x speed keeps counting (3 wall s = 150 s)
+    clock.t += 3.0
+    assert g.on_time_s() == pytest.approx(350.0)
     assert not g.check_on_time()
-    # samples run ahead of wall x speed: the sample clock counts
-    g.note_sample_time(800.0)
-    assert g.on_time_s() == pytest.approx(700.0)
+    clock.t += 5.1  # 200 + (8.1 s x 50) = 605 s > 600 s: a stalled stream cannot keep the lamp on
     assert g.check_on_time()
     await asyncio.sleep(0.05)
-    assert g.relay.coil is False and g.trip_reason.startswith("lamp on for 700 s")
+    assert g.relay.coil is False and g.trip_reason.startswith("lamp on for 605 s")
+
+    # samples running ahead of wall x speed count in full
+    g.reset(2)
+    g.note_sample_time(0.0)
+    await g.set_lamp(True, "t")
+    g.note_sample_time(700.0)
+    assert g.on_time_s() == pytest.approx(700.0)
 
 
 async def test_failed_off_write_is_retried_and_alarmed():
@@ -302,7 +310,9 @@ async def test_failed_off_write_is_retried_and_alarmed():
     assert await g.off("end") is True
     assert relay.coil is False
     alarms = [e for e in _drain(q) if isinstance(e, Alarm)]
-    assert len(alarms) == 2 and "lamp OFF write failed" in alarms[0].text
+    failed = [a for a in alarms if "lamp OFF write failed" in a.text]
+    assert len(failed) == 2 and all(a.severity == "critical" for a in failed)
+    assert g.state == "off" and [a.text for a in alarms if a not in failed] == ["lamp relay answers again"]
     # a relay that stays dead: off() reports failure, alarms, and keeps retrying in the background
     await g.set_lamp(True, "t")
     relay.fail_next = 6
@@ -383,3 +393,63 @@ async def test_timeout_runs_on_each_dut_own_clock_not_the_fastest_board():
     assert await asyncio.wait_for(seq.task, 10) == "finished"
     feeder.cancel()
     assert [d.state for d in seq.duts] == ["done", "done"], [d.fault_reason for d in seq.duts]
+
+
+async def test_position_is_unknown_while_the_plate_moves():
+    """During a fixture move the batch's position is None (samples stored with position -1), not
+    the position the plate left; it is the step's once the fixture reports it reached."""
+    seq, hw, q = _make(BUILTIN_PROFILES["fast-thermal"])
+    seen = []
+
+    class Watching(MemFixture):
+        async def position(self):
+            seen.append((seq.step_index, seq.state, seq.position, seq.status()["position"]))
+            return self.pos
+
+    hw.fixture = Watching()
+    seq.start()
+    feeder = asyncio.create_task(feed(seq))
+    assert await asyncio.wait_for(seq.task, 10) == "finished"
+    feeder.cancel()
+    # the turn from P (0) to N (1) in step 2: polled while moving, position unknown
+    assert (2, "moving", None, None) in seen
+    assert all(pos is None for _, state, pos, _ in seen if state == "moving")
+    for d in seq.duts:  # segments logged at the reached positions as before
+        assert [s.position for s in d.segments] == [0, 0, 1, 1]
+
+
+async def test_waiting_for_says_what_each_state_and_step_waits_for():
+    """The status names what holds the batch (issue 9: a newcomer must see why nothing moves)."""
+    verified = BUILTIN_PROFILES["fast-thermal-verified"]
+    seq, hw, q = _make(verified)
+    assert seq.waiting_for() == "boards"
+    heat = next(i for i, s in enumerate(verified.steps) if s.require == "heat")
+    prog = next(i for i, s in enumerate(verified.steps) if s.require == "program")
+    seq.step_index = 0
+    for state, want in [("moving", "fixture"), ("waiting_operator", "operator"), ("logging", "segment"),
+                        ("analysing", "analysis"), ("aborted", None)]:
+        seq.state = state
+        assert seq.waiting_for() == want, state
+    seq.state, seq.step_index = "logging", heat
+    assert seq.waiting_for() == "temperature rise"
+    seq.state, seq.step_index = "programming", prog
+    assert seq.waiting_for() == "programming"
+    assert seq.status()["note"] is None and seq.status()["analysis"] == "thermal"
+
+    steps = [Step("still", 1, require="static", dwell_s=5.0, timeout_s=100.0),
+             Step("wait", 1, require="none", dwell_s=5.0, timeout_s=100.0)]
+    seq, hw, q = _make(Profile("w", steps, analysis="none"))
+    seq.state, seq.step_index = "logging", 0
+    assert seq.waiting_for() == "static dwell"
+    seq.step_index = 1
+    assert seq.waiting_for() == "dwell"
+    # per DUT: a DUT that has what the step needs waits for the others; an ended one for nothing
+    d0, d1, d2 = seq.duts
+    d0.state = d1.state = "running"
+    d0.t0, d0.last_t, d0.step_t_start = 0.0, 10.0, 0.0  # 10 s into a 5 s dwell
+    d1.t0, d1.last_t, d1.step_t_start = 0.0, 2.0, 0.0
+    d2.state = "faulted"
+    st = seq.status()
+    assert [s["waiting_for"] for s in st["slots"]] == ["other DUTs", "dwell", None]
+    assert st["waiting_for"] == "dwell" and "no calibration result" in st["note"] and st["analysis"] == "none"
+    assert st["counts"] == {"running": 2, "done": 0, "faulted": 1, "interrupted": 0}

@@ -23,10 +23,13 @@ async def _open_all(sim):
     return boards, bus
 
 
-async def _drain(boards, acc, wall_s):
+async def _drain(boards, acc, wall_s, sim=None, plant_s=None):
+    """Read every board for wall_s, or (sim, plant_s) until the plant has lived plant_s more
+    seconds: the simulator waits for a lagging reader, so plant time is what physics depends on."""
     loop = asyncio.get_running_loop()
     end = loop.time() + wall_s
-    while loop.time() < end:
+    t_end = None if sim is None else sim.world.time_s + plant_s
+    while (loop.time() < end) if t_end is None else (sim.world.time_s < t_end and loop.time() < end):
         for i, b in enumerate(boards):
             acc[i].append(await b.read_block(0.05))
 
@@ -45,11 +48,11 @@ async def test_two_serial_two_can_stream_and_lamp_heats_plate():
         blocks = [[] for _ in boards]
         await relay.set_lamp(True)
         assert sim.world.lamp_on
-        await _drain(boards, blocks, 2.5)  # ~600 s of simulated lamp heating
+        await _drain(boards, blocks, 60, sim, 600.0)  # 600 s of simulated lamp heating (~2.4 s wall)
         t_hot = await therm.read_temp_c()
         await relay.set_lamp(False)
         assert not sim.world.lamp_on
-        await _drain(boards, blocks, 2.5)
+        await _drain(boards, blocks, 60, sim, 600.0)
         t_cooled = await therm.read_temp_c()
         assert t_hot > t_cold + 10 and t_cooled < t_hot - 5
         for i, b in enumerate(boards):
@@ -122,3 +125,33 @@ async def test_virtual_can_interface():
         await _drain(boards, blocks, 0.8)
         assert all(len(SampleBlock.concat(bl)) > 50 for bl in blocks)
         await bus.close()
+
+
+async def test_plant_waits_for_a_lagging_reader_and_loses_nothing():
+    """A host that takes its bytes slowly (a loaded daemon whose event loop is busy) holds the
+    simulated plant instead of letting it run ahead (which once tripped the lamp-on limit of whole
+    batches under load). The host here is a plain pyserial reader that takes one kernel buffer's
+    worth every 0.3 s, far slower than 4000 x 3.125 samples/s of ~40-byte frames."""
+    import serial
+
+    from drivers.protocol import serial_frames as sf
+
+    async with SimStation(n_serial=1, n_can=0, seed=2, speed=4000) as sim:
+        port = serial.Serial(sim.serial_boards[0].port.path, timeout=0)
+        port.write(sf.cmd_start())
+        parser = sf.FrameParser()
+        frames = []
+        loop = asyncio.get_running_loop()
+        end = loop.time() + 4.0
+        while loop.time() < end:
+            frames += parser.feed(port.read(65536))
+            await asyncio.sleep(0.3)
+        samples = [f for f in frames if isinstance(f, sf.SampleFrame)]
+        port.close()
+        assert sim.held_ticks > 0
+        assert sim.serial_boards[0].port.bytes_dropped == 0 and parser.stats.as_dict()["frames_bad_checksum"] == 0
+        seqs = np.array([f.seq for f in samples])
+        assert len(seqs) > 100 and np.all(np.diff(seqs) == 1)  # nothing lost in between
+        # the plant is not far ahead of what was read: a few buffers' worth, not the 4 s x 4000
+        # x 3.125 samples it would have produced unheld
+        assert sim._produced - len(seqs) < 0.2 * 4.0 * 4000 * 3.125

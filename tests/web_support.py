@@ -33,7 +33,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def sim_config(sim, *, speed: float, fixture: bool = False, webhook_url: str | None = None, db_url: str = "memory://"):
+def sim_config(sim, *, speed: float, fixture: bool = False, webhook_url: str | None = None, db_url: str = "memory://",
+               products: dict | None = None, profiles: dict | None = None):
     from station.config import parse_config
 
     slots = [{"name": f"s{i + 1}", "serial": p} for i, p in enumerate(sim.serial_ports)]
@@ -58,6 +59,10 @@ def sim_config(sim, *, speed: float, fixture: bool = False, webhook_url: str | N
         data["fixture"] = {"tcp": modbus, "unit": 3}
     if webhook_url:
         data["mes_webhook_url"] = webhook_url
+    if products:
+        data["products"] = products
+    if profiles:  # more site profiles beside "hold"
+        data["profiles"].update(profiles)
     return parse_config(data, "test")
 
 
@@ -66,7 +71,8 @@ class LiveStation:
 
     def __init__(self, tmp_path: Path, *, n_serial: int = 2, n_can: int = 1, speed: float = 400.0,
                  fixture: bool = False, seed: int = 7, outbox=False, sse_interval_s: float = 0.3,
-                 access_log: bool = False, operator_hands: bool = False, sim_process: bool = False) -> None:
+                 access_log: bool = False, operator_hands: bool = False, sim_process: bool = False,
+                 products: dict | None = None, profiles: dict | None = None) -> None:
         """operator_hands: without a motorized fixture, play the operator's hands: when a "turn the
         plate" prompt is confirmed, the simulated plate is turned to the prompted position (the
         operator turns it, then presses Confirm).
@@ -81,6 +87,8 @@ class LiveStation:
         self.access_log = access_log
         self.operator_hands = operator_hands
         self.sim_process = sim_process
+        self.products = products  # spec limits per product (station/spec_limits.py), None = built-ins
+        self.profiles = profiles  # site profiles added to the config (beside "hold")
         self._child = None
         self.prompts_answered: list[int] = []
         self.port = free_port()
@@ -124,7 +132,8 @@ class LiveStation:
             sim_cm = SimStation(n_serial=self.n_serial, n_can=self.n_can, seed=self.seed, speed=self.speed)
         async with sim_cm as sim:
             self.sim = sim
-            cfg = sim_config(sim, speed=self.speed, fixture=self.fixture, db_url=f"sqlite:///{self.db_path}")
+            cfg = sim_config(sim, speed=self.speed, fixture=self.fixture, db_url=f"sqlite:///{self.db_path}",
+                             products=self.products, profiles=self.profiles)
             db = open_database(cfg.database_url)
             station = Station(cfg, db=db)
             await station.start()
@@ -292,3 +301,24 @@ if __name__ == "__main__":  # `python tests/web_support.py sim N_SERIAL N_CAN SE
         asyncio.run(_sim_child_main(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), float(sys.argv[5])))
     else:
         raise SystemExit("usage: web_support.py sim N_SERIAL N_CAN SEED SPEED")
+
+
+def serve_in_thread(app, timeout_s: float = 30.0):
+    """Run a FastAPI app on a real uvicorn server on 127.0.0.1 in a daemon thread; returns (url,
+    stop). For tests that need the HTTP stack but not a daemon (records, audit, certificates)."""
+    from web.app import make_server
+
+    port = free_port()
+    server = make_server(app, "127.0.0.1", port, access_log=False)
+    th = threading.Thread(target=lambda: asyncio.run(server.serve()), daemon=True)
+    th.start()
+    t0 = time.monotonic()
+    while not server.started:
+        assert time.monotonic() - t0 < timeout_s, "test web server did not start"
+        time.sleep(0.02)
+
+    def stop() -> None:
+        server.should_exit = True
+        th.join(10)
+
+    return f"http://127.0.0.1:{port}", stop
