@@ -54,7 +54,7 @@ class MemoryDb:
     def upgrade(self) -> str:
         return "memory"
 
-    def create_batch(self, profile: str, operator: str, config_snapshot: dict) -> int:
+    def create_batch(self, profile: str, operator: str, config_snapshot: dict, replay_of: str | None = None) -> int:
         i = next(self._batch_ids)
         self.batches[i] = {"profile": profile, "operator": operator, "state": "created"}
         return i
@@ -458,7 +458,8 @@ class Station:
                 raise ValueError("a slot is listed twice")
         if not names:
             raise ValueError("no slots selected")
-        batch_id = int(self.db.create_batch(profile, operator, self.config.snapshot()))
+        batch_id = int(self.db.create_batch(profile, operator, self.config.snapshot(),
+                                            replay_of=self.config.replay_of))
         duts = [DutRun(slot=n, link=self.slots[n].cfg.link) for n in names]
         seq = Sequencer(batch_id, prof, duts, self, self.bus, operator=operator)
         for n in names:
@@ -819,6 +820,13 @@ class Station:
                 d.calibrator.restart_window()
         if d.calibrator is not None and not d.hold_calibrator:
             segs = d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c)
+            if segs and seq.position is None and hasattr(d.calibrator, "discard_last_segment"):
+                # averaged while the plate's position was unknown (connecting, moving): no step can
+                # use it, and a kept one would make the calibrator wait for a change that never comes
+                for _ in segs:
+                    d.calibrator.discard_last_segment()
+                log.info("slot %s: a segment logged while the plate position was unknown is discarded", d.slot)
+                segs = []
             for seg in segs:
                 seg = annotate_segment(seg, seq.position)
                 d.segments.append(seg)
@@ -877,7 +885,9 @@ def _thermal_result(d: DutRun, operating_range_c: float = 70.0) -> dict:
     """Streaming (the live calibrator) and offline results of one DUT, as `station calibrate --json`."""
     # list() first: this runs in a worker thread while the pump may still append blocks; a copy
     # (atomic under the GIL) keeps the three columns of concat from seeing different lists
-    block = SampleBlock.concat(list(d.blocks))
+    from station.science.thermal_calibration import fit_samples
+
+    block = fit_samples(SampleBlock.concat(list(d.blocks)), [s.t_end_s for s in d.segments])
     try:
         from station.science.thermal_calibration import calibrate
     except ImportError:

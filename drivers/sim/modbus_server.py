@@ -88,6 +88,9 @@ class SimModbusServer:
         self.reached_position = int(plant.position)
         self.moving = False
         self._move_end_s = 0.0
+        # a fixture that re-homes/verifies: every move command reports moving for at least this many
+        # sample seconds, even to where it already is (tests: a slow first positioning)
+        self.settle_s = 0.0
         self.writes: list[tuple[int, int, int, Any]] = []  # (unit, fc, address, values) log
         self.server: ModbusTcpServer | None = None
         # Relay host watchdog (design 3.3): wall seconds, 0 = off.
@@ -108,10 +111,11 @@ class SimModbusServer:
 
     def _start_move(self, position: int) -> None:
         self.commanded_position = position
-        if position == self.reached_position and not self.moving:
+        same = position == self.reached_position and not self.moving
+        if same and not self.settle_s:
             return
         self.moving = True
-        self._move_end_s = self.plant.time_s + self.move_time_s
+        self._move_end_s = self.plant.time_s + max(0.0 if same else self.move_time_s, self.settle_s)
 
     # ---- pymodbus actions (run in the server's event loop) ---------------------------------
     async def _relay(self, fc, start, address, count, regs, values):

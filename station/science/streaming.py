@@ -137,6 +137,7 @@ class StreamingCalibrator:
         self._armed = False  # an orientation change may still be registered since the last save
         self._orientation = 0
         self.segments: list[Segment] = []
+        self._before_save: list[tuple] = []  # change references before each save (discard_last_segment)
         self.samples_seen = 0
 
     # ------------------------------------------------------------------ status
@@ -166,6 +167,18 @@ class StreamingCalibrator:
         waiting for the next temperature or orientation change keeps waiting."""
         if not self._waiting:
             self._reset_counters()
+
+    def discard_last_segment(self) -> Segment:
+        """Forget the newest saved segment and log again from here: the station could not place it
+        (the plate's position was unknown while it was averaged: boards connecting, the fixture
+        moving). Otherwise the calibrator would wait for the next temperature or orientation change
+        with a segment no step can use, and the step would time out. The change references go back
+        to what they were before it was saved; the filters are kept (the gate stays as it is)."""
+        seg = self.segments.pop()
+        self._last_acc, self._last_temp, self._armed = self._before_save.pop()
+        self._waiting = False
+        self._reset_counters()
+        return seg
 
     # ------------------------------------------------------------------ shared steps
     def _reset_counters(self) -> None:
@@ -202,6 +215,7 @@ class StreamingCalibrator:
             temp_std_c=math.sqrt(max(self._s2t / n - m1t * m1t, 0.0)),
         )
         self.segments.append(seg)
+        self._before_save.append((self._last_acc, self._last_temp, self._armed))
         self._last_acc = seg.acc_mean_g
         self._last_temp = seg.temp_mean_c
         self._armed = True

@@ -42,6 +42,17 @@ def _with_positions(segments: list[Segment], time_s: np.ndarray, position: np.nd
     return out
 
 
+def fit_samples(block: SampleBlock, segment_ends_s: list[float]) -> SampleBlock:
+    """The samples a DUT's fit uses: up to the end of its last segment. What a station receives
+    after it (while other DUTs finish the step and the batch stops) depends on wall-clock latency,
+    i.e. on CPU load and compressed time; a result must depend on the data only, so that a replay
+    of the same samples (station replay) gives the same numbers."""
+    if not segment_ends_s or not len(block):
+        return block
+    keep = block.time_s <= max(float(t) for t in segment_ends_s)
+    return SampleBlock(block.time_s[keep], block.acc_g[keep], block.temp_c[keep], block.lost_samples)
+
+
 def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None = None,
               operating_range_c: float = DEFAULT_OPERATING_RANGE_C) -> dict:
     """Both methods on one record; raises StationError (InsufficientData) with one clear line.
