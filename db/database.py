@@ -214,10 +214,12 @@ class Database:
         return rev
 
     # ---- batches and runs (the daemon's synchronous calls) ---------------------------------
-    def create_batch(self, profile: str, operator: str, config_snapshot: dict, state: str = "created") -> int:
+    def create_batch(self, profile: str, operator: str, config_snapshot: dict, state: str = "created",
+                     replay_of: str | None = None) -> int:
         with self.session() as s:
             b = Batch(
                 station=self.station,
+                replay_of=replay_of or None,
                 profile=profile,
                 operator=operator,
                 state=state,
@@ -272,8 +274,14 @@ class Database:
     ) -> int:
         with self.session() as s:
             dut = self.upsert_dut(s, serial, sensor)
-            # a serial seen again is a retest: its attempt number counts every earlier run
-            attempt = int(s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id)) or 0) + 1
+            # a serial seen again is a retest: its attempt number counts every earlier run of real
+            # parts (a replay re-runs a recorded attempt: it keeps that attempt's number)
+            real = select(Batch.id).where(Batch.replay_of.is_(None))
+            earlier = int(s.scalar(select(func.count(DutRun.id)).where(
+                DutRun.dut_id == dut.id, DutRun.batch_id.in_(real))) or 0)
+            attempt = earlier + 1
+            if s.scalar(select(Batch.replay_of).where(Batch.id == batch_id)) is not None:
+                attempt = max(1, earlier)
             run = DutRun(batch_id=batch_id, station=self.station, slot=slot, dut_id=dut.id, state=state, identity=dict(identity or {}),
                          attempt=attempt)
             s.add(run)

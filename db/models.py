@@ -29,7 +29,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 # The revision of the newest schema this code knows (db/migrations/versions/).
-SCHEMA_REVISION = "0005"
+SCHEMA_REVISION = "0006"
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -109,6 +109,10 @@ class Batch(Base):
     schema_version: Mapped[str] = mapped_column(String(32), default=SCHEMA_REVISION)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column()
+    # a replay of recorded data (station/replay): its source; None for a batch of real parts.
+    # Its runs get no result_seq (never sent to the MES) and are no attempts, yields or SPC points.
+    replay_of: Mapped[str | None] = mapped_column(String(256), index=True)
+    replay_diff: Mapped[dict[str, Any] | None] = mapped_column(JSON)
 
     runs: Mapped[list["DutRun"]] = relationship(back_populates="batch", order_by="DutRun.id")
 

@@ -152,11 +152,13 @@ def dut_by_serial(db: Database, serial: str) -> dict | None:
         dut = s.scalars(select(Dut).where(Dut.serial == serial)).one_or_none()
         if dut is None:
             return None
-        n_runs = s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id)) or 0
+        n_runs = s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id,
+                                                              DutRun.batch_id.in_(_real_batches()))) or 0
         # the DUT's result is its latest VALID attempt (judged pass/marginal/fail); a retest that
         # faulted does not hide the attempt before it. Never judged: the latest run with results.
         latest = s.scalars(
-            select(DutRun).where(DutRun.dut_id == dut.id, DutRun.verdict.in_(VALID_VERDICTS)).order_by(DutRun.id.desc())
+            select(DutRun).where(DutRun.dut_id == dut.id, DutRun.verdict.in_(VALID_VERDICTS),
+                                 DutRun.batch_id.in_(_real_batches())).order_by(DutRun.id.desc())
         ).first()
         if latest is None:
             latest = s.scalars(
@@ -316,6 +318,11 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
         return out
 
 
+def _real_batches() -> Any:
+    """Batches of real parts: a replay (Batch.replay_of) is no attempt, yield or SPC point."""
+    return select(Batch.id).where(Batch.replay_of.is_(None))
+
+
 def yields(db: Database, batch_id: int | None = None) -> dict:
     """First-pass and final yield over the DUTs judged at least once (those with a run in
     `batch_id` when given), counting every attempt of each DUT.
@@ -325,7 +332,8 @@ def yields(db: Database, batch_id: int | None = None) -> dict:
     skipped) is `pass`; a DUT with errors only is not a final pass. Runs not judged yet
     (running, interrupted) are left out."""
     with db.session() as s:
-        q = select(DutRun.dut_id, DutRun.id, DutRun.verdict).where(DutRun.verdict.is_not(None)).order_by(DutRun.id)
+        q = (select(DutRun.dut_id, DutRun.id, DutRun.verdict).where(DutRun.verdict.is_not(None))
+             .where(DutRun.batch_id.in_(_real_batches())).order_by(DutRun.id))
         if batch_id is not None:
             q = q.where(DutRun.dut_id.in_(select(DutRun.dut_id).where(DutRun.batch_id == batch_id)))
         per: dict[int, list[str]] = {}
@@ -374,6 +382,8 @@ def batch_detail(db: Database, batch_id: int) -> dict | None:
             "step_index": b.step_index,
             "last_completed_step": b.last_completed_step,
             "config_snapshot": b.config_snapshot,
+            "replay_of": b.replay_of,
+            "replay_diff": b.replay_diff,
             "schema_version": b.schema_version,
             "created_at": _iso(b.created_at),
             "ended_at": _iso(b.ended_at),
@@ -393,7 +403,8 @@ def list_batches(db: Database, limit: int = 50, before_id: int | None = None) ->
             q = q.where(Batch.id < before_id)
         return [
             {"id": b.id, "station": b.station, "profile": b.profile, "operator": b.operator, "state": b.state, "step_index": b.step_index,
-             "last_completed_step": b.last_completed_step, "created_at": _iso(b.created_at), "ended_at": _iso(b.ended_at)}
+             "last_completed_step": b.last_completed_step, "created_at": _iso(b.created_at), "ended_at": _iso(b.ended_at),
+             "replay_of": b.replay_of}
             for b in s.scalars(q)
         ]
 
@@ -410,7 +421,7 @@ def judged_runs(db: Database, limit: int = 5000, station: str | None = None) -> 
     measurement with its value and the limits it was judged by): the input of station/spc.py."""
     with db.session() as s:
         q = (select(DutRun, Dut.serial).join(Dut, Dut.id == DutRun.dut_id).where(DutRun.verdict.is_not(None))
-             .order_by(DutRun.judged_at.desc(), DutRun.id.desc()).limit(max(1, min(int(limit), 100_000))))
+             .where(DutRun.batch_id.in_(_real_batches())).order_by(DutRun.judged_at.desc(), DutRun.id.desc()).limit(max(1, min(int(limit), 100_000))))
         if station:
             q = q.where(DutRun.station == station)
         rows = s.execute(q).all()

@@ -274,6 +274,7 @@ class DbWriter:
         self.on_commit = on_commit
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self._runs: dict[tuple[int, str], int] = {}
+        self._replay: dict[int, bool] = {}  # batch id -> is a replay (its results get no result_seq)
         self._runs_lock = threading.Lock()
         self._bufs: dict[int, _RunBuf] = {}
         self._closed = False
@@ -433,7 +434,7 @@ class DbWriter:
                 seal: set[int] = set()
                 # results take their result_seq last (take_result_seq), so the counter's row lock
                 # is held only for the commit, not while samples are compressed
-                numbered: list[tuple[int, Callable[[Connection, int], None]]] = []
+                numbered: list[tuple[int, int, Callable[[Connection, int | None], None]]] = []
                 for ev in events:
                     if not isinstance(ev, _STORED):
                         continue  # prompts, lamp, alarms, steps: not stored
@@ -448,12 +449,12 @@ class DbWriter:
                             info.segments.append((run_id, ev.segment.index, self._segment(conn, run_id, ev)))
                     elif isinstance(ev, (DutResult, DutVerdict)):
                         if run_id is not None:
-                            numbered.append((run_id, self._result(conn, run_id, ev)))
+                            numbered.append((ev.batch_id, run_id, self._result(conn, run_id, ev)))
                     elif isinstance(ev, (DutProgrammed, DutVerified)):
                         if run_id is not None:
                             finish = self._program_verify(conn, run_id, ev)
                             if finish is not None:
-                                numbered.append((run_id, finish))
+                                numbered.append((ev.batch_id, run_id, finish))
                     elif isinstance(ev, SlotStateChanged):
                         if run_id is not None:
                             self._slot_state(conn, run_id, ev)
@@ -470,7 +471,10 @@ class DbWriter:
                     seal.discard(run_id)
                 for run_id in sorted(seal | (set(self._bufs) if seal_all else set())):
                     self._seal(conn, run_id)
-                for run_id, finish in numbered:
+                for batch_id, run_id, finish in numbered:
+                    if self._is_replay(conn, batch_id):  # a replay's results never reach the MES
+                        finish(conn, None)
+                        continue
                     seq = take_result_seq(conn)
                     finish(conn, seq)
                     info.results.append((run_id, seq))
@@ -486,6 +490,12 @@ class DbWriter:
             except Exception:
                 log.exception("db writer: on_commit callback failed")
 
+    def _is_replay(self, conn: Connection, batch_id: int) -> bool:
+        if batch_id not in self._replay:
+            self._replay[batch_id] = conn.execute(
+                select(Batch.replay_of).where(Batch.id == batch_id)).scalar() is not None
+        return self._replay[batch_id]
+
     def _run_id(self, conn: Connection, ev: Event) -> int | None:
         slot = getattr(ev, "slot", None)
         key = (ev.batch_id, slot)
@@ -497,7 +507,9 @@ class DbWriter:
             ).scalars().first()
             if run_id is None:
                 self.stats["unbound_events"] += 1
-                log.warning("db writer: no run for batch %s slot %s; %s dropped", ev.batch_id, slot, ev.kind)
+                # a slot's state before its board identified (connecting) has no run yet: expected
+                level = logging.DEBUG if isinstance(ev, SlotStateChanged) else logging.WARNING
+                log.log(level, "db writer: no run for batch %s slot %s; %s dropped", ev.batch_id, slot, ev.kind)
                 return None
             with self._runs_lock:
                 self._runs.setdefault(key, run_id)
@@ -535,14 +547,16 @@ class DbWriter:
             conn.execute(insert(SfemResultRow).values(run_id=run_id, station=self.station, created_at=now, **row))
         return lambda conn, seq: self._number_result(conn, run_id, ev, seq, now)
 
-    def _number_result(self, conn: Connection, run_id: int, ev: DutResult | DutVerdict, seq: int, now: Any) -> None:
+    def _number_result(self, conn: Connection, run_id: int, ev: DutResult | DutVerdict, seq: int | None,
+                       now: Any) -> None:
         thermal = getattr(ev, "thermal", None)
         sfem = getattr(ev, "sfem", None)
-        values: dict[str, Any] = {"result_seq": seq}
+        values: dict[str, Any] = {} if seq is None else {"result_seq": seq}
         if ev.verdict:
             values.update(verdict_columns(ev.verdict), judged_at=now)
-        conn.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
-        if self.outbox:
+        if values:
+            conn.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
+        if self.outbox and seq is not None:
             payload = {
                 "result_seq": seq,
                 "run_id": run_id,
@@ -593,7 +607,9 @@ class DbWriter:
             return None
         return lambda conn, seq: self._number_verification(conn, run_id, ev, seq, now)
 
-    def _number_verification(self, conn: Connection, run_id: int, ev: DutVerified, seq: int, now: Any) -> None:
+    def _number_verification(self, conn: Connection, run_id: int, ev: DutVerified, seq: int | None, now: Any) -> None:
+        if seq is None:  # a replay: stored, not numbered for the MES
+            return
         conn.execute(update(DutRun).where(DutRun.id == run_id).values(result_seq=seq))
         if self.outbox:
             prog = conn.execute(select(ProgramVerifyRow.program).where(ProgramVerifyRow.run_id == run_id)).scalar()

@@ -194,6 +194,9 @@ class StationConfig(_Model):
     # Spec limits per product (station/spec_limits.py): built-ins for LIS3DSH and ADXL355, which a
     # site's [products.NAME] with the same key replaces.
     products: dict[str, ProductSpec] = {}
+    # set by `station replay` (station/replay): every batch of this daemon re-runs recorded data
+    # from this source; such batches are stored as replays and never sent to the MES
+    replay_of: str | None = Field(default=None, max_length=256)
 
     @model_validator(mode="after")
     def _unique(self) -> "StationConfig":
