@@ -20,6 +20,7 @@ COMMANDS: dict[str, str] = {
     "calibrate": "thermal calibration (TDB/TDSF) of a recorded fast-thermal log",
     "sfem": "sensor frame error model fit of static positions",
     "diagnose": "compare the thermal model with a log, rank missing effects, add them",
+    "replay": "run a recorded batch (or logs) again through simulated boards and diff the outcome",
     "certificate": "calibration certificate (PDF) of a DUT by serial number",
     "db": "database maintenance: upgrade, export and prune sample streams",
 }

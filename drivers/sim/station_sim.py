@@ -53,6 +53,7 @@ class SimStation:
         can_interface: str = "slcan",
         tick_s: float = 0.05,
         move_time_s: float = 4.0,
+        world: Any = None,
     ) -> None:
         if n_can > 127:
             raise ValueError("at most 127 CAN boards on one bus")
@@ -61,12 +62,18 @@ class SimStation:
         self.seed = seed
         self.speed = float(speed)
         self.tick_s = tick_s
-        if truths is None:
-            truths = draw_population(self.n_serial + self.n_can, seed, sensor=sensor, effects=tuple(effects))
-        if len(truths) != self.n_serial + self.n_can:
-            raise ValueError("truths must have n_serial + n_can entries")
-        self.truths: list[DutTruth] = list(truths)
-        self.world = SimWorld(self.truths, env=env, odr_hz=odr_hz, seed=seed)
+        if world is not None:  # another plant (drivers/sim/replay.py: recorded samples), no physics truth
+            if world.n_duts != self.n_serial + self.n_can:
+                raise ValueError("the world must have n_serial + n_can DUTs")
+            self.truths: list[DutTruth] = []
+            self.world = world
+        else:
+            if truths is None:
+                truths = draw_population(self.n_serial + self.n_can, seed, sensor=sensor, effects=tuple(effects))
+            if len(truths) != self.n_serial + self.n_can:
+                raise ValueError("truths must have n_serial + n_can entries")
+            self.truths = list(truths)
+            self.world = SimWorld(self.truths, env=env, odr_hz=odr_hz, seed=seed)
         self.can_interface = can_interface
         self.move_time_s = move_time_s
         self.serial_boards: list[SimSerialBoard] = []
@@ -101,7 +108,7 @@ class SimStation:
     async def start(self) -> None:
         w = self.world
         for i in range(self.n_serial):
-            b = SimSerialBoard(w.identity(i))
+            b = self._make_serial_board(i)
             b.start()
             self.serial_boards.append(b)
             self.serial_ports.append(b.path)
@@ -126,6 +133,9 @@ class SimStation:
         loop = asyncio.get_running_loop()
         self._wall0 = loop.time()
         self._clock = asyncio.create_task(self._run_clock(), name="simstation-clock")
+
+    def _make_serial_board(self, i: int) -> SimSerialBoard:
+        return SimSerialBoard(self.world.identity(i))
 
     async def close(self) -> None:
         if self._clock is not None:

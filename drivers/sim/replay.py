@@ -1,0 +1,224 @@
+"""Replayed hardware: boards that stream recorded samples, and a plate that reports agreement.
+
+ReplayWorld is the plant of a SimStation (same interface as SimWorld: `advance`, `identity`,
+`odr_hz`, `time_s`, and the Modbus plant attributes `lamp_on`, `position`, `chamber_setpoint_c`,
+`plate_temp_c`), but its samples are recorded ones: each DUT's stream starts when its board is
+first told to START, and from then on the board sends the recorded samples at the pace of the
+SimStation clock (`speed`, with the same backpressure as the demo), with the recorded counts,
+identity and sample clock. What the daemon commands (lamp, fixture, chamber) cannot change the
+data: the relay, fixture and chamber accept the commands (SimModbusServer, as in the demo), and
+station/replay/agreement.py compares the plate state the daemon stored beside every replayed
+sample with the one recorded beside the same sample.
+
+ReplayStation is the SimStation that plays a Recording: serial DUTs on ptys with a 64-bit board
+clock (so t_us goes over the wire exactly as recorded), CAN DUTs behind the slcan adapter.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from drivers.sim.serial_pty import SimSerialBoard
+from drivers.sim.slcan_pty import SimCanBoard
+from drivers.sim.station_sim import SimStation
+from station.replay.recording import RecordedDut, Recording
+from station.types import Identity
+
+START_GRACE_S = 3.0
+
+
+@dataclass
+class ReplayPart:
+    """The samples of one DUT that fall due in one world advance."""
+
+    time_s: np.ndarray
+    acc_counts: np.ndarray
+    temp_counts: np.ndarray
+    seq: np.ndarray
+
+
+@dataclass
+class ReplayChunk:
+    time_s: np.ndarray  # world sample times of this advance
+    parts: list[ReplayPart]
+
+    def __len__(self) -> int:
+        return int(self.time_s.shape[0])
+
+
+class ReplayWorld:
+    """The plant of a replay (see module doc). DUT order = SimStation board order."""
+
+    def __init__(self, duts: list[RecordedDut]) -> None:
+        if not duts:
+            raise ValueError("nothing to replay")
+        self.duts = list(duts)
+        self._odr_hz = max(float(d.identity.odr_hz) for d in self.duts)
+        self._k = 0
+        self.lamp_on = False
+        self.position = 0
+        self.chamber_setpoint_c: float | None = None
+        self.requested_odr_hz: list[float] = []
+        self._start: list[float | None] = [None] * len(self.duts)  # world time at which DUT i's record starts
+        self._delay = _lamp_alignment(self.duts)
+        self._next = np.zeros(len(self.duts), dtype=np.int64)  # next recorded sample of DUT i
+        self._rel = [d.time_s - d.time_s[0] for d in self.duts]
+        self._seq = [d.seq_index() for d in self.duts]
+        self._temp_now = np.array([float(d.identity.temp_c(d.temp_counts[:1])[0]) for d in self.duts])
+        self.sent = [0] * len(self.duts)
+        self._crc = [0] * len(self.duts)
+
+    # ---- SimWorld interface ------------------------------------------------------------------
+    @property
+    def n_duts(self) -> int:
+        return len(self.duts)
+
+    @property
+    def odr_hz(self) -> float:
+        return self._odr_hz
+
+    @odr_hz.setter
+    def odr_hz(self, hz: float) -> None:  # the recording fixes the rate; a request is noted
+        self.requested_odr_hz.append(float(hz))
+
+    @property
+    def time_s(self) -> float:
+        return self._k / self._odr_hz
+
+    @property
+    def plate_temp_c(self) -> float:
+        """No plate thermometer is recorded: the median DUT temperature now stands in for it."""
+        return float(np.median(self._temp_now))
+
+    @property
+    def chamber_air_c(self) -> float:
+        return self.plate_temp_c
+
+    def identity(self, i: int) -> Identity:
+        return self.duts[i].identity
+
+    def power_cycle(self, i: int, off_s: float = 0.0) -> None:
+        """A recorded stream has no physics to restart."""
+
+    @property
+    def exhausted(self) -> bool:
+        """Every started DUT has sent its whole record (and every DUT has started)."""
+        return all(s is not None for s in self._start) and all(
+            int(self._next[i]) >= len(d) for i, d in enumerate(self.duts))
+
+    def start_dut(self, i: int) -> None:
+        """DUT i's board was told to START: its record begins now, or later by its lamp alignment
+        (only the first time)."""
+        if self._start[i] is None:
+            self._start[i] = self.time_s + self._delay[i]
+
+    def advance(self, n: int) -> ReplayChunk:
+        t0 = self.time_s
+        world_t = t0 + np.arange(n) / self._odr_hz
+        self._k += n
+        t_end = self.time_s
+        parts = []
+        for i, d in enumerate(self.duts):
+            s = self._start[i]
+            a = int(self._next[i])
+            if s is None or a >= len(d):
+                parts.append(ReplayPart(d.time_s[:0], d.acc_counts[:0], d.temp_counts[:0], self._seq[i][:0]))
+                continue
+            b = int(np.searchsorted(self._rel[i], t_end - s, side="left"))
+            self._next[i] = b
+            parts.append(ReplayPart(d.time_s[a:b], d.acc_counts[a:b], d.temp_counts[a:b], self._seq[i][a:b]))
+            if b > a:
+                self._temp_now[i] = float(d.identity.temp_c(d.temp_counts[b - 1:b])[0])
+        return ReplayChunk(world_t, parts)
+
+    def note_sent(self, i: int, part: ReplayPart) -> None:
+        """What board i actually put on the wire (a board not streaming sends nothing)."""
+        if len(part.time_s):
+            self.sent[i] += len(part.time_s)
+            self._crc[i] = zlib.crc32(_sample_bytes(part.time_s, part.acc_counts, part.temp_counts), self._crc[i])
+
+    def sent_digest(self, i: int) -> tuple[int, int]:
+        return self.sent[i], self._crc[i]
+
+
+def _lamp_alignment(duts: list[RecordedDut]) -> list[float]:
+    """Sample seconds each record starts after the earliest one, so that every DUT reaches its
+    first lamp switch-on at the same moment, as on the recorded plate. Records start at each
+    board's first sample after its START, and those are seconds of wall time apart, i.e. many
+    sample seconds in compressed time; the lamp switched on for all DUTs at one instant, so it is
+    the common clock. Without a lamp column (or a switch-on in every record): all start together."""
+    lead = []
+    for d in duts:
+        if d.lamp is None:
+            return [0.0] * len(duts)
+        on = np.flatnonzero((d.lamp[1:] > 0) & (d.lamp[:-1] == 0))
+        if not len(on):
+            return [0.0] * len(duts)
+        lead.append(float(d.time_s[on[0] + 1] - d.time_s[0]))
+    c = max(lead)
+    return [c - x for x in lead]
+
+
+def _sample_bytes(time_s: np.ndarray, acc_counts: np.ndarray, temp_counts: np.ndarray) -> bytes:
+    t_us = np.rint(np.asarray(time_s, dtype=np.float64) * 1e6).astype(np.int64)
+    rows = np.column_stack([t_us, np.asarray(acc_counts, dtype=np.int64), np.asarray(temp_counts, dtype=np.int64)])
+    return np.ascontiguousarray(rows, dtype="<i8").tobytes()
+
+
+def recorded_digest(d: RecordedDut) -> tuple[int, int]:
+    """(samples, crc32) of a whole record, to compare with ReplayWorld.sent_digest."""
+    return len(d), zlib.crc32(_sample_bytes(d.time_s, d.acc_counts, d.temp_counts))
+
+
+class ReplayStation(SimStation):
+    """A SimStation whose boards play a Recording (serial DUTs first, then CAN, in record order)."""
+
+    def __init__(self, recording: Recording, speed: float = 60.0, *, can_interface: str = "slcan",
+                 tick_s: float = 0.05, move_time_s: float = 4.0) -> None:
+        serial = [d for d in recording.duts if d.link != "can"]
+        can = [d for d in recording.duts if d.link == "can"]
+        self.recording = recording
+        self.ordered: list[RecordedDut] = serial + can
+        world = ReplayWorld(self.ordered)
+        self._first_start: float | None = None
+        super().__init__(n_serial=len(serial), n_can=len(can), speed=speed, world=world,
+                         can_interface=can_interface, tick_s=tick_s, move_time_s=move_time_s)
+
+    def _make_serial_board(self, i: int) -> SimSerialBoard:
+        return SimSerialBoard(self.world.identity(i), clock_bits=None)  # 64-bit clock: t_us as recorded
+
+    def _deliver(self, chunk: Any) -> None:
+        world: ReplayWorld = self.world  # type: ignore[assignment]
+        streaming = [self.board(i).streaming for i in range(world.n_duts)]
+        now = asyncio.get_running_loop().time()
+        if any(streaming) and self._first_start is None:
+            self._first_start = now
+        # the boards get START one after the other: records start together once all stream (or a
+        # board is late by more than START_GRACE_S wall seconds: it starts on its own then)
+        if self._first_start is not None and (all(streaming) or now - self._first_start > START_GRACE_S):
+            for i, on in enumerate(streaming):
+                if on:
+                    world.start_dut(i)
+        for i, part in enumerate(chunk.parts):
+            if not len(part.time_s):
+                continue
+            board = self.board(i)
+            if not board.streaming or getattr(board, "muted", False):
+                continue
+            mask = 0xFF if isinstance(board, SimCanBoard) else 0xFFFFFFFF
+            # contiguous pieces between recorded gaps: the board skips the lost sequence numbers
+            cuts = np.flatnonzero(np.diff(part.seq) != 1) + 1
+            for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(part.seq)]):
+                board.seq = int(part.seq[a]) & mask
+                board.feed(part.time_s[a:b], part.acc_counts[a:b], part.temp_counts[a:b])
+            world.note_sent(i, part)
+        for cb in self._listeners:
+            cb(chunk)
+
+    def replay_slot_names(self) -> list[str]:
+        return [d.slot for d in self.ordered]
