@@ -396,6 +396,30 @@ def batch_detail(db: Database, batch_id: int) -> dict | None:
         return out
 
 
+def replays(db: Database, limit: int = 50) -> list[dict]:
+    """Replay batches (station replay), newest first, with the summary of their comparison."""
+    with db.session() as s:
+        q = (select(Batch).where(Batch.replay_of.is_not(None)).order_by(Batch.id.desc())
+             .limit(max(1, min(int(limit), 1000))))
+        out = []
+        for b in s.scalars(q):
+            diff = b.replay_diff or {}
+            out.append({"batch_id": b.id, "station": b.station, "profile": b.profile, "state": b.state,
+                        "replay_of": b.replay_of, "created_at": _iso(b.created_at), "ended_at": _iso(b.ended_at),
+                        "summary": diff.get("summary"), "plate_agrees": (diff.get("agreement") or {}).get("agrees")})
+        return out
+
+
+def replay_diff(db: Database, batch_id: int) -> dict | None:
+    """The stored comparison of one replay batch; None when the batch is no replay (or unknown)."""
+    with db.session() as s:
+        b = s.get(Batch, batch_id)
+        if b is None or b.replay_of is None:
+            return None
+        return {"batch_id": b.id, "replay_of": b.replay_of, "state": b.state, "created_at": _iso(b.created_at),
+                "diff": b.replay_diff}
+
+
 def list_batches(db: Database, limit: int = 50, before_id: int | None = None) -> list[dict]:
     with db.session() as s:
         q = select(Batch).order_by(Batch.id.desc()).limit(max(1, min(limit, 1000)))

@@ -13,6 +13,7 @@ HEAVY_FIRST = (
     "test_daemon_e2e.py",
     "test_program_verify_e2e.py",
     "test_clean_install.py",
+    "test_replay.py",
 )
 
 

@@ -8,6 +8,7 @@ that shares no code with the station's simulator.
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -41,20 +42,51 @@ def _db(url: str):
     return open_database(url, station="test")
 
 
-def test_a_recorded_12_dut_demo_batch_replays_identically(recorded):
+def _tight_limits(folder: Path, rec) -> tuple[Path, list[str], list[str], dict]:
+    """A config whose TDSF floor two of the recorded parts miss by far and two meet by far."""
+    tdsf = {d.serial: min(d.outcome["thermal"][ax]["tdsf_ppm_per_c"] for ax in "xyz") for d in rec.duts}
+    chosen = sorted(tdsf, key=tdsf.get)
+    worst, best = chosen[:2], chosen[-2:]
+    floor = (tdsf[worst[1]] + tdsf[best[0]]) / 2
+    assert tdsf[worst[1]] < floor - 30 and tdsf[best[0]] > floor + 30, tdsf
+    cfg = folder / "tight.toml"
+    limits = f'[[products.{{sensor}}.limits]]\nmeasurement = "tdsf_ppm_per_c"\nlow = {floor:.1f}\nlabel = "TDSF"\n'
+    cfg.write_text(
+        'name = "tight"\n[lamp]\ntcp = {host = "127.0.0.1", port = 1502}\nunit = 1\n'
+        '[[slots]]\nname = "s01"\nserial = "/dev/null"\n'
+        + "".join(f'[products.{s}]\nsensor = "{s}"\nversion = "tight-1"\n' + limits.format(sensor=s)
+                  for s in sorted({d.identity.sensor for d in rec.duts}))
+    )
+    return cfg, worst, best, tdsf
+
+
+@pytest.fixture(scope="module")
+def replays(recorded):
+    """The recorded batch replayed as it was, then with a tighter limits set (4 DUTs)."""
+    from station.replay.recording import from_database
+
+    folder, url = recorded
+    out = {}
+    out["same"] = _station("replay", "--db", url, "--batch", "1", "--speed", SPEED, "--json", str(folder / "same.json"))
+    cfg, worst, best, tdsf = _tight_limits(folder, from_database(url, 1))
+    out["tight"] = _station("replay", "--db", url, "--batch", "1", "--speed", SPEED, "--config", str(cfg),
+                            "--only", *worst, *best, "--json", str(folder / "tight.json"))
+    return out, {"worst": worst, "best": best, "tdsf": tdsf}
+
+
+def test_a_recorded_12_dut_demo_batch_replays_identically(recorded, replays):
     from db import repository as R
     from db.export import run_samples
     from station.replay.recording import from_database, to_counts
 
     folder, url = recorded
-    out_json = folder / "same.json"
-    out = _station("replay", "--db", url, "--batch", "1", "--speed", SPEED, "--json", str(out_json))
+    out = replays[0]["same"]
     assert out.returncode == 0, out.stdout + out.stderr
-    diff = json.loads(out_json.read_text())
+    diff = json.loads((folder / "same.json").read_text())
     assert diff["summary"]["duts"] == 12 and diff["summary"]["unchanged"] == 12, diff["summary"]
     for d in diff["duts"]:
         assert d["samples_identical"] is True, d
-        assert d["compared"] >= 15, d  # 12 thermal numbers per method pair at least, plus the words
+        assert d["compared"] >= 15, d  # 12 thermal numbers (2 methods) at least, plus the words
     assert "12 unchanged, 0 changed" in out.stdout
     assert diff["agreement"]["lamp"]["agrees"] and diff["agreement"]["fixture"]["agrees"], diff["agreement"]
 
@@ -88,37 +120,89 @@ def test_a_recorded_12_dut_demo_batch_replays_identically(recorded):
         db.dispose()
 
 
-def test_a_changed_limits_set_lists_the_changed_verdicts_and_exits_1(recorded, tmp_path):
-    from station.replay.recording import from_database
-
-    folder, url = recorded
-    rec = from_database(url, 1)
-    tdsf = {d.serial: min(d.outcome["thermal"][ax]["tdsf_ppm_per_c"] for ax in "xyz") for d in rec.duts}
-    # a TDSF floor that two of the chosen parts miss by far and two meet by far
-    chosen = sorted(tdsf, key=tdsf.get)
-    worst, best = chosen[:2], chosen[-2:]
-    floor = (tdsf[worst[1]] + tdsf[best[0]]) / 2
-    assert tdsf[worst[1]] < floor - 30 and tdsf[best[0]] > floor + 30, tdsf
-    cfg = tmp_path / "tight.toml"
-    limits = f'[[products.{{sensor}}.limits]]\nmeasurement = "tdsf_ppm_per_c"\nlow = {floor:.1f}\nlabel = "TDSF"\n'
-    cfg.write_text(
-        'name = "tight"\n[lamp]\ntcp = {host = "127.0.0.1", port = 1502}\nunit = 1\n'
-        '[[slots]]\nname = "s01"\nserial = "/dev/null"\n'
-        + "".join(f'[products.{s}]\nsensor = "{s}"\nversion = "tight-1"\n' + limits.format(sensor=s)
-                  for s in sorted({d.identity.sensor for d in rec.duts}))
-    )
-    out_json = tmp_path / "tight.json"
-    out = _station("replay", "--db", url, "--batch", "1", "--speed", SPEED, "--config", str(cfg),
-                   "--only", *worst, *best, "--json", str(out_json))
+def test_a_changed_limits_set_lists_the_changed_verdicts_and_exits_1(recorded, replays):
+    folder, _ = recorded
+    out, parts = replays[0]["tight"], replays[1]
+    worst, best = parts["worst"], parts["best"]
     assert out.returncode == 1, out.stdout + out.stderr
-    diff = json.loads(out_json.read_text())
+    diff = json.loads((folder / "tight.json").read_text())
     changed = {v["serial"]: (v["before"], v["after"]) for v in diff["summary"]["verdicts_changed"]}
-    assert changed == {s: ("pass", "fail") for s in worst}, (changed, tdsf, floor)
+    assert changed == {s: ("pass", "fail") for s in worst}, (changed, parts["tdsf"])
     assert {d["serial"] for d in diff["duts"]} == set(worst + best)
     for s in worst:
         assert f"verdict changed: {s} pass -> fail" in out.stdout
     for d in diff["duts"]:  # the science did not change, only the judgement
         assert not [c for c in d["changes"] if c["key"].startswith(("offline.", "streaming."))], d
+
+
+CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (scripts/test.sh installs it)")
+def test_the_page_lists_replays_and_shows_the_changed_verdicts(recorded, replays):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    from web.app import create_app
+    from web.auth import TokenStore
+    from web.db_repo import DbRepository
+    from web_support import serve_in_thread
+
+    _, url = recorded
+    worst = replays[1]["worst"]
+    db = _db(url)
+    app = create_app(_IdleStation(db), repo=DbRepository(db), outbox=False,
+                     tokens=TokenStore([("operator-token-replay", "operator", "ana")]))
+    base, stop_server = serve_in_thread(app)
+    artifacts = Path(__file__).resolve().parents[1] / "artifacts"
+    artifacts.mkdir(exist_ok=True)
+    try:
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True,
+                                         args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+            try:
+                page = browser.new_page(viewport={"width": 1280, "height": 1400})
+                page.set_default_timeout(20_000)
+                page.goto(base + "/")
+                page.fill("#token", "operator-token-replay")
+                page.click("#save-token")
+                page.click("#tab-records")
+                page.wait_for_selector("#replay-table tr[data-batch] >> nth=1")
+                rows = page.locator("#replay-table tr[data-batch]")
+                texts = [rows.nth(i).inner_text() for i in range(rows.count())]
+                tight = next(t for t in texts if "fail" in t)
+                for s in worst:
+                    assert f"{s} pass → fail" in tight, texts
+                assert any("none" in t and "agrees" in t for t in texts), texts  # the identical replay
+                rows.filter(has_text=worst[0]).first.click()
+                page.wait_for_selector(f"#replay-changes tr[data-serial='{worst[0]}']")
+                cell = page.locator(f"#replay-changes tr[data-serial='{worst[0]}'] td").nth(3).inner_text()
+                assert "verdict pass → fail" in cell, cell
+                page.screenshot(path=str(artifacts / "browser-replays.png"), full_page=True)
+            finally:
+                browser.close()
+    finally:
+        stop_server()
+        db.dispose()
+
+
+class _IdleStation:
+    """What the page's start-up asks of the daemon: an idle station with no slots."""
+
+    config = None
+
+    def __init__(self, db):
+        from station.events import EventBus
+
+        self.db = db
+        self.bus = EventBus()
+
+    def profiles(self):
+        return []
+
+    def slots_status(self):
+        return []
+
+    def batch_ids(self):
+        return []
 
 
 def test_replay_of_csv_logs_from_an_independent_generator(tmp_path):

@@ -188,6 +188,12 @@ class DbRepository(WebRepository):
     def judged_runs(self, limit: int = 5000, station: str | None = None) -> list[dict]:
         return R.judged_runs(self.db, limit, station)
 
+    def replays(self, limit: int = 50) -> list[dict]:
+        return R.replays(self.db, limit)
+
+    def replay(self, batch_id: int) -> dict | None:
+        return R.replay_diff(self.db, batch_id)
+
     def certificate_pdf(self, serial: str) -> bytes | None:
         from station.certificate import certificate_for, render_pdf
 

@@ -97,6 +97,15 @@ class WebRepository(abc.ABC):
 
         raise HTTPException(status_code=503, detail="this station runs without a database: no SPC")
 
+    def replays(self, limit: int = 50) -> list[dict]:
+        """Replay batches with their comparison summary (db.repository.replays)."""
+        from fastapi import HTTPException
+
+        raise HTTPException(status_code=503, detail="this station runs without a database: no replays")
+
+    def replay(self, batch_id: int) -> dict | None:
+        return None
+
     def certificate_pdf(self, serial: str) -> bytes | None:
         """The calibration certificate (PDF) of a serial (station/certificate.py); None for an
         unknown serial; LookupError for a serial without a stored result."""

@@ -328,6 +328,37 @@ class AuditEntry(_Out):
     detail: dict[str, Any] = Field(default_factory=dict, description="what the request carried")
 
 
+class ReplaySummary(_Out):
+    duts: int = 0
+    unchanged: int = 0
+    changed: int = 0
+    verdicts_changed: list[dict[str, Any]] = Field(default=[], description="serial, before, after")
+    largest_change: dict[str, Any] | None = Field(default=None, description="serial, key, before, after, delta")
+
+
+class ReplayEntry(_Out):
+    """A replay batch (station replay): recorded data re-run through the station, never sent to the MES."""
+
+    batch_id: int
+    station: str = ""
+    profile: str = ""
+    state: str = ""
+    replay_of: str = Field(description="the source: 'batch 12 of line-A (...)' or '3 CSV logs'")
+    created_at: str | None = None
+    ended_at: str | None = None
+    summary: ReplaySummary | None = Field(default=None, description="null while the replay runs")
+    plate_agrees: bool | None = Field(default=None, description="lamp and fixture agreed with the recording")
+
+
+class ReplayOut(_Out):
+    batch_id: int
+    replay_of: str
+    state: str = ""
+    created_at: str | None = None
+    diff: dict[str, Any] | None = Field(default=None, description="station/replay/compare.py ReplayDiff.to_json(): "
+                                        "source, before, rtol, atol, summary, agreement, per-DUT changes")
+
+
 class SpcOut(_Out):
     """station/spc.py SpcReport plus the parameters available and the yield tables."""
 

@@ -1,17 +1,17 @@
-"""Records of the station (issue 13): the audit trail (admin), yield and SPC. Thin: the repository
-reads, station/spc.py computes."""
+"""Records of the station (issues 13, 16): the audit trail (admin), yield and SPC, replays. Thin:
+the repository reads, station/spc.py computes, station/replay compared."""
 
 from __future__ import annotations
 
 import re
 from dataclasses import asdict
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from web.auth import require_admin, require_read
-from web.schemas import AuditEntry, SpcOut, error_responses
+from web.schemas import AuditEntry, ReplayEntry, ReplayOut, SpcOut, error_responses
 from web.views import clean
 
 router = APIRouter(prefix="/api", tags=["records"], responses=error_responses(401, 403, 404, 422, 503))
@@ -75,3 +75,19 @@ async def spc_csv(request: Request, parameter: str | None = PARAM, station: str 
     name = re.sub(r"[^A-Za-z0-9_.-]", "_", report.parameter or "none")
     return Response(spc.csv_text(report), media_type="text/csv",
                              headers={"Content-Disposition": f'attachment; filename="spc-{name}.csv"'})
+
+
+# ---- replays (station/replay) -------------------------------------------------------------------
+@router.get("/replays", response_model=list[ReplayEntry], dependencies=[Depends(require_read)])
+async def list_replays(request: Request, limit: int = Query(default=50, ge=1, le=1000)):
+    """Replay batches (`station replay`), newest first: source, how many DUTs changed, verdict changes."""
+    return clean(await run_in_threadpool(request.app.state.repo.replays, limit))
+
+
+@router.get("/replays/{batch_id}", response_model=ReplayOut, dependencies=[Depends(require_read)])
+async def get_replay(request: Request, batch_id: int = Path(ge=1, le=2**62)):
+    """One replay's comparison with the recording: every changed number and word per DUT."""
+    out = await run_in_threadpool(request.app.state.repo.replay, batch_id)
+    if out is None:
+        raise HTTPException(status_code=404, detail=f"batch {batch_id} is no replay (or does not exist)")
+    return clean(out)

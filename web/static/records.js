@@ -148,8 +148,58 @@ function spcInit() {
 window.loadSpc = () => spcShow(document.getElementById("spc-parameter").value || undefined);
 document.addEventListener("DOMContentLoaded", spcInit);
 
+// ---- replays (station replay) ----------------------------------------------------------------------
+async function loadReplays() {
+  const table = document.getElementById("replay-table");
+  const status = document.getElementById("replay-status");
+  table.replaceChildren();
+  try {
+    const rows = await api("/api/replays?limit=20");
+    status.textContent = rows.length ? "" : "No replay yet.";
+    if (!rows.length) return;
+    table.append(el("tr", {}, ...["batch", "when", "source", "DUTs", "unchanged", "changed", "verdicts changed", "plate"]
+      .map((h) => el("th", {}, h))));
+    for (const r of rows) {
+      const s = r.summary || {};
+      const verdicts = (s.verdicts_changed || []).map((v) => `${v.serial} ${v.before} → ${v.after}`).join(", ");
+      const tr = el("tr", { class: "clickable", "data-batch": String(r.batch_id), "data-changed": String(s.changed ?? "") },
+        el("td", {}, String(r.batch_id)), el("td", {}, r.created_at ? new Date(r.created_at).toLocaleString() : "–"),
+        el("td", {}, r.replay_of), el("td", {}, String(s.duts ?? "–")), el("td", {}, String(s.unchanged ?? "–")),
+        el("td", { class: s.changed ? "bad" : "" }, String(s.changed ?? (r.state === "running" ? "running" : "–"))),
+        el("td", {}, verdicts || "none"),
+        el("td", {}, r.plate_agrees === null || r.plate_agrees === undefined ? "–" : (r.plate_agrees ? "agrees" : "DISAGREES")));
+      tr.addEventListener("click", () => showReplay(r.batch_id));
+      table.append(tr);
+    }
+  } catch (e) { status.textContent = e.message; }
+}
+
+async function showReplay(batchId) {
+  const box = document.getElementById("replay-detail");
+  box.replaceChildren();
+  try {
+    const r = await api(`/api/replays/${batchId}`);
+    const d = r.diff;
+    if (!d) { box.append(el("p", { class: "muted" }, "This replay has not finished.")); return; }
+    box.append(el("h3", {}, `Replay batch ${batchId}: ${d.summary.unchanged} unchanged, ${d.summary.changed} changed ` +
+      `(before = ${d.before}; tolerance rtol ${d.rtol}, atol ${d.atol})`));
+    const t = el("table", { class: "records-table", id: "replay-changes" });
+    t.append(el("tr", {}, ...["slot", "serial", "samples", "what changed (before → after)"].map((h) => el("th", {}, h))));
+    for (const u of d.duts) {
+      const what = u.changes.map((c) => `${c.key} ${fmtv(c.before)} → ${fmtv(c.after)}`).join("; ");
+      t.append(el("tr", { "data-serial": u.serial },
+        el("td", {}, u.slot), el("td", {}, u.serial),
+        el("td", {}, u.samples_identical === null ? "–" : (u.samples_identical ? "identical" : "DIFFERENT")),
+        el("td", { class: u.changed ? "bad" : "" }, what || "unchanged")));
+    }
+    box.append(t);
+  } catch (e) { box.append(el("p", { class: "muted" }, e.message)); }
+}
+
+function fmtv(v) { return typeof v === "number" ? Number(v).toPrecision(6) : String(v); }
+
 async function loadRecords() {
-  await Promise.all([loadAudit(), window.loadSpc ? window.loadSpc() : null]);
+  await Promise.all([loadAudit(), loadReplays(), window.loadSpc ? window.loadSpc() : null]);
 }
 
 window.loadRecords = loadRecords;
