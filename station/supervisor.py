@@ -611,6 +611,11 @@ class Station:
             out.append(st)
         return out
 
+    def samples_taken(self, batch_id: int) -> dict[str, int]:
+        """Samples each live DUT of the batch has taken in so far, by slot (cheap: a replay paces
+        its recorded plant by it, station/replay/runner.py)."""
+        return {d.slot: d.n_samples for d in self._batch(batch_id).seq.duts if d.live}
+
     async def wait_batch(self, batch_id: int, timeout_s: float | None = None) -> dict:
         rt = self._batch(batch_id)
         await asyncio.wait_for(rt.seq.done.wait(), timeout_s)

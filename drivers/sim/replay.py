@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import zlib
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -222,3 +223,23 @@ class ReplayStation(SimStation):
 
     def replay_slot_names(self) -> list[str]:
         return [d.slot for d in self.ordered]
+
+    def pace_by(self, taken: Callable[[], dict[str, int]], max_lead_s: float) -> None:
+        """Hold the recorded plant while a streaming DUT's samples sent run more than max_lead_s
+        of sample time ahead of what the daemon has taken in (`taken()`: samples by slot). A live
+        plant cannot wait for a slow daemon, a recording can: the daemon then sees the data at the
+        pace it would at x1, whatever the machine's load or the number of DUTs."""
+        world: ReplayWorld = self.world  # type: ignore[assignment]
+
+        def pace() -> bool:
+            try:
+                got = taken()
+            except KeyError:  # the batch is gone (ended): nothing to wait for
+                return False
+            for i, d in enumerate(self.ordered):
+                n = got.get(d.slot)
+                if n is not None and self.board(i).streaming and world.sent[i] - n > max_lead_s * d.identity.odr_hz:
+                    return True
+            return False
+
+        self.pace = pace

@@ -96,6 +96,9 @@ class SimStation:
         self.backpressure_bytes = 32 * 1024  # a live reader this far behind holds the plant clock
         self.held_ticks = 0
         self.max_hold_s = 2.0  # wall seconds; well under any stall timeout
+        # pace() -> True holds the plant for as long as it says so (no max_hold_s): a replay's
+        # recorded plant waits for the daemon's processing, not only for its byte readers
+        self.pace: Callable[[], bool] | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------
     async def __aenter__(self) -> "SimStation":
@@ -233,6 +236,11 @@ class SimStation:
                 self._wall0 = loop.time()
                 continue
             now = loop.time()
+            if self.pace is not None and self.pace():
+                self._sim0_samples = self._produced
+                self._wall0 = now
+                self.held_ticks += 1
+                continue
             if self._backlog(now) > self.backpressure_bytes and now - last_advance < self.max_hold_s:
                 # The daemon is behind (a loaded machine): the plant waits for it instead of running
                 # ahead, so a compressed-time run gives the same physics whatever the CPU load. The

@@ -146,5 +146,5 @@ def run(args: argparse.Namespace) -> int:
     plate_bad = args.fail_on_plate and diff.agreement.get("agrees") is False
     ended_otherwise = diff.replay_state != recording.batch_state
     if ended_otherwise:
-        print(f"batch ended {diff.replay_state}, the recorded one {recording.batch_state}")
+        print(f"batch ended {diff.replay_state} ({diff.replay_error or '-'}), the recorded one {recording.batch_state}")
     return 1 if diff.changed or ended_otherwise or plate_bad else 0

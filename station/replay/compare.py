@@ -107,6 +107,7 @@ class ReplayDiff:
     agreement: dict[str, Any] = field(default_factory=dict)
     replay_batch_id: int | None = None
     replay_state: str | None = None
+    replay_error: str | None = None
 
     @property
     def changed(self) -> list[DutDiff]:
@@ -135,6 +136,7 @@ class ReplayDiff:
     def to_json(self) -> dict:
         return {"source": self.source, "before": self.before_label, "rtol": self.rtol, "atol": self.atol,
                 "replay_batch_id": self.replay_batch_id, "replay_state": self.replay_state,
+                "replay_error": self.replay_error,
                 "summary": self.summary(), "agreement": self.agreement, "duts": [d.to_json() for d in self.duts]}
 
 

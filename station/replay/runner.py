@@ -45,6 +45,7 @@ class ReplayOptions:
     agree_window_s: float | None = None  # None: agree_window(speed)
     can_interface: str = "slcan"
     end_grace_s: float = 15.0  # wall seconds after the recording ran out before the batch is aborted
+    max_lead_s: float = 30.0  # sample seconds the replayed boards may run ahead of the daemon (pace_by)
     name: str = "replay"
 
 
@@ -97,6 +98,7 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
         try:
             await station.start()
             batch_id = station.start_batch(recording.profile, None, "replay")
+            sim.pace_by(lambda: station.samples_taken(batch_id), opts.max_lead_s)
             if on_started is not None:
                 on_started(batch_id, station, sim)
             t0 = time.monotonic()
@@ -140,7 +142,7 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
             diff = ReplayDiff(recording.source, recording.before_label, opts.rtol, opts.atol, duts,
                               agreement=plate or {"agrees": None, "note": "the recording has no lamp/position "
                                                                           "columns: the plate cannot be compared"},
-                              replay_batch_id=batch_id, replay_state=status["state"])
+                              replay_batch_id=batch_id, replay_state=status["state"], replay_error=status.get("error"))
             samples = sum(sim.world.sent)
             diff.agreement["rate"] = {"wall_s": round(wall_s, 2), "samples_sent": samples,
                                       "samples_per_s": round(samples / wall_s, 1) if wall_s > 0 else None}
