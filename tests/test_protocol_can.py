@@ -40,3 +40,19 @@ def test_identity_four_frames_any_order():
         cf.encode_identity("X" * 15, 60, 1)
     with pytest.raises(ValueError):
         cf.IdentityAssembler().feed(b"\x07")
+
+
+def test_slcan_lines_split_in_bulk_exactly():
+    """drivers/protocol/slcan_lines.py: the bulk reader's parser (issue 15), byte for byte."""
+    from drivers.protocol.slcan_lines import MAX_LINE, split_frames
+
+    buf = bytearray(b"\rz\rt5818010203040506070A\rt58120102\x07t1230\rt58120102ABCD\rT1234567810\rt12\rt18\xff\xfe\rt5")
+    frames, garbled = split_frames(buf)
+    assert frames == [(0x581, bytes([1, 2, 3, 4, 5, 6, 7, 0x0A])), (0x123, b""),
+                      (0x581, b"\x01\x02")]  # the last with a 4-digit adapter timestamp
+    # garbled: a line ended by the error bell, "t12", "t18\xff\xfe"; the partial line waits
+    assert garbled == 3 and buf == bytearray(b"t5")
+    buf += b"8120304\r"
+    assert split_frames(buf) == ([(0x581, b"\x03\x04")], 0) and buf == bytearray()
+    buf += b"x" * (MAX_LINE + 10)  # noise without a line end does not grow without bound
+    assert split_frames(buf) == ([], 1) and len(buf) == MAX_LINE
