@@ -26,6 +26,12 @@ COMMANDS: dict[str, str] = {
 }
 
 
+def one_line(text: str) -> str:
+    """An error stays one line: control characters (a corrupted SQLite file's bytes can reach its
+    error text, and str.splitlines() breaks on \x1c) are written as escapes."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="station", description="MEMS accelerometer thermal calibration station")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -53,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._module.run(args) or 0)
     except StationError as exc:
-        print(f"station {args._command}: error: {exc}", file=sys.stderr)
+        print(f"station {args._command}: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"station {args._command}: interrupted", file=sys.stderr)

@@ -43,3 +43,31 @@ def test_a_validation_batch_says_it_yields_no_calibration_result():
                    "--can", "0", "--db", "memory://")
     assert out.returncode == 0, out.stderr
     assert "finished" in out.stdout and "no calibration result" in out.stdout, out.stdout
+
+
+def test_an_error_with_control_characters_stays_one_line(monkeypatch, capsys):
+    """Seen in CI: a corrupted SQLite file's error text carried a \\x1c byte, and str.splitlines()
+    (like a terminal or a log reader) broke the one-line error in two."""
+    from station import cli
+    from station.types import StationError
+
+    class _Boom:
+        @staticmethod
+        def run(args):
+            raise StationError('database x is corrupted (unrecognized token: "\x1c\x1d"): restore it\nfrom a backup')
+
+    parser = cli.build_parser()
+    args = parser.parse_args(["calibrate", "x.csv"])
+    monkeypatch.setattr(cli, "build_parser", lambda: _Parser(parser, args, _Boom))
+    assert cli.main(["calibrate", "x.csv"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "\\x1c\\x1d" in err and "restore it\\nfrom" in err, err
+
+
+class _Parser:
+    def __init__(self, parser, args, module):
+        self.parser, self.args, self.module = parser, args, module
+
+    def parse_args(self, argv):
+        self.args._module = self.module
+        return self.args
