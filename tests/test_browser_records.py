@@ -16,7 +16,7 @@ from records_support import write_batches
 from web.app import create_app
 from web.auth import TokenStore
 from web.db_repo import DbRepository
-from web_support import serve_in_thread
+from web_support import IdleStation, serve_in_thread
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
 ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"
@@ -28,27 +28,6 @@ pytestmark = [
 ]
 
 
-class _IdleStation:
-    """What the page's start-up asks of the daemon: an idle station with no slots."""
-
-    config = None
-
-    def __init__(self, db):
-        from station.events import EventBus
-
-        self.db = db
-        self.bus = EventBus()  # the page's live stream: nothing happens on an idle station
-
-    def profiles(self):
-        return []
-
-    def slots_status(self):
-        return []
-
-    def batch_ids(self):
-        return []
-
-
 def test_records_view_spc_yield_audit_and_certificate(tmp_path):
     sync_api = pytest.importorskip("playwright.sync_api")
     ARTIFACTS.mkdir(exist_ok=True)
@@ -57,7 +36,7 @@ def test_records_view_spc_yield_audit_and_certificate(tmp_path):
     written = write_batches(db, n_batches=4, per_batch=6, seed=5)
     repo.audit_append(db, "anna", "batch.start", f"batch {written[0]['batch']}", {"profile": "fast-thermal"})
     repo.audit_append(db, "anna", "batch.abort", f"batch {written[-1]['batch']}", {"reason": "operator"})
-    app = create_app(_IdleStation(db), repo=DbRepository(db), outbox=False,
+    app = create_app(IdleStation(db), repo=DbRepository(db), outbox=False,
                      tokens=TokenStore([(ADMIN, "admin", "lead")]))
     url, stop_server = serve_in_thread(app)
     try:

@@ -322,3 +322,25 @@ def serve_in_thread(app, timeout_s: float = 30.0):
         th.join(10)
 
     return f"http://127.0.0.1:{port}", stop
+
+
+class IdleStation:
+    """What the page's start-up asks of the daemon: an idle station with no slots (pages that show
+    only stored records: the Records view, replays)."""
+
+    config = None
+
+    def __init__(self, db):
+        from station.events import EventBus
+
+        self.db = db
+        self.bus = EventBus()  # the page's live stream: nothing happens on an idle station
+
+    def profiles(self):
+        return []
+
+    def slots_status(self):
+        return []
+
+    def batch_ids(self):
+        return []
