@@ -182,3 +182,42 @@ def test_the_page_lists_replays_and_shows_the_changed_verdicts(recorded, replays
     finally:
         stop_server()
         db.dispose()
+
+
+def test_replay_of_csv_logs_from_an_independent_generator(tmp_path):
+    paths, truths = write_logs(tmp_path / "logs", 3)
+    out_json = tmp_path / "logs.json"
+    url = f"sqlite:///{tmp_path / 'replay.db'}"
+    out = _station("replay", "--logs", *map(str, paths), "--db", url, "--speed", SPEED, "--json", str(out_json))
+    assert out.returncode == 0, out.stdout + out.stderr
+    diff = json.loads(out_json.read_text())
+    assert diff["before"] == "offline fit of the log" and diff["summary"]["unchanged"] == 3, diff["summary"]
+    assert all(d["samples_identical"] for d in diff["duts"])
+    assert "lamp" in diff["agreement"] and "fixture" in diff["agreement"]  # the logs carry both columns
+    from db import repository as R
+
+    db = _db(url)
+    try:
+        runs = {r["serial"]: r for r in R.batch_detail(db, diff["replay_batch_id"])["runs"]}
+        for t in truths:
+            with db.session() as s:
+                th = R._run_results(s, runs[t.serial]["id"])["thermal_by_method"]["offline"]
+            tdb = np.array([th[ax]["tdb_mg_per_c"] for ax in "xyz"])
+            tdsf = np.array([th[ax]["tdsf_ppm_per_c"] for ax in "xyz"])
+            # white noise 0.2 mg over ~14k samples: measured |error| <= 0.004 mg/C and 0.6 ppm/C
+            np.testing.assert_allclose(tdb, t.tdb_mg_per_c, atol=0.015)
+            np.testing.assert_allclose(tdsf, t.tdsf_ppm_per_c, atol=2.5)
+    finally:
+        db.dispose()
+
+
+def test_replay_source_mistakes_are_one_line(tmp_path, recorded):
+    _, url = recorded
+    for args, text in ((("--db", url, "--batch", "99"), "no batch 99"),
+                       (("--db", url, "--batch", "1", "--only", "NOPE"), "NOPE not in the recording"),
+                       (("--logs", str(tmp_path / "missing.csv")), "missing.csv"),
+                       ((), "exactly one source")):
+        out = _station("replay", *args, timeout=60)
+        assert out.returncode == 2, (args, out.stderr)
+        lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1 and text in lines[0] and "Traceback" not in out.stderr, (args, out.stderr)
