@@ -110,7 +110,11 @@ def test_verdicts_reasons_and_sorting_on_the_page(tmp_path):
                 reason = card.locator(".reason").inner_text()
                 assert reason == by[slot]["reason"]
                 # readable from two metres: the verdict word is big
-                size = float(card.locator(".verdict-word").evaluate("e => parseFloat(getComputedStyle(e).fontSize)"))
+                # one JS task finds and measures it (the page re-renders cards while it polls: an
+                # element measured after it was replaced has no computed style, NaN)
+                size = float(page.evaluate(
+                    "s => parseFloat(getComputedStyle(document.querySelector(s)).fontSize)",
+                    f'.slot-card[data-slot="{slot}"] .verdict-word'))
                 assert size >= 60
                 if word == "FAIL":
                     assert re.search(rf"{axis} TDSF -\d+ ppm/C, limit {tdsf_limit:.0f}", reason), reason

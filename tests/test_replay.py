@@ -104,7 +104,11 @@ def test_a_recorded_12_dut_demo_batch_replays_identically(recorded, replays):
             smp = run_samples(db, run["id"])
             acc, tc = to_counts(d.identity, smp.acc_g, smp.temp_c, d.slot)
             n = len(smp)
-            assert n > 0.9 * len(d)
+            # every sample the fit uses (up to the run's last segment) was replayed and stored;
+            # what the recording holds after it depends on how late its daemon stopped the boards
+            segs = R.segments_of_run(db, run["id"])
+            t_last = max(g["t_end_s"] for g in segs)
+            assert n >= int(np.searchsorted(d.time_s, t_last, side="right")) and len(segs) >= 4
             np.testing.assert_array_equal(acc, d.acc_counts[:n])
             np.testing.assert_array_equal(tc, d.temp_counts[:n])
             np.testing.assert_array_equal(smp.time_s, d.time_s[:n])
