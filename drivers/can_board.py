@@ -143,23 +143,16 @@ class CanBus:
                 continue
             buf += chunk
             frames, garbled = split_frames(buf)
-            if garbled:
-                self.frames_unreadable += garbled
-                noise_in_a_row = 0 if frames else noise_in_a_row + garbled
-                if noise_in_a_row >= MAX_UNREADABLE_IN_A_ROW:
-                    loop.call_soon_threadsafe(self._fail, f"CAN bus {self.channel} failed: "
-                                              f"{noise_in_a_row} unreadable adapter lines in a row")
-                    return
-            elif frames:
-                noise_in_a_row = 0
+            self.frames_unreadable += garbled
+            noise_in_a_row = 0 if frames else noise_in_a_row + garbled
+            if noise_in_a_row >= MAX_UNREADABLE_IN_A_ROW:
+                loop.call_soon_threadsafe(self._fail, f"CAN bus {self.channel} failed: "
+                                          f"{noise_in_a_row} unreadable adapter lines in a row")
+                return
             if frames:
                 self._inbox.extend(frames)
-                if not self._wake_pending:
-                    self._wake_pending = True
-                    try:
-                        loop.call_soon_threadsafe(self._drain)
-                    except RuntimeError:  # loop closed
-                        return
+                if not self._wake(loop):
+                    return
 
     def _read_python_can(self) -> None:
         bus, loop = self.bus, self._loop
@@ -182,12 +175,19 @@ class CanBus:
             if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
                 continue
             inbox.append((msg.arbitration_id, bytes(msg.data)))
-            if not self._wake_pending:
-                self._wake_pending = True
-                try:
-                    loop.call_soon_threadsafe(self._drain)
-                except RuntimeError:  # loop closed
-                    return
+            if not self._wake(loop):
+                return
+
+    def _wake(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """From the reader thread: have the loop drain the inbox (once per batch of frames).
+        False when the loop is closed (the reader ends)."""
+        if not self._wake_pending:
+            self._wake_pending = True
+            try:
+                loop.call_soon_threadsafe(self._drain)
+            except RuntimeError:  # loop closed
+                return False
+        return True
 
     def _drain(self) -> None:
         self._wake_pending = False
