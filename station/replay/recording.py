@@ -143,10 +143,7 @@ def from_database(db_url: str, batch_id: int, station: str = "replay") -> Record
                 continue
             ident = _identity(run.get("identity") or {}, serial)
             acc, tc = to_counts(ident, smp.acc_g, smp.temp_c, f"batch {batch_id} slot {slot}")
-            with db.session() as s:
-                results = R._run_results(s, run["id"])
-            outcome = {"state": run["state"], "verdict": run.get("verdict"), "grade": run.get("grade"),
-                       "reason": run.get("reason"), **results}
+            outcome = run_outcome(db, run)
             duts.append(RecordedDut(
                 slot=slot, serial=serial, link=links.get(slot, "serial"), identity=ident, time_s=smp.time_s,
                 acc_counts=acc, temp_counts=tc, lamp=smp.lamp.astype(np.int8), position=smp.position.astype(np.int64),
@@ -160,6 +157,16 @@ def from_database(db_url: str, batch_id: int, station: str = "replay") -> Record
     finally:
         if hasattr(db, "dispose"):
             db.dispose()
+
+
+def run_outcome(db: Any, run: dict[str, Any]) -> dict[str, Any]:
+    """What a stored run came to (compare.py's input): its state, verdict and grade, and its
+    results as the repository reports them. The recording and the replay are read the same way."""
+    from db import repository as R
+
+    with db.session() as s:
+        results = R._run_results(s, run["id"])
+    return {"state": run["state"], "verdict": run.get("verdict"), "grade": run.get("grade"), **results}
 
 
 def _plain_url(url: str) -> str:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from station.replay.compare import DEFAULT_ATOL, DEFAULT_RTOL, ReplayDiff, compare_outcomes
-from station.replay.recording import Recording
+from station.replay.recording import Recording, run_outcome
 from station.types import StationError
 
 log = logging.getLogger(__name__)
@@ -124,11 +124,7 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
             plate: dict[str, Any] = {}
             for i, d in enumerate(sim.ordered):
                 run = after_runs.get(d.slot)
-                after = None
-                if run is not None:
-                    with db.session() as s:
-                        after = {"state": run["state"], "verdict": run.get("verdict"), "grade": run.get("grade"),
-                                 **R._run_results(s, run["id"])}
+                after = None if run is None else run_outcome(db, run)
                 dd = compare_outcomes(d.slot, d.serial, d.outcome, after, opts.rtol, opts.atol)
                 n_sent, crc = sim.world.sent_digest(i)
                 dd.samples_identical = n_sent > 0 and (n_sent, crc) == recorded_digest(_prefix(d, n_sent))
