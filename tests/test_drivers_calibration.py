@@ -228,3 +228,24 @@ async def test_serial_compensation_applies_sfem_after_eq13(serial_rig):
     assert len(blk) == n and np.max(np.abs(blk.acc_g - want)) <= 0.5 * 3.9e-6 + 1e-9
     sim.power_cycle()  # the SFEM is in NVM too
     assert (await drv.read_sfem()).values == f32(tuple(a.reshape(-1)) + tuple(b))
+
+
+async def test_serial_readback_with_the_right_values_but_a_wrong_crc_is_caught(serial_rig):
+    """The board's CRC word of what it stores is checked on read-back, not only the values: a
+    damaged CRC (values intact) is retried and, when it persists, a named error."""
+    sim, drv = serial_rig
+    sim.cal.corrupt_readback_crc(1)
+    rep = await drv.program_thermal(TDB, TDSF)
+    assert rep.attempts == 2 and "readback_mismatch" in rep.retries[0] and sim.cal.bad_crcs_done == 1
+    sim.cal.corrupt_readback_crc(99)
+    with pytest.raises(CalibrationError) as ei:
+        await drv.program_thermal(TDB, TDSF)
+    assert ei.value.kind == "readback_mismatch" and sim.cal.nvm.thermal == WANT  # values fine, CRC not
+
+
+async def test_can_readback_with_the_right_values_but_a_wrong_crc_is_caught(can_rig):
+    sims, boards = can_rig
+    sims[3].cal.corrupt_readback_crc(99)
+    with pytest.raises(CalibrationError) as ei:
+        await boards[3].program_thermal(TDB, TDSF)
+    assert ei.value.kind == "readback_mismatch" and sims[3].cal.nvm.thermal == WANT

@@ -12,6 +12,9 @@ Fault injection for the write path (what the station's program-and-verify must c
                                   the stored value differs: only the CRC can tell)
   refuse_writes(n)                the next n writes are refused (flash write failed)
   drop_replies(n)                 the next n calibration replies are lost (the command still acts)
+  corrupt_readback_crc(n)         the next n read-backs report a wrong CRC beside the right values
+                                  (a board whose stored CRC word is damaged: only the CRC compare
+                                  of the read-back can tell)
 """
 
 from __future__ import annotations
@@ -59,9 +62,11 @@ class CalFirmware:
     flip: list[tuple[int, int]] = field(default_factory=list)  # pending flips: (field, bit)
     refuse: int = 0
     drop: int = 0
+    bad_crc: int = 0
     flips_done: int = 0
     refused_done: int = 0
     dropped_done: int = 0
+    bad_crcs_done: int = 0
 
     # ---- faults ------------------------------------------------------------------------------
     def flip_next_write(self, n: int = 1, field_index: int = 0, bit: int = 3) -> None:
@@ -80,6 +85,17 @@ class CalFirmware:
             self.dropped_done += 1
             return True
         return False
+
+    def corrupt_readback_crc(self, n: int = 1) -> None:
+        self.bad_crc += int(n)
+
+    def readback_crc(self) -> int:
+        """The thermal CRC a read-back reports (a pending corruption applied)."""
+        if self.bad_crc > 0:
+            self.bad_crc -= 1
+            self.bad_crcs_done += 1
+            return self.nvm.thermal_crc ^ 0x00010000
+        return self.nvm.thermal_crc
 
     def take_refuse(self) -> bool:
         if self.refuse > 0:

@@ -258,7 +258,7 @@ class SimSerialBoard:
                 crc = cal.nvm.sfem_crc
             self._cal_reply(sf.AckFrame(cmd, (sf.fmt_crc(crc),)).encode())
         elif cmd == "CALR":
-            self._cal_reply(sf.CalReadFrame(cal.nvm.thermal, cal.nvm.thermal_crc, cal.nvm.comp).encode())
+            self._cal_reply(sf.CalReadFrame(cal.nvm.thermal, cal.readback_crc(), cal.nvm.comp).encode())
         elif cmd == "SFER":
             if cal.nvm.sfem is None:
                 self._cal_reply(sf.ErrorFrame("SFER", "no SFEM stored").encode())

@@ -145,7 +145,7 @@ class SimCanBoard:
                 return
             for k, v in enumerate(cal.nvm.thermal):
                 self._out(reply, cf.encode_cal_stored_field(k, v))
-            self._out(reply, cf.encode_cal_status(cf.CAL_STORED, cal.nvm.comp, cal.nvm.thermal_crc))
+            self._out(reply, cf.encode_cal_status(cf.CAL_STORED, cal.nvm.comp, cal.readback_crc()))
         elif c.cmd == cf.CMD_COMP:
             cal.nvm.comp = bool(c.on)  # no reply in 3.2: the station confirms with CAL_READ
 
