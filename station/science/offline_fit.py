@@ -22,9 +22,26 @@ Details:
   the slope variance. Correlation shorter than a block is thus absorbed. It is propagated to
   TDB/TDSF through the weighted line fit (scaled by the reduced chi-square when > 1 with more than
   two orientations). Acc0_i errors are neglected (micro-g against a >1 g lever).
+- What batch means cannot see (docs/verdicts.md "Uncertainty budget"): the ambient and hot data of
+  one orientation are tens of minutes apart, so a bias that wanders (random walk, flicker) between
+  them moves the slope exactly like a temperature coefficient, and the scatter about the line does
+  not show it. Three more terms enter each TD_i's variance, each the variance of the same linear
+  combination of block means that the slope is (weights a_b = n_b (T_b - mean T) / Sxx):
+    wander     -1/2 sum_ij a_i a_j D(|t_i - t_j|), D the bias structure function of the sensor
+               class (BiasWander: random walk + decade-spaced Gauss-Markov flicker, measured on a
+               long static log with `characterise_bias_wander`);
+    quantiser  TD^2 sum_k A_k^2/2 |sum_b a_b <exp(2 pi i k T/q)>_b|^2: the mean reading of a steady
+               temperature is off by a periodic function of where T sits between the q-wide steps
+               (LIS3DSH: 1 C), amplitude A_k = q/(pi k) exp(-2 pi^2 k^2 s^2/q^2) for a reading dithered
+               by noise s; it does not average down while T is steady, only when T moves across steps;
+    lag        (TD tau_lag sum_b a_b dT/dt_b)^2: the MEMS behind the temperature sensor by up to
+               tau_lag, so a segment logged while T still creeps reads the wrong temperature.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -56,6 +73,171 @@ def usable_mask(acc_g: np.ndarray, trace: GateTrace, still_sigma: float = 8.0, f
     return stable & still
 
 
+@dataclass(frozen=True)
+class BiasWander:
+    """Bias wander of a sensor class beyond white noise, as its structure function
+    D(lag) = var(b(t + lag) - b(t)) = rw^2 lag + sum_c 2 (flicker^2 / m) (1 - exp(-lag / tau_c)):
+    a random walk plus a flicker floor modelled by m decade-spaced Gauss-Markov processes. The
+    variance of any zero-sum combination sum_i w_i b(t_i) is -1/2 sum_ij w_i w_j D(|t_i - t_j|),
+    which is what a slope between segments tens of minutes apart suffers and what sigma/sqrt(n) of
+    a segment mean leaves out. Numbers come from a long static log (`characterise_bias_wander`).
+    white_ug_per_sqrt_hz tells the classes apart when a record does not name its sensor."""
+
+    name: str
+    white_ug_per_sqrt_hz: float
+    rw_g_per_sqrt_s: float
+    flicker_g: float
+    flicker_tau_s: tuple[float, ...] = (60.0, 600.0, 6000.0)
+
+    def structure_g2(self, lag_s) -> np.ndarray:
+        lag = np.abs(np.asarray(lag_s, dtype=np.float64))
+        d = self.rw_g_per_sqrt_s ** 2 * lag
+        m = max(1, len(self.flicker_tau_s))
+        for tau in self.flicker_tau_s:
+            d = d + 2.0 * self.flicker_g ** 2 / m * (1.0 - np.exp(-lag / tau))
+        return d
+
+    def combination_var_g2(self, weights, time_s) -> float:
+        """Variance (g^2) of sum_i w_i b(t_i) for zero-sum weights (a slope, a curvature)."""
+        w = np.asarray(weights, dtype=np.float64).reshape(-1)
+        t = np.asarray(time_s, dtype=np.float64).reshape(-1)
+        if w.size < 2:
+            return 0.0
+        d = self.structure_g2(t[:, None] - t[None, :])
+        return max(0.0, float(-0.5 * w @ d @ w))
+
+
+# Measured with `python benchmarks/coverage.py --characterise` (characterise_bias_wander on a 6 h
+# static simulated log per sensor class, realistic noise, fixed decade taus 60/600/6000 s). A real
+# line measures its part family the same way (one board, static, hours) and replaces these.
+WANDER_BY_SENSOR: dict[str, BiasWander] = {
+    "LIS3DSH": BiasWander("LIS3DSH", 393.0, 3.67e-6, 23e-6),  # 6 boards x 8 h, mean of rw^2 and flicker^2
+    "ADXL355": BiasWander("ADXL355", 24.6, 0.52e-6, 2.5e-6),
+}
+NO_WANDER = BiasWander("white", 0.0, 0.0, 0.0)
+LAG_SIGMA_S = 5.0  # MEMS behind its on-die temperature sensor: same die, a few seconds at most
+
+
+def wander_for(sensor: str | None = None, white_ug_per_sqrt_hz: float | None = None) -> BiasWander:
+    """The bias-wander class of a DUT: by sensor name, else the class whose white noise density is
+    nearest (log ratio) to the measured one, else the largest (LIS3DSH, conservative)."""
+    if sensor:
+        for k, w in WANDER_BY_SENSOR.items():
+            if k.lower() == str(sensor).lower():
+                return w
+    if white_ug_per_sqrt_hz is not None and math.isfinite(white_ug_per_sqrt_hz) and white_ug_per_sqrt_hz > 0:
+        return min(WANDER_BY_SENSOR.values(), key=lambda w: abs(math.log(white_ug_per_sqrt_hz / w.white_ug_per_sqrt_hz)))
+    return WANDER_BY_SENSOR["LIS3DSH"]
+
+
+def characterise_bias_wander(time_s, acc_g, name: str = "measured", block_s: float = 60.0,
+                             flicker_tau_s: tuple[float, ...] = (60.0, 600.0, 6000.0)) -> BiasWander:
+    """BiasWander of a long STATIC log (constant temperature and position): the empirical structure
+    function of block means at lags of 1..(duration/3), minus the white part (2 var_w / n_block),
+    fitted (non-negative least squares, pooled over axes) with rw^2 lag + flicker^2 f(lag)."""
+    from scipy.optimize import nnls
+
+    t = np.asarray(time_s, dtype=np.float64).reshape(-1)
+    a = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
+    odr = 1.0 / float(np.median(np.diff(t)))
+    nb = max(2, int(round(block_s * odr)))
+    m = a.shape[0] // nb
+    bm = a[: m * nb].reshape(m, nb, 3).mean(axis=1)
+    d1 = np.diff(a, axis=0)
+    var_w = 0.5 * float(np.mean(np.var(d1, axis=0)))
+    lags = np.unique(np.round(np.geomspace(1, max(2, m // 3), 25)).astype(int))
+    rows, rhs = [], []
+    mm = max(1, len(flicker_tau_s))
+    for k in lags:
+        dk = float(np.mean((bm[k:] - bm[:-k]) ** 2)) - 2.0 * var_w / nb
+        lag_s = k * nb / odr
+        f = sum(2.0 / mm * (1.0 - math.exp(-lag_s / tau)) for tau in flicker_tau_s)
+        wgt = 1.0 / max(dk, 1e-14)  # relative (log-like) weighting over the decades
+        rows.append([lag_s * wgt, f * wgt])
+        rhs.append(dk * wgt)
+    coef, _ = nnls(np.array(rows), np.array(rhs))
+    white = math.sqrt(var_w) / math.sqrt(odr / 2.0) * 1e6
+    return BiasWander(name, white, math.sqrt(coef[0]), math.sqrt(coef[1]), tuple(flicker_tau_s))
+
+
+def white_density_ug_per_sqrt_hz(time_s, acc_g, trace: GateTrace, use: np.ndarray, alpha: float) -> float:
+    """White noise density (mean over axes) of the usable samples: robust sigma of raw - filtered,
+    corrected for the filter (var(e) = var_w 2 (1 - a)/(2 - a)), over sqrt(ODR / 2)."""
+    t = np.asarray(time_s, dtype=np.float64)
+    if use.sum() < 50 or t.size < 2 or not np.median(np.diff(t)) > 0:
+        return float("nan")
+    r = (np.asarray(acc_g) - trace.acc_filt_g)[use]
+    sg = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+    sg = sg / math.sqrt(2.0 * (1.0 - alpha) / (2.0 - alpha))
+    return float(np.mean(sg)) / math.sqrt(0.5 / float(np.median(np.diff(t)))) * 1e6
+
+
+def temperature_quantum_c(temp_c) -> float:
+    """Step of the temperature reading (LIS3DSH 1 C, ADXL355 ~0.11 C); 0 for a continuous reading."""
+    lv = np.unique(np.asarray(temp_c, dtype=np.float64))
+    if lv.size < 2:
+        return 0.0
+    d = np.diff(lv)
+    d = d[d > 1e-9]
+    q = float(d.min()) if d.size else 0.0
+    if q < 1e-3 or lv.size > 0.25 * np.asarray(temp_c).size:
+        return 0.0
+    return q
+
+
+def temperature_dither_c(temp_c, runs, quantum_c: float) -> float:
+    """Reading noise before quantisation: var(first differences)/2 = s^2 + q^2/12 within runs."""
+    temp = np.asarray(temp_c, dtype=np.float64)
+    d = np.concatenate([np.diff(temp[s:e]) for s, e in runs]) if runs else np.empty(0)
+    if d.size < 10:
+        return 0.0
+    return math.sqrt(max(0.5 * float(np.mean(d * d)) - quantum_c ** 2 / 12.0, 0.0))
+
+
+def quantiser_amplitudes_c(quantum_c: float, dither_c: float, n_harm: int = 5) -> np.ndarray:
+    """A_k (C) of the periodic error of a dithered quantiser's mean reading (Fourier series of the
+    rounding error convolved with the Gaussian dither); sum A_k^2/2 = q^2/12 without dither."""
+    if quantum_c <= 0:
+        return np.zeros(0)
+    k = np.arange(1, n_harm + 1)
+    return quantum_c / (math.pi * k) * np.exp(-2.0 * math.pi ** 2 * k * k * dither_c ** 2 / quantum_c ** 2)
+
+
+def block_features(time_s, temp_filt_c, quantum_c: float, blocks, n_harm: int = 5):
+    """Per block: mean time (s), temperature rate (C/s, of the filtered reading) and the mean phasor
+    exp(2 pi i k T/q) of the filtered temperature for k = 1..n_harm (quantiser phase)."""
+    t = np.asarray(time_s, dtype=np.float64)
+    tf = np.asarray(temp_filt_c, dtype=np.float64)
+    bt, bg, ph = [], [], []
+    k = np.arange(1, n_harm + 1)
+    for blk in blocks:
+        tb = t[blk]
+        bt.append(tb.mean())
+        bg.append(float(np.polyfit(tb - tb.mean(), tf[blk], 1)[0]) if blk.size >= 3 and np.ptp(tb) > 0 else 0.0)
+        if quantum_c > 0:
+            ph.append(np.exp(2j * np.pi * np.outer(tf[blk], k) / quantum_c).mean(axis=0))
+        else:
+            ph.append(np.zeros(n_harm, dtype=complex))
+    return np.array(bt), np.array(bg), np.array(ph).reshape(len(bt), n_harm)
+
+
+def combination_budget(weights, block_time_s, block_rate_c_per_s, block_phasor, sensitivity_g_per_c,
+                       wander: BiasWander, amplitudes_c: np.ndarray, lag_sigma_s: float) -> dict[str, np.ndarray]:
+    """Variances (g^2, per axis) that a linear combination sum_b w_b y_b of block means (a slope or
+    a curvature) gets from bias wander, temperature quantisation and MEMS lag. sensitivity_g_per_c
+    (3,): dy/dT of the signal (TD_i for the raw data, for compensated data the TDB the board
+    subtracts with the reading) that turns a temperature error into an acceleration error."""
+    w = np.asarray(weights, dtype=np.float64)
+    sens = np.abs(np.asarray(sensitivity_g_per_c, dtype=np.float64)).reshape(-1)
+    wand = wander.combination_var_g2(w, block_time_s)
+    q = 0.0
+    if amplitudes_c.size:
+        s = np.abs(w @ block_phasor[:, : amplitudes_c.size]) ** 2
+        q = float(np.sum(amplitudes_c ** 2 / 2.0 * s))
+    lag = (lag_sigma_s * float(w @ block_rate_c_per_s)) ** 2
+    return {"wander": np.full(sens.shape, wand), "quantiser": sens ** 2 * q, "lag": sens ** 2 * lag}
+
+
 def offline_fit(
     time_s,
     acc_g,
@@ -67,11 +249,19 @@ def offline_fit(
     min_span_c: float | None = None,
     eiv_correction: bool = True,
     trace: GateTrace | None = None,
+    sensor: str | None = None,
+    wander: BiasWander | str | None = None,
+    lag_sigma_s: float = LAG_SIGMA_S,
 ) -> ThermalResult:
     """TDB/TDSF per axis (method "offline") with 1-sigma uncertainties.
 
     min_span_c: an orientation is used when its stable data spans at least this temperature range
     (default config.segment_delta_c / 2). trace: a precomputed `trace_gate` result (saves a pass).
+    wander: the bias wander of the part (None: white noise only, as a synthetic record; "auto":
+    `wander_for(sensor, measured white noise)`, what `calibrate` uses for real and simulated boards);
+    lag_sigma_s: standard uncertainty of the MEMS-behind-sensor lag. The result carries
+    `.uncertainty`: per orientation and axis the TD_i variance of each budget term (mg/C)^2, the
+    TDB/TDSF correlation, and the quantiser/wander inputs used (module doc).
     """
     cfg = config or StreamingConfig()
     t = np.asarray(time_s, dtype=np.float64).reshape(-1)
@@ -80,6 +270,15 @@ def offline_fit(
     if trace is None:
         trace, _ = trace_gate(t, acc, temp, cfg)
     use = usable_mask(acc, trace, still_sigma)
+    all_runs = [(s, e) for s, e in _runs(use) if e - s >= 2]
+    quantum = temperature_quantum_c(temp[use]) if use.any() else 0.0
+    dither = temperature_dither_c(temp, all_runs, quantum)
+    amps = quantiser_amplitudes_c(quantum, dither)
+    if wander is None:
+        wander = NO_WANDER
+    elif isinstance(wander, str):  # "auto": the DUT's sensor class
+        wander = wander_for(sensor, white_density_ug_per_sqrt_hz(t, acc, trace, use, cfg.alpha_acc))
+    budget: dict[int, dict[str, np.ndarray]] = {}
     span_needed = cfg.pair_delta_c() if min_span_c is None else float(min_span_c)
     drifts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     sigmas: dict[int, np.ndarray] = {}
@@ -91,13 +290,14 @@ def offline_fit(
         if n < max(cfg.average_samples, 10):
             continue
         # block means (batch means) over the stable runs of this orientation
-        bx, by, bn = [], [], []
+        bx, by, bn, blocks = [], [], [], []
         for s, e in runs:
             nb = max(1, int(round((e - s) / block_samples)))
             for blk in np.array_split(np.arange(s, e), nb):
                 bx.append(temp[blk].mean())
                 by.append(acc[blk].mean(axis=0))
                 bn.append(blk.shape[0])
+                blocks.append(blk)
         bx, by, bn = np.array(bx), np.array(by), np.array(bn, dtype=np.float64)
         if np.ptp(bx) < span_needed:
             continue
@@ -133,14 +333,47 @@ def offline_fit(
             bslope = (bn * bxc) @ (by - bym) / sbxx
             resid = by - bym - np.outer(bxc, bslope)
             s2 = np.sum(bn[:, None] * resid * resid, axis=0) / (m - 2) if m > 2 else np.full(3, np.inf)
-            sigmas[int(o)] = np.sqrt(s2 / sbxx)
+            var_fit = s2 / sbxx
+            # what batch means cannot see: the slope's own weights on the block means
+            bt, bg, ph = block_features(t, trace.temp_filt_c, quantum, blocks)
+            w_slope = bn * (bx - cfg.t_ref_c - np.average(bx - cfg.t_ref_c, weights=bn)) / sbxx
+            terms = combination_budget(w_slope, bt, bg, ph, td, wander, amps, lag_sigma_s)
+            terms["fit"] = var_fit
+            budget[int(o)] = terms
+            sigmas[int(o)] = np.sqrt(sum(terms.values()))
         else:
             sigmas[int(o)] = np.full(3, np.inf)
         drifts[int(o)] = (td, acc0)
     if len(drifts) >= 2 and all(np.all(np.isfinite(sigmas[o])) for o in drifts):
-        return build_result("offline", drifts, cfg, n_runs, td_sigma=sigmas)
-    res = build_result("offline", drifts, cfg, n_runs)
+        res = build_result("offline", drifts, cfg, n_runs, td_sigma=sigmas)
+    else:
+        res = build_result("offline", drifts, cfg, n_runs)
+    res.uncertainty = _uncertainty_doc(drifts, budget, sigmas, quantum, dither, wander, lag_sigma_s)
+    res.wander = wander  # the class chosen: the residual report of the same record uses it too
     return res
 
 
-__all__ = ["offline_fit", "usable_mask"]
+def _uncertainty_doc(drifts, budget, sigmas, quantum, dither, wander, lag_sigma_s) -> dict:
+    """The budget behind each TD_i sigma (mg/C, per term) and the TDB/TDSF correlation per axis
+    (two orientations: TDB and TDSF are both made of the same TD_i, so they are correlated)."""
+    keys = sorted(drifts)
+    out = {"temperature_quantum_c": quantum, "temperature_dither_c": dither, "wander": wander.name,
+           "wander_rw_g_per_sqrt_s": wander.rw_g_per_sqrt_s, "wander_flicker_g": wander.flicker_g,
+           "lag_sigma_s": lag_sigma_s, "orientations": {}, "tdb_tdsf_corr": {}}
+    for o in keys:
+        if o in budget:
+            out["orientations"][str(o)] = {term: (np.sqrt(v) * 1e3).tolist() for term, v in budget[o].items()}
+    if len(keys) >= 2 and all(o in sigmas and np.all(np.isfinite(sigmas[o])) for o in keys):
+        acc0 = np.array([drifts[o][1] for o in keys])
+        sig = np.array([sigmas[o] for o in keys])
+        for k, ax in enumerate("xyz"):
+            w = 1.0 / np.maximum(sig[:, k], 1e-300) ** 2
+            design = np.column_stack([np.ones(len(keys)), acc0[:, k]])
+            cov = np.linalg.inv(design.T @ (design * w[:, None]))
+            out["tdb_tdsf_corr"][ax] = float(cov[0, 1] / math.sqrt(cov[0, 0] * cov[1, 1]))
+    return out
+
+
+__all__ = ["offline_fit", "usable_mask", "BiasWander", "WANDER_BY_SENSOR", "NO_WANDER", "LAG_SIGMA_S", "wander_for", "white_density_ug_per_sqrt_hz",
+           "characterise_bias_wander", "temperature_quantum_c", "temperature_dither_c", "quantiser_amplitudes_c",
+           "block_features", "combination_budget"]

@@ -12,7 +12,11 @@ still) samples, compensated with its own TDB/TDSF, per axis:
 - drift error E (mg), eq. 10 evaluated on the residual model over R with fine sections: the mean
   |d residual / dT| times R, which for a parabola centred in R is |c2| R^2 / 2. Its 1-sigma combines
   the curvature's sigma (sigma_c2 R^2 / 2) with what the coefficient uncertainty alone leaves over
-  R at 1 g (eq. 1 with each coefficient's error): R sqrt(sigma_TDB^2 + (sigma_TDSF * 1 g)^2).
+  R at +-1 g (eq. 1 with each coefficient's error, TDB and TDSF correlated by rho, the worse sign):
+  R sqrt(sigma_TDB^2 + (sigma_TDSF * 1 g)^2 + 2 |rho sigma_TDB sigma_TDSF * 1 g|).
+  sigma_c2 is the batch-means scatter PLUS the terms batch means cannot see (offline_fit module
+  doc): bias wander between the blocks (the part's structure function), the temperature
+  quantiser's periodic error and the MEMS lag, each propagated with the quadratic's own weights.
   E_FS = E / 2000 mg * 100 % (eq. 12, the +-1 g span; Table 7: fast method 0.61 % mean, 1.16 % max).
   Extrapolating the parabola seen on the ramp (~25..50 C) to R is the model's assumption.
 - ramp residual (mg): RMS of the compensated block means about their orientation's mean, i.e. how
@@ -29,7 +33,10 @@ import math
 
 import numpy as np
 
-from station.science.offline_fit import _runs, usable_mask
+from station.science.offline_fit import (LAG_SIGMA_S, NO_WANDER, BiasWander, _runs, block_features,
+                                         combination_budget, quantiser_amplitudes_c, temperature_dither_c,
+                                         temperature_quantum_c, usable_mask, wander_for,
+                                         white_density_ug_per_sqrt_hz)
 from station.science.streaming import GateTrace, StreamingConfig, trace_gate
 from station.science.thermal_model import FULL_SCALE_MG, compensate
 from station.types import AXES, T_REF_C
@@ -58,6 +65,10 @@ def residual_report(
     block_samples: int = 200,
     config: StreamingConfig | None = None,
     trace: GateTrace | None = None,
+    tdb_tdsf_corr=None,
+    sensor: str | None = None,
+    wander: BiasWander | str | None = None,
+    lag_sigma_s: float = LAG_SIGMA_S,
 ) -> dict:
     """Per-axis residual drift E/E_FS, curvature and noise density of one DUT (see module doc).
 
@@ -65,7 +76,9 @@ def residual_report(
     "drift_error_sigma_mg", "drift_error_fs_pct", "drift_error_fs_sigma_pct", "curvature_mg_per_c2",
     "curvature_sigma_mg_per_c2", "bow_mg", "bow_sigma_mg", "noise_ug_per_sqrt_hz",
     "ramp_residual_rms_mg"}}}; values are None where the data do not allow them (an orientation
-    needs >= 5 blocks spanning min_span_c for a curvature).
+    needs >= 5 blocks spanning min_span_c for a curvature). tdb_tdsf_corr (3,): correlation of
+    each axis's TDB and TDSF errors (offline_fit's `.uncertainty`; None = 0). wander: as offline_fit
+    (None: white only; "auto": the sensor class).
     """
     cfg = config or StreamingConfig()
     t = np.asarray(time_s, dtype=np.float64).reshape(-1)
@@ -78,6 +91,13 @@ def residual_report(
     tdsf = np.asarray(tdsf_ppm_per_c, dtype=np.float64)
     comp = compensate(acc, temp, tdb, tdsf)
     rng = float(operating_range_c)
+    all_runs = [(s, e) for s, e in _runs(use) if e - s >= 2]
+    quantum = temperature_quantum_c(temp[use]) if use.any() else 0.0
+    amps = quantiser_amplitudes_c(quantum, temperature_dither_c(temp, all_runs, quantum))
+    if wander is None:
+        wander = NO_WANDER
+    elif isinstance(wander, str):
+        wander = wander_for(sensor, white_density_ug_per_sqrt_hz(t, acc, trace, use, cfg.alpha_acc))
 
     c2 = np.full(3, np.nan)
     c2_sig = np.full(3, np.nan)
@@ -87,12 +107,13 @@ def residual_report(
         runs = [(s, e) for s, e in _runs(use & (trace.orientation == o)) if e - s >= 2]
         if not runs:
             continue
-        bx, by = [], []
+        bx, by, blocks = [], [], []
         for s, e in runs:
             nb = max(1, int(round((e - s) / block_samples)))
             for blk in np.array_split(np.arange(s, e), nb):
                 bx.append(temp[blk].mean() - T_REF_C)
                 by.append(comp[blk].mean(axis=0))
+                blocks.append(blk)
         bx, by = np.array(bx), np.array(by)
         if bx.size >= 2:
             ramp_ss += np.sum((by - by.mean(axis=0)) ** 2, axis=0)
@@ -103,7 +124,14 @@ def residual_report(
             coef, *_ = np.linalg.lstsq(X, by, rcond=None)
             resid = by - X @ coef
             s2 = np.sum(resid * resid, axis=0) / max(bx.size - 3, 1)
-            sig = np.sqrt(s2 * np.linalg.pinv(X.T @ X)[2, 2])
+            var_c2 = s2 * np.linalg.pinv(X.T @ X)[2, 2]
+            # wander / quantiser / lag through the curvature's own weights on the block means; a
+            # temperature error moves the compensated output by the slope compensation removed
+            w_c2 = np.linalg.pinv(X)[2]
+            bt, bg, ph = block_features(t, trace.temp_filt_c, quantum, blocks)
+            sens = tdb * 1e-3 + tdsf * 1e-6 * by.mean(axis=0)
+            terms = combination_budget(w_c2, bt, bg, ph, sens, wander, amps, lag_sigma_s)
+            sig = np.sqrt(var_c2 + sum(terms.values()))
             cur = coef[2] * 1e3  # mg/C^2
             for k in range(3):  # keep the orientation with the largest |curvature|
                 if not np.isfinite(c2[k]) or abs(cur[k]) > abs(c2[k]):
@@ -123,7 +151,10 @@ def residual_report(
         noise = sigma_g / math.sqrt(odr / 2.0) * 1e6
     sb = _sigmas(tdb_sigma_mg_per_c)
     sf = _sigmas(tdsf_sigma_ppm_per_c)
-    coef_sig = rng * np.sqrt(sb ** 2 + (sf * 1e-3) ** 2)  # ppm/C at 1 g = 1e-3 mg/C
+    rho = np.zeros(3) if tdb_tdsf_corr is None else np.nan_to_num(
+        np.asarray([np.nan if v is None else float(v) for v in tdb_tdsf_corr], dtype=np.float64))
+    sf_mg = sf * 1e-3  # ppm/C at 1 g = 1e-3 mg/C
+    coef_sig = rng * np.sqrt(sb ** 2 + sf_mg ** 2 + 2.0 * np.abs(rho * sb * sf_mg))  # the worse of +-1 g
     e_mg = np.abs(c2) * rng ** 2 / 2.0
     e_sig = np.sqrt((c2_sig * rng ** 2 / 2.0) ** 2 + coef_sig ** 2)
     bow = np.abs(c2) * rng ** 2 / 8.0

@@ -5,6 +5,10 @@ The streaming calibrator (martinez2022 3.3, what the MCU/daemon runs live) and t
 holds the OFFLINE values: they use every stable sample instead of two 1000-sample averages per
 orientation and carry 1-sigma uncertainties, so they are the better estimate; the streaming values
 are kept beside them for comparison and for what a board would compute itself.
+
+The offline sigmas are the whole budget (docs/verdicts.md "Uncertainty budget"), not the fit's
+scatter alone: the part's bias wander between segments (its sensor class, by name or by its white
+noise), the temperature quantiser and the MEMS lag; "uncertainty" in the JSON holds the terms.
 """
 
 from __future__ import annotations
@@ -91,13 +95,18 @@ def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None
             f"{len(segments)} segment(s) logged ({', '.join(f'orientation {o}: {c}' for o, c in sorted(per_o.items())) or 'none'}); "
             f"need at least two segments in each of two orientations ({exc})"
         ) from None
-    offline = offline_fit(block.time_s, block.acc_g, block.temp_c, cfg, trace=trace)
+    # the part's bias wander (by sensor, else by its white noise) enters the coefficient sigmas
+    offline = offline_fit(block.time_s, block.acc_g, block.temp_c, cfg, trace=trace, sensor=sensor or None,
+                          wander="auto")
     oj = offline.to_json()["axes"]
+    unc = getattr(offline, "uncertainty", {}) or {}
     residual = residual_report(
         block.time_s, block.acc_g, block.temp_c,
         [oj[a]["tdb_mg_per_c"] for a in AXES], [oj[a]["tdsf_ppm_per_c"] for a in AXES],
         [oj[a]["tdb_sigma_mg_per_c"] for a in AXES], [oj[a]["tdsf_sigma_ppm_per_c"] for a in AXES],
         operating_range_c=operating_range_c, config=cfg, trace=trace,
+        tdb_tdsf_corr=[unc.get("tdb_tdsf_corr", {}).get(a) for a in AXES], sensor=sensor or None,
+        wander=getattr(offline, "wander", "auto"),  # one class per record, chosen once by the fit
     )
     out = {
         "serial": serial,
@@ -111,6 +120,7 @@ def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None
         "temperature_swing_c": swing,
         "config": asdict(cfg),
         "residual": residual,
+        "uncertainty": unc,  # the budget behind the offline sigmas (offline_fit module doc)
     }
     for s in out["segments"]:
         s["acc_mean_g"] = list(s["acc_mean_g"])
