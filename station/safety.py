@@ -152,8 +152,11 @@ class LampGuard:
             if was_on:
                 self.bus.publish(LampChanged(self.batch_id, on=False, reason=reason))
             log.info("lamp off (%s)", reason)
-        elif self._retry_task is None or self._retry_task.done():
+            return ok
+        if self._retry_task is None or self._retry_task.done():
             self._retry_task = asyncio.get_running_loop().create_task(self._retry_forever(reason))
+        # the lamp may still be on: whatever runs cannot go on (it keeps being retried meanwhile)
+        self._latch(f"lamp relay did not take the OFF command, lamp state unknown: {self.relay_error}")
         return ok
 
     async def _write_off_with_retries(self, reason: str) -> bool:
@@ -184,15 +187,19 @@ class LampGuard:
 
     def trip(self, reason: str) -> None:
         """Latch a safety trip and switch the lamp off now (from sync code, e.g. a sample callback)."""
+        self._latch(reason)
+        asyncio.get_running_loop().create_task(self.off(f"safety: {reason}"))
+
+    def _latch(self, reason: str) -> bool:
+        """Latch a trip (the first reason wins) and tell the listeners (the batch fails)."""
         first = self.trip_reason is None
         if first:
             self.trip_reason = reason
             log.error("lamp safety trip: %s", reason)
             self.bus.publish(Alarm(self.batch_id, text=f"safety trip: {reason}", severity="critical"))
-        asyncio.get_running_loop().create_task(self.off(f"safety: {reason}"))
-        if first:
             for cb in self._trip_listeners:
                 cb(reason)
+        return first
 
     # ---------------------------------------------------------------- relay supervision
     async def arm_watchdog(self) -> bool:
@@ -234,8 +241,11 @@ class LampGuard:
                 coil = await asyncio.wait_for(self.relay.read_lamp(), 2.0)
             except Exception as exc:
                 self._relay_failed(f"reading the lamp coil failed: {exc}")
-                if self.is_on and self.relay_failures >= 3:
-                    self.trip(f"lamp relay unreachable while the lamp is on: {exc}")
+                if self.relay_failures >= 3 and self.trip_reason is None:
+                    # on or off: a relay that does not answer cannot be trusted to hold the lamp off
+                    # (a stuck coil, a manual switch): the batch cannot go on (design 3.3)
+                    self.trip(f"lamp relay unreachable, lamp state unknown"
+                              f"{' while the lamp is on' if self.is_on else ''}: {exc}")
                 return
             self._relay_ok()
         if seq != self._write_seq:

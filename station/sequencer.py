@@ -310,11 +310,21 @@ class Sequencer:
         """End the batch from outside: 'aborted' (operator), 'interrupted' (shutdown), 'failed' (trip).
 
         by: who asked (the token's name for an operator; None: the station itself)."""
-        if self.state in TERMINAL or self._stop is not None:
-            return
+        if self.state in TERMINAL or self._stop is not None or self.ending is not None:
+            return  # already ending: its cleanup decides the end state (see _cleanup)
         self._stop = (state, reason)
         self.ended_by = by or ("daemon" if state == "interrupted" else "station")
         if self.task is not None and not self.task.done():
+            if asyncio.current_task() is self.task:
+                # asked from inside the batch's own task (a lamp trip raised by its own lamp command):
+                # a cancel of the running task would stay pending past the handler's uncancel() and
+                # hit its cleanup; cancel it once it is suspended, like any stop from outside
+                asyncio.get_running_loop().call_soon(self._cancel_if_running)
+            else:
+                self.task.cancel()
+
+    def _cancel_if_running(self) -> None:
+        if self.task is not None and not self.task.done() and self.ending is None:
             self.task.cancel()
 
     def answer_prompt(self, prompt_id: int, answer: str = "done", by: str | None = None) -> None:
@@ -369,7 +379,9 @@ class Sequencer:
     async def _end(self, state: str, reason: str) -> None:
         if self.state in TERMINAL:
             return
-        await self._cleanup(state)
+        state = await self._cleanup(state)
+        if state == "failed" and not reason:
+            reason = self.error or ""
         if state == "finished" and self.storage_error is not None:
             state, reason = "failed", f"results not stored: {self.storage_error}"
             self.error = reason
@@ -379,17 +391,23 @@ class Sequencer:
         if self._stop is not None:
             raise _StopRequested(self._stop[1])
 
-    async def _cleanup(self, final_state: str) -> None:
+    async def _cleanup(self, final_state: str) -> str:
         """Lamp off, then release the DUTs (done or interrupted by `ending`); before the batch's
-        own end is published, so a client that sees the batch ended sees its DUTs ended too."""
+        own end is published, so a client that sees the batch ended sees its DUTs ended too.
+        Returns the end state: a batch whose lamp the relay cannot confirm off has not finished."""
         self.ending = final_state
         self.prompt = None
         # The lamp goes off on ANY batch end (design 3.3), before anything else can fail.
-        await asyncio.shield(self.hw.lamp.off(f"batch {self.batch_id} {final_state}"))
+        off = await asyncio.shield(self.hw.lamp.off(f"batch {self.batch_id} {final_state}"))
+        if off is False and final_state == "finished":
+            final_state = self.ending = "failed"
+            self.error = f"lamp relay did not take the OFF command at the end, lamp state unknown: " \
+                         f"{getattr(self.hw.lamp, 'relay_error', None) or 'no answer'}"
         try:
             await asyncio.shield(self.hw.release_duts(self))
         except Exception:
             log.exception("releasing DUTs of batch %d", self.batch_id)
+        return final_state
 
     # ------------------------------------------------------------ states
     async def _state_created(self) -> str:
