@@ -14,6 +14,8 @@ per transaction, so it is a handful of fsyncs per second.
 from __future__ import annotations
 
 import logging
+import random
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +23,7 @@ from typing import Any, Iterator
 
 from sqlalchemy import create_engine, event, func, select, update
 from sqlalchemy.engine import Engine, make_url
-from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from db.models import SCHEMA_REVISION, Batch, Dut, DutRun, SampleChunk, SegmentRow, utcnow
@@ -95,6 +97,50 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
     kwargs.setdefault("pool_pre_ping", True)
     return create_engine(u, **kwargs)
 
+COLLISION_RETRIES = 5  # a unique collision or a serialization failure is retried this many times
+RETRY_PGCODES = ("40001", "40P01")  # PostgreSQL serialization_failure, deadlock_detected
+
+
+def insert_ignore(bind: Any, model: Any, conflict_columns: list[str]) -> Any:
+    """INSERT ... ON CONFLICT (conflict_columns) DO NOTHING for the bind's dialect (SQLite and
+    PostgreSQL): the database decides who inserts the row; the loser's insert does nothing and
+    waits for the winner's commit on PostgreSQL, so the row can be read right after."""
+    name = bind.get_bind().dialect.name if hasattr(bind, "get_bind") else bind.dialect.name
+    if name == "postgresql":
+        from sqlalchemy.dialects.postgresql import insert as dialect_insert
+    elif name == "sqlite":
+        from sqlalchemy.dialects.sqlite import insert as dialect_insert
+    else:
+        raise StationError(f"insert-or-get is not implemented for {name} databases (SQLite, PostgreSQL)")
+    return dialect_insert(model).on_conflict_do_nothing(index_elements=conflict_columns)
+
+
+def _retryable(exc: Exception) -> bool:
+    if isinstance(exc, IntegrityError):
+        return "unique" in str(exc.orig).lower() or "duplicate" in str(exc.orig).lower()
+    if isinstance(exc, OperationalError):
+        return getattr(exc.orig, "sqlstate", None) in RETRY_PGCODES or getattr(exc.orig, "pgcode", None) in RETRY_PGCODES
+    return False
+
+
+def retry_collisions(fn: Any, what: str, attempts: int = COLLISION_RETRIES,
+                     on_retry: Any = None) -> Any:
+    """fn() again (its transaction rolled back) after a unique collision or a PostgreSQL
+    serialization failure/deadlock, up to `attempts` times: concurrent stations never crash a
+    batch on a race the database settles. Other errors, and the last collision, are raised.
+    on_retry() is called before each retry (a count: insert-or-get should leave it at 0)."""
+    for attempt in range(1, attempts + 1):
+        try:
+            return fn()
+        except (IntegrityError, OperationalError) as exc:
+            if attempt == attempts or not _retryable(exc):
+                raise
+            if on_retry is not None:
+                on_retry()
+            log.warning("%s: %s, retrying (%d/%d)", what, str(exc.orig).splitlines()[0], attempt, attempts - 1)
+            time.sleep(0.01 * attempt * (1 + random.random()))
+    raise AssertionError("unreachable")
+
 
 class Database:
     """The station database: `Database(url)`, then `.upgrade()` (or `.check()`) before use."""
@@ -104,6 +150,7 @@ class Database:
         # this station's name (config `name`): stamped on its batches, runs and results; the
         # restart bookkeeping (mark_interrupted, interrupted_batches) touches only its own batches
         self.station = station
+        self.collision_retries = 0  # create_run calls retried after a unique collision (see retry_collisions)
         self.engine = make_engine(url, echo=echo)
         self.Session = sessionmaker(self.engine, expire_on_commit=False)
 
@@ -256,22 +303,37 @@ class Database:
                 raise KeyError(f"no batch {batch_id}")
 
     def upsert_dut(self, s: Session, serial: str, sensor: str = "") -> Dut:
-        dut = s.scalars(select(Dut).where(Dut.serial == serial)).one_or_none()
+        """The DUT row of `serial`, made if new: insert-or-get by the database itself (INSERT ...
+        ON CONFLICT DO NOTHING, then the row), so two stations meeting the same new serial at the
+        same moment both get the one row; never a select-then-insert that loses the race with a
+        UniqueViolation. The UPDATE of last_seen row-locks the DUT until the caller's transaction
+        ends: run creation for one serial is serialised across stations (create_run counts
+        attempts under that lock)."""
         now = utcnow()
-        if dut is None:
-            dut = Dut(serial=serial, sensor=sensor or "", first_seen=now, last_seen=now)
-            s.add(dut)
-            s.flush()
-        else:
-            dut.last_seen = now
-            if sensor:
-                dut.sensor = sensor
-        return dut
+        s.execute(insert_ignore(s, Dut, ["serial"]).values(serial=serial, sensor=sensor or "", first_seen=now,
+                                                             last_seen=now))
+        values: dict[str, Any] = {"last_seen": now}
+        if sensor:
+            values["sensor"] = sensor
+        s.execute(update(Dut).where(Dut.serial == serial).values(**values).execution_options(synchronize_session=False))
+        return s.scalars(select(Dut).where(Dut.serial == serial).execution_options(populate_existing=True)).one()
 
     def create_run(
         self, batch_id: int, slot: str, serial: str, sensor: str = "", identity: dict | None = None,
         state: str = "identified",
     ) -> int:
+        """A new run of `serial` in (batch_id, slot), numbered as the serial's next attempt. Safe with
+        several stations on one database: the DUT row is insert-or-get and row-locked while the
+        attempt is counted (attempts of real batches are 1..N without duplicates or gaps), and a
+        unique collision or a PostgreSQL serialization failure/deadlock is retried."""
+        return retry_collisions(lambda: self._create_run(batch_id, slot, serial, sensor, identity, state),
+                                f"create run of {serial}", on_retry=self._count_retry)
+
+    def _count_retry(self) -> None:
+        self.collision_retries += 1
+
+    def _create_run(self, batch_id: int, slot: str, serial: str, sensor: str, identity: dict | None,
+                    state: str) -> int:
         with self.session() as s:
             dut = self.upsert_dut(s, serial, sensor)
             # a serial seen again is a retest: its attempt number counts every earlier run of real
@@ -395,4 +457,4 @@ class Database:
             return str(conn.exec_driver_sql("PRAGMA integrity_check").scalar())
 
 
-__all__ = ["Database", "ResumePoint", "RunPoint", "make_engine", "SQLITE_SYNCHRONOUS"]
+__all__ = ["Database", "ResumePoint", "RunPoint", "make_engine", "SQLITE_SYNCHRONOUS", "insert_ignore", "retry_collisions"]

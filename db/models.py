@@ -29,7 +29,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 # The revision of the newest schema this code knows (db/migrations/versions/).
-SCHEMA_REVISION = "0006"
+SCHEMA_REVISION = "0007"
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -118,8 +118,9 @@ class Batch(Base):
 
 
 class DutRun(Base):
-    """One DUT in one slot of one batch. result_seq is the MES cursor: it increases every time a
-    result of this run is stored, so `results since N` pages with a stable order."""
+    """One DUT in one slot of one batch. result_seq is the MES cursor of the run's CURRENT verdict
+    record: it is taken when the run's final verdict (DutVerdict) is stored and again when a later
+    verdict supersedes it (every record is kept in verdict_history)."""
 
     __tablename__ = "dut_run"
 
@@ -269,6 +270,29 @@ class ResultCounter(Base):
     value: Mapped[int] = mapped_column(BigInteger)
 
 
+class VerdictHistoryRow(Base):
+    """Every verdict record of a run, in the order the MES got them: the first final verdict
+    (supersedes_seq None) and each later one that supersedes it (a resumed batch, a re-judge).
+    result_seq is the record's MES cursor (None for a replay, which never reaches the MES);
+    dut_run carries the latest record's columns."""
+
+    __tablename__ = "verdict_history"
+
+    id: Mapped[int] = mapped_column(BigId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("dut_run.id", ondelete="CASCADE"), index=True)
+    result_seq: Mapped[int | None] = mapped_column(BigInteger, unique=True)
+    station: Mapped[str] = mapped_column(String(64), default="", server_default="")
+    verdict: Mapped[str | None] = mapped_column(String(16))
+    grade: Mapped[str | None] = mapped_column(String(16))
+    tray: Mapped[str | None] = mapped_column(String(64))
+    reason: Mapped[str] = mapped_column(Text, default="", server_default="")
+    detail: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    limits_name: Mapped[str | None] = mapped_column(String(64))
+    limits_version: Mapped[str | None] = mapped_column(String(32))
+    judged_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+    supersedes_seq: Mapped[int | None] = mapped_column(BigInteger)
+
+
 class AuditRow(Base):
     """Who did what through the REST API (batch start, abort, prompt answers, resume, limit-set
     changes): actor is the token's name, detail what the request carried."""
@@ -331,6 +355,7 @@ __all__ = [
     "Outbox",
     "ResultCounter",
     "AuditRow",
+    "VerdictHistoryRow",
     "SCHEMA_REVISION",
     "utcnow",
 ]

@@ -9,8 +9,8 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import func, insert, select, update
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import func, insert, or_, select, update
+from sqlalchemy.orm import aliased
 
 from db.database import Database
 from db.models import (
@@ -155,15 +155,18 @@ def dut_by_serial(db: Database, serial: str) -> dict | None:
         n_runs = s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id,
                                                               DutRun.batch_id.in_(_real_batches()))) or 0
         # the DUT's result is its latest VALID attempt (judged pass/marginal/fail); a retest that
-        # faulted does not hide the attempt before it. Never judged: the latest run with results.
+        # faulted does not hide the attempt before it. Never judged: the latest run with a record
+        # or with results.
         latest = s.scalars(
             select(DutRun).where(DutRun.dut_id == dut.id, DutRun.verdict.in_(VALID_VERDICTS),
                                  DutRun.batch_id.in_(_real_batches())).order_by(DutRun.id.desc())
         ).first()
-        if latest is None:
+        if latest is None:  # results are data of their run (no result_seq until its verdict)
+            with_results = select(ThermalResultRow.run_id).union(select(SfemResultRow.run_id))
             latest = s.scalars(
-                select(DutRun).where(DutRun.dut_id == dut.id, DutRun.result_seq.is_not(None))
-                .order_by(DutRun.result_seq.desc())
+                select(DutRun).where(DutRun.dut_id == dut.id,
+                                     or_(DutRun.result_seq.is_not(None), DutRun.id.in_(with_results)))
+                .order_by(DutRun.id.desc())
             ).first()
         out = {
             "serial": dut.serial,
@@ -262,46 +265,49 @@ def segments_of_run(db: Database, run_id: int) -> list[dict] | None:
 
 
 def result_key(run_id: int, result_seq: int) -> str:
-    """Idempotency key of one stored result (a run's newer result gets a new key)."""
+    """Idempotency key of one verdict record (a superseding record gets a new key); the web's
+    feed and webhook use db.writer.record_key instead (web/db_repo.py)."""
     return f"run-{run_id}-result-{result_seq}"
 
 
 def results_since(db: Database, since: int = 0, limit: int = 100, since_time: datetime | None = None,
                   station: str | None = None) -> list[dict]:
-    """Runs whose result was stored after cursor `since`, in increasing `id` (= the run's
-    result_seq, which is bumped whenever a run gets a new result). Page on with since=last id.
-    Safe with many stations writing: result_seq is taken in commit order (db.writer.take_result_seq),
-    so a result committed after this read gets a number above every one returned here.
-    since_time (optional) also requires the run's latest result to be at/after that time."""
+    """The MES feed: verdict records (a run's final verdict, and each later one that supersedes it)
+    stored after cursor `since`, in increasing `id` (= the record's result_seq). Page on with
+    since = the last id. Safe with many stations writing: result_seq is taken in commit order
+    (db.writer.take_result_seq), so a record committed after this read gets a number above every
+    one returned here. Each record carries `revision` (1, 2, ... per run) and `supersedes` (the
+    idempotency key of the record it replaces, or None): a client keeps the latest revision per
+    run_id. since_time (optional) also requires the record to be judged at/after that time."""
+    from db.models import VerdictHistoryRow as H
+
     limit = max(1, min(int(limit), 1000))
+    earlier = aliased(H)
+    revision = (select(func.count(earlier.id)).where(earlier.run_id == H.run_id, earlier.result_seq.is_not(None),
+                                                     earlier.result_seq <= H.result_seq).scalar_subquery())
     with db.session() as s:
         q = (
-            select(DutRun, Dut.serial, Batch.profile)
+            select(H, revision, DutRun, Dut.serial, Batch.profile)
+            .join(DutRun, DutRun.id == H.run_id)
             .join(Dut, Dut.id == DutRun.dut_id)
             .join(Batch, Batch.id == DutRun.batch_id)
-            .where(DutRun.result_seq > int(since))
-            .order_by(DutRun.result_seq)
+            .where(H.result_seq > int(since))
+            .order_by(H.result_seq)
             .limit(limit)
         )
         if station:
             q = q.where(DutRun.station == station)
         if since_time is not None:
-            recent = select(ThermalResultRow.run_id).where(ThermalResultRow.created_at >= since_time).union(
-                select(SfemResultRow.run_id).where(SfemResultRow.created_at >= since_time),
-                select(ProgramVerifyRow.run_id).where(ProgramVerifyRow.updated_at >= since_time),
-            )
-            q = q.where(DutRun.id.in_(recent))
-        rows = s.execute(q).all()
+            q = q.where(H.judged_at >= since_time)
         out = []
-        for r, serial, profile in rows:
-            t_th = s.scalar(select(func.max(ThermalResultRow.created_at)).where(ThermalResultRow.run_id == r.id))
-            t_sf = s.scalar(select(func.max(SfemResultRow.created_at)).where(SfemResultRow.run_id == r.id))
-            t_pv = s.scalar(select(ProgramVerifyRow.updated_at).where(ProgramVerifyRow.run_id == r.id))
-            times = [t for t in (t_th, t_sf, t_pv) if t is not None]
+        for h, rev, r, serial, profile in s.execute(q).all():
             item = {
-                "id": r.result_seq,
-                "idempotency_key": result_key(r.id, r.result_seq),
-                "created_at": _iso(max(times)) if times else None,
+                "id": h.result_seq,
+                "idempotency_key": result_key(r.id, h.result_seq),
+                "revision": int(rev),
+                "supersedes_seq": h.supersedes_seq,
+                "supersedes": None if h.supersedes_seq is None else result_key(r.id, h.supersedes_seq),
+                "created_at": _iso(h.judged_at),
                 "run_id": r.id,
                 "batch_id": r.batch_id,
                 "station": r.station,
@@ -311,11 +317,25 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
                 "profile": profile,
                 "state": r.state,
                 "ended_at": _iso(r.ended_at),
-                **verdict_json(r),
+                **record_verdict_json(h, r.attempt),
             }
             item.update(_run_results(s, r.id))
             out.append(item)
         return out
+
+
+def record_verdict_json(h: Any, attempt: int) -> dict:
+    """The decision of one verdict record (verdict_history row), shaped as verdict_json."""
+    return {
+        "attempt": attempt,
+        "verdict": h.verdict,
+        "grade": h.grade,
+        "tray": h.tray,
+        "reason": h.reason or None,
+        "limits_name": h.limits_name,
+        "limits_version": h.limits_version,
+        "judged_at": _iso(h.judged_at),
+    }
 
 
 def _real_batches() -> Any:
@@ -459,17 +479,19 @@ def judged_runs(db: Database, limit: int = 5000, station: str | None = None) -> 
 
 # ---- audit trail ------------------------------------------------------------------------------
 def audit_append(db: Database, actor: str, action: str, target: str = "", detail: dict | None = None,
-                 station: str | None = None) -> int:
-    """One audit row (who did what through the REST API); station defaults to the database's."""
+                 station: str | None = None, conn: Any = None) -> int:
+    """One audit row (who did what); station defaults to the database's. With `conn` the row goes
+    into that connection's transaction (the db writer's: it is stored with what it records, and a
+    second transaction would wait on SQLite's write lock the writer holds)."""
     from db.models import AuditRow
     from db.writer import plain_json
 
+    values = {"at": utcnow(), "station": (station if station is not None else getattr(db, "station", "")) or "",
+              "actor": actor[:128], "action": action[:64], "target": target[:128], "detail": plain_json(detail or {})}
+    if conn is not None:
+        return int(conn.execute(insert(AuditRow).values(**values)).inserted_primary_key[0])
     with db.session() as s:
-        row = AuditRow(at=utcnow(), station=(station if station is not None else getattr(db, "station", "")) or "",
-                       actor=actor[:128], action=action[:64], target=target[:128], detail=plain_json(detail or {}))
-        s.add(row)
-        s.flush()
-        return int(row.id)
+        return int(s.execute(insert(AuditRow).values(**values)).inserted_primary_key[0])
 
 
 def audit_list(db: Database, limit: int = 100, before_id: int | None = None, station: str | None = None) -> list[dict]:
@@ -502,25 +524,26 @@ def outbox_json(o: Outbox) -> dict:
 
 
 def outbox_enqueue(db: Database, idempotency_key: str, payload: dict, topic: str = "result") -> int:
-    """Queue a message; enqueueing the same key again returns the existing message's id."""
+    """Queue a message; enqueueing the same key again returns the existing message's id. Insert-or-get
+    by the database itself (ON CONFLICT DO NOTHING): two stations' MES workers may enqueue the same
+    record at the same moment."""
+    return outbox_enqueue_new(db, idempotency_key, payload, topic)[0]
+
+
+def outbox_enqueue_new(db: Database, idempotency_key: str, payload: dict, topic: str = "result") -> tuple[int, bool]:
+    """(message id, True when this call queued it; False when the key was queued already)."""
+    from db.database import insert_ignore
     from db.writer import plain_json
 
     now = utcnow()
-    try:
-        with db.session() as s:
-            res = s.execute(
-                insert(Outbox).values(
-                    idempotency_key=idempotency_key, topic=topic, payload=plain_json(payload), attempts=0,
-                    next_attempt_at=now, last_error="", created_at=now,
-                )
-            )
-            return int(res.inserted_primary_key[0])
-    except IntegrityError:
-        with db.session() as s:
-            oid = s.scalar(select(Outbox.id).where(Outbox.idempotency_key == idempotency_key))
-            if oid is None:
-                raise
-            return int(oid)
+    with db.session() as s:
+        res = s.execute(insert_ignore(s, Outbox, ["idempotency_key"]).values(
+            idempotency_key=idempotency_key, topic=topic, payload=plain_json(payload), attempts=0,
+            next_attempt_at=now, last_error="", created_at=now,
+        ))
+        added = bool(res.rowcount)
+        oid = s.scalar(select(Outbox.id).where(Outbox.idempotency_key == idempotency_key))
+        return int(oid), added
 
 
 def outbox_pending(db: Database, limit: int = 50, now: datetime | None = None) -> list[dict]:
@@ -566,6 +589,7 @@ __all__ = [
     "segments_of_run",
     "results_since",
     "audit_append",
+    "outbox_enqueue_new",
     "judged_runs",
     "audit_list",
     "batch_detail",

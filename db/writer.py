@@ -18,12 +18,24 @@ failure at once through `on_storage` (the daemon raises a critical alarm, health
 batch whose results are not stored cannot end 'finished'), and reports the recovery. Only an event
 the database refuses for itself (a constraint, a bad value) is dropped, counted and logged.
 
-Every stored result bumps its run's result_seq, the MES cursor of repository.results_since, taken
-from a row-locked counter so that its order is the commit order even with several stations (and
-writers) on one database (take_result_seq). With
-outbox=True the writer also puts the result's MES message in the outbox table in the same
-transaction; off by default because the web's MES worker copies results_since into the outbox
+The MES record is the run's FINAL verdict (design 8, docs/verdicts.md): only a DutVerdict takes a
+result_seq, the MES cursor of repository.results_since, from a row-locked counter so that its order
+is the commit order even with several stations (and writers) on one database (take_result_seq).
+Results (DutResult: thermal/SFEM) and program-and-verify records (DutProgrammed, DutVerified) are
+stored as data only: no result_seq, no MES message. A DutVerdict for a run that already has a
+result_seq (a resumed batch judged again, a re-judge) is a new record that supersedes the old one:
+a new result_seq, the run's verdict columns replaced, and an audit entry. Every DutVerdict writes
+its row in verdict_history (the feed pages over it: every record reaches the MES once). A replay's
+verdict (batch.replay_of) is stored without a result_seq: it never reaches the MES.
+
+With outbox=True the writer also puts the verdict record's MES message in the outbox table in the
+same transaction; off by default because the web's MES worker copies results_since into the outbox
 itself (two copies would reach the MES under two keys).
+
+A commit that hangs (SQLite file locked by another process, a slow disk: the commit blocks inside
+SQLite's busy timeout) is a storage failure too: a watchdog reports it through `on_storage` once a
+commit has been in progress for `stall_s` (default STALL_ALARM_S), sets `failing`, and reports the
+recovery when the commit goes through.
 """
 
 from __future__ import annotations
@@ -54,6 +66,7 @@ from db.models import (
     SegmentRow,
     SfemResultRow,
     ThermalResultRow,
+    VerdictHistoryRow,
     utcnow,
 )
 from station.events import (
@@ -72,6 +85,9 @@ from station.events import (
 from station.types import AXES
 
 log = logging.getLogger(__name__)
+
+STALL_ALARM_S = 5.0  # a commit in progress longer than this raises the storage alarm (DbWriter(stall_s=))
+AUDIT_VERDICT_SUPERSEDED = "verdict superseded"  # the audit action of a verdict record replaced by a newer one
 
 
 def plain_json(value: Any) -> Any:
@@ -191,6 +207,11 @@ def verdict_columns(verdict: dict) -> dict:
     }
 
 
+def record_key(run_id: int, result_seq: int) -> str:
+    """The MES idempotency key of one verdict record (feed, webhook and outbox alike)."""
+    return f"result:{run_id}:{result_seq}"
+
+
 def take_result_seq(conn: Connection) -> int:
     """The next MES cursor value, from the one-row counter (db.models.ResultCounter). The UPDATE
     holds the row lock until this transaction commits, so two writers (two stations on one
@@ -258,6 +279,7 @@ class DbWriter:
         on_commit: Callable[[CommitInfo], None] | None = None,
         on_storage: Callable[[str | None], None] | None = None,
         retry_max_s: float = 5.0,
+        stall_s: float = STALL_ALARM_S,
     ) -> None:
         self.db = database
         self.station = str(getattr(database, "station", "") or "")  # stamped on every result row
@@ -265,6 +287,11 @@ class DbWriter:
         self.retry_max_s = retry_max_s
         self.failing: str | None = None  # why storage fails now (None = healthy)
         self.failing_since: float | None = None
+        self.stall_s = float(stall_s)
+        self._failing_lock = threading.RLock()  # the writer thread and the stall watchdog both report
+        self._commit_started: float | None = None  # time.monotonic() of the commit in progress
+        self._stalled = False  # the watchdog reported the commit in progress as stalled
+        self.stall_latency_s: float | None = None  # commit start -> stall alarm, last time it fired
         self._abandon = threading.Event()
         self._held: list = []  # the events of the commit being retried
         self.interval_s = interval_s
@@ -281,10 +308,12 @@ class DbWriter:
         self.stats: dict[str, Any] = {
             "submitted": 0, "committed_events": 0, "committed_samples": 0, "commits": 0,
             "dropped_events": 0, "unbound_events": 0, "last_error": "", "storage_failures": 0,
-            "abandoned_events": 0,
+            "abandoned_events": 0, "stalls": 0,
         }
         self._thread = threading.Thread(target=self._loop, name="db-writer", daemon=True)
         self._thread.start()
+        self._watchdog = threading.Thread(target=self._watch_stalls, name="db-writer-watchdog", daemon=True)
+        self._watchdog.start()
 
     # ---- called from the event loop (cheap, non-blocking) -----------------------------------
     def bind_run(self, batch_id: int, slot: str, run_id: int) -> None:
@@ -320,8 +349,10 @@ class DbWriter:
         self._closed = True
         m = _Marker(stop=True)
         self._q.put(m)
-        if self.failing is not None and timeout is not None:
-            timeout = min(timeout, 5.0)  # storage is down: one more try, then say what is lost
+        if self.failing is not None and not self._stalled and timeout is not None:
+            # storage is down: one more try, then say what is lost (a stall, a lock held by another
+            # process, gets the whole timeout: it usually passes)
+            timeout = min(timeout, 5.0)
         if not m.done.wait(timeout):
             self._abandon.set()
         self._thread.join(timeout)
@@ -360,12 +391,48 @@ class DbWriter:
             if stop:
                 return
 
+    # ---- stall watchdog ---------------------------------------------------------------------
+    def _watch_stalls(self) -> None:
+        """Report a commit in progress for longer than stall_s as a storage failure. The commit
+        itself cannot say so: it blocks inside SQLite's busy timeout (another process holds the
+        lock) or in a slow fsync, so only another thread can see the time pass."""
+        tick_s = max(0.02, min(0.1, self.stall_s / 20))
+        while self._thread.is_alive():
+            started = self._commit_started
+            if started is not None and not self._stalled:
+                waited_s = time.monotonic() - started
+                if waited_s >= self.stall_s:
+                    self._report_stall(waited_s)
+            time.sleep(tick_s)
+
+    def _report_stall(self, waited_s: float) -> None:
+        """Under the lock, so a commit that ends meanwhile reports its recovery after this."""
+        with self._failing_lock:
+            if self._commit_started is None or self._stalled:
+                return  # the commit finished meanwhile
+            self._stalled = True
+            self.stall_latency_s = waited_s
+            self.stats["stalls"] += 1
+            self._set_failing(f"stalled: a commit has been waiting {waited_s:.1f} s (database locked?)")
+
+    def _commit_timed(self, events: list[Event], seal_all: bool) -> None:
+        """_commit, watched by the stall watchdog while it runs."""
+        self._commit_started = time.monotonic()
+        try:
+            self._commit(events, seal_all)
+        finally:
+            with self._failing_lock:
+                self._commit_started = None
+
     def _set_failing(self, reason: str | None) -> None:
-        if reason == self.failing:
-            return
-        was = self.failing
-        self.failing = reason
-        self.failing_since = time.time() if reason is not None else None
+        with self._failing_lock:
+            if reason == self.failing:
+                return
+            if reason is None:
+                self._stalled = False
+            was = self.failing
+            self.failing = reason
+            self.failing_since = time.time() if reason is not None else None
         if reason is not None and was is None:
             log.critical("db writer: the database does not take writes (%s): %d events held in memory, "
                          "retrying", reason, len(self._held))
@@ -384,7 +451,7 @@ class DbWriter:
         self._held = events
         while True:
             try:
-                self._commit(events, seal_all)
+                self._commit_timed(events, seal_all)
                 self._set_failing(None)
                 return True
             except OperationalError as exc:  # disk full, I/O error, locked, lost connection
@@ -432,7 +499,7 @@ class DbWriter:
             with self.db.engine.begin() as conn:
                 samples: dict[int, list[SamplesReceived]] = {}
                 seal: set[int] = set()
-                # results take their result_seq last (take_result_seq), so the counter's row lock
+                # verdicts take their result_seq last (take_result_seq), so the counter's row lock
                 # is held only for the commit, not while samples are compressed
                 numbered: list[tuple[int, int, Callable[[Connection, int | None], None]]] = []
                 for ev in events:
@@ -447,14 +514,15 @@ class DbWriter:
                     elif isinstance(ev, SegmentLogged):
                         if run_id is not None:
                             info.segments.append((run_id, ev.segment.index, self._segment(conn, run_id, ev)))
-                    elif isinstance(ev, (DutResult, DutVerdict)):
+                    elif isinstance(ev, DutResult):
                         if run_id is not None:
-                            numbered.append((ev.batch_id, run_id, self._result(conn, run_id, ev)))
+                            self._result(conn, run_id, ev)
+                    elif isinstance(ev, DutVerdict):
+                        if run_id is not None:
+                            numbered.append((ev.batch_id, run_id, self._verdict(conn, run_id, ev)))
                     elif isinstance(ev, (DutProgrammed, DutVerified)):
                         if run_id is not None:
-                            finish = self._program_verify(conn, run_id, ev)
-                            if finish is not None:
-                                numbered.append((ev.batch_id, run_id, finish))
+                            self._program_verify(conn, run_id, ev)
                     elif isinstance(ev, SlotStateChanged):
                         if run_id is not None:
                             self._slot_state(conn, run_id, ev)
@@ -472,7 +540,7 @@ class DbWriter:
                 for run_id in sorted(seal | (set(self._bufs) if seal_all else set())):
                     self._seal(conn, run_id)
                 for batch_id, run_id, finish in numbered:
-                    if self._is_replay(conn, batch_id):  # a replay's results never reach the MES
+                    if self._is_replay(conn, batch_id):  # a replay's verdicts never reach the MES
                         finish(conn, None)
                         continue
                     seq = take_result_seq(conn)
@@ -535,50 +603,74 @@ class DbWriter:
             values[f"acc_std_{ax}_g"] = float(sg.acc_std_g[k])
         return int(conn.execute(insert(SegmentRow).values(**values)).inserted_primary_key[0])
 
-    def _result(self, conn: Connection, run_id: int, ev: DutResult | DutVerdict) -> Callable[[Connection, int], None]:
-        """A result (and its verdict) or a verdict alone: one MES record either way. Stores the
-        result rows and returns what stores its result_seq (called at the end of the transaction)."""
+    def _result(self, conn: Connection, run_id: int, ev: DutResult) -> None:
+        """The analysis' results (thermal, SFEM): data only. No result_seq, no MES message: the
+        record the MES gets is the run's final verdict (DutVerdict). A verdict a DutResult may
+        still carry (an older daemon) is not final (design 8) and is ignored."""
         now = utcnow()
-        thermal = getattr(ev, "thermal", None)
-        sfem = getattr(ev, "sfem", None)
-        for row in thermal_rows(thermal):
+        for row in thermal_rows(ev.thermal):
             conn.execute(insert(ThermalResultRow).values(run_id=run_id, station=self.station, created_at=now, **row))
-        for row in sfem_rows(sfem):
+        for row in sfem_rows(ev.sfem):
             conn.execute(insert(SfemResultRow).values(run_id=run_id, station=self.station, created_at=now, **row))
-        return lambda conn, seq: self._number_result(conn, run_id, ev, seq, now)
 
-    def _number_result(self, conn: Connection, run_id: int, ev: DutResult | DutVerdict, seq: int | None,
-                       now: Any) -> None:
-        thermal = getattr(ev, "thermal", None)
-        sfem = getattr(ev, "sfem", None)
-        values: dict[str, Any] = {} if seq is None else {"result_seq": seq}
-        if ev.verdict:
-            values.update(verdict_columns(ev.verdict), judged_at=now)
-        if values:
-            conn.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
+    def _verdict(self, conn: Connection, run_id: int, ev: DutVerdict) -> Callable[[Connection, int | None], None]:
+        """The run's final verdict: one MES record. Returns what stores it once its result_seq is
+        taken (at the end of the transaction; None for a replay)."""
+        now = utcnow()
+        return lambda conn, seq: self._store_verdict(conn, run_id, ev, seq, now)
+
+    def _store_verdict(self, conn: Connection, run_id: int, ev: DutVerdict, seq: int | None, now: Any) -> None:
+        """The verdict columns of the run, its verdict_history row and, when it replaces a record
+        the MES already has a number for, the audit entry of the supersession."""
+        verdict = dict(ev.verdict or {})
+        old = conn.execute(select(DutRun.result_seq, DutRun.verdict, DutRun.grade, DutRun.tray, DutRun.verdict_reason)
+                           .where(DutRun.id == run_id)).first()
+        supersedes = old.result_seq if (old is not None and seq is not None) else None
+        cols = verdict_columns(verdict)
+        values: dict[str, Any] = {**cols, "judged_at": now}
+        if seq is not None:
+            values["result_seq"] = seq
+        conn.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
+        conn.execute(insert(VerdictHistoryRow).values(
+            run_id=run_id, result_seq=seq, station=self.station, verdict=cols["verdict"], grade=cols["grade"],
+            tray=cols["tray"], reason=cols["verdict_reason"], detail=cols["verdict_detail"],
+            limits_name=cols["limits_name"], limits_version=cols["limits_version"], judged_at=now,
+            supersedes_seq=supersedes))
+        if supersedes is not None:
+            self._audit_superseded(conn, run_id, ev, old, seq, cols)
         if self.outbox and seq is not None:
-            payload = {
-                "result_seq": seq,
-                "run_id": run_id,
-                "batch_id": ev.batch_id,
-                "slot": ev.slot,
-                "serial": ev.serial,
-                "thermal": plain_json(thermal),
-                "sfem": plain_json(sfem),
-            }
-            if ev.verdict:
-                payload.update({k: ev.verdict.get(k) for k in VERDICT_FIELDS})
-            conn.execute(
-                insert(Outbox).values(
-                    idempotency_key=f"result:{run_id}:{seq}", topic="result", payload=payload, attempts=0,
-                    next_attempt_at=now, last_error="", created_at=now,
-                )
-            )
+            self._outbox_verdict(conn, run_id, ev, seq, supersedes, now)
 
-    def _program_verify(self, conn: Connection, run_id: int, ev: DutProgrammed | DutVerified
-                        ) -> Callable[[Connection, int], None] | None:
-        """Upsert the run's program_verify row. A verification is a new result of the run: its
-        result_seq is bumped and the MES outbox gets the run's program-and-verify record."""
+    def _audit_superseded(self, conn: Connection, run_id: int, ev: DutVerdict, old: Any, seq: int, cols: dict) -> None:
+        from db.repository import audit_append
+
+        detail = {
+            "run_id": run_id, "serial": ev.serial, "slot": ev.slot, "batch_id": ev.batch_id,
+            "old": {"result_seq": old.result_seq, "idempotency_key": record_key(run_id, old.result_seq),
+                    "verdict": old.verdict, "grade": old.grade, "tray": old.tray, "reason": old.verdict_reason},
+            "new": {"result_seq": seq, "idempotency_key": record_key(run_id, seq), "verdict": cols["verdict"],
+                    "grade": cols["grade"], "tray": cols["tray"], "reason": cols["verdict_reason"]},
+        }
+        audit_append(self.db, "station", AUDIT_VERDICT_SUPERSEDED, f"run {run_id} ({ev.serial or '-'})", detail,
+                     station=self.station, conn=conn)
+
+    def _outbox_verdict(self, conn: Connection, run_id: int, ev: DutVerdict, seq: int, supersedes: int | None,
+                        now: Any) -> None:
+        revision = int(conn.execute(select(func.count(VerdictHistoryRow.id)).where(
+            VerdictHistoryRow.run_id == run_id, VerdictHistoryRow.result_seq.is_not(None))).scalar_one())
+        payload = {
+            "result_seq": seq, "run_id": run_id, "batch_id": ev.batch_id, "slot": ev.slot, "serial": ev.serial,
+            "revision": revision, "supersedes": None if supersedes is None else record_key(run_id, supersedes),
+            **{k: (ev.verdict or {}).get(k) for k in VERDICT_FIELDS},
+        }
+        conn.execute(insert(Outbox).values(
+            idempotency_key=record_key(run_id, seq), topic="result", payload=payload, attempts=0,
+            next_attempt_at=now, last_error="", created_at=now,
+        ))
+
+    def _program_verify(self, conn: Connection, run_id: int, ev: DutProgrammed | DutVerified) -> None:
+        """Upsert the run's program_verify row: data only (the verdict, at the run's end, is the
+        record the MES gets)."""
         now = utcnow()
         row = conn.execute(select(ProgramVerifyRow.id).where(ProgramVerifyRow.run_id == run_id)).scalar()
         if isinstance(ev, DutProgrammed):
@@ -603,22 +695,6 @@ class DbWriter:
             conn.execute(insert(ProgramVerifyRow).values(run_id=run_id, station=self.station, **{**base, **values}))
         else:
             conn.execute(update(ProgramVerifyRow).where(ProgramVerifyRow.id == row).values(**values))
-        if not isinstance(ev, DutVerified):
-            return None
-        return lambda conn, seq: self._number_verification(conn, run_id, ev, seq, now)
-
-    def _number_verification(self, conn: Connection, run_id: int, ev: DutVerified, seq: int | None, now: Any) -> None:
-        if seq is None:  # a replay: stored, not numbered for the MES
-            return
-        conn.execute(update(DutRun).where(DutRun.id == run_id).values(result_seq=seq))
-        if self.outbox:
-            prog = conn.execute(select(ProgramVerifyRow.program).where(ProgramVerifyRow.run_id == run_id)).scalar()
-            payload = {"result_seq": seq, "run_id": run_id, "batch_id": ev.batch_id, "slot": ev.slot, "serial": ev.serial,
-                       "program_verify": {"program": plain_json(prog), "verification": plain_json(ev.verification)}}
-            conn.execute(insert(Outbox).values(
-                idempotency_key=f"result:{run_id}:{seq}", topic="result", payload=payload, attempts=0,
-                next_attempt_at=now, last_error="", created_at=now,
-            ))
 
     def _slot_state(self, conn: Connection, run_id: int, ev: SlotStateChanged) -> None:
         values: dict[str, Any] = {"state": ev.state, "fault_reason": ev.fault_reason}
@@ -748,4 +824,5 @@ class DbWriter:
         return int(res.inserted_primary_key[0])
 
 
-__all__ = ["DbWriter", "CommitInfo", "thermal_rows", "sfem_rows", "plain_json", "verdict_columns", "VERDICT_FIELDS", "take_result_seq"]
+__all__ = ["DbWriter", "CommitInfo", "thermal_rows", "sfem_rows", "plain_json", "verdict_columns", "VERDICT_FIELDS", "take_result_seq",
+           "record_key", "STALL_ALARM_S"]

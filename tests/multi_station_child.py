@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from db import Database, DbWriter  # noqa: E402
 from db_helpers import THERMAL_JSON  # noqa: E402
-from station.events import DutResult, SlotStateChanged  # noqa: E402
+from station.events import DutResult, DutVerdict, SlotStateChanged  # noqa: E402
 
 
 def main() -> None:
@@ -38,8 +38,9 @@ def main() -> None:
     for batch, slot, serial in runs:
         verdict = {"verdict": rng.choice(["pass", "pass", "marginal", "fail"]), "grade": "A", "tray": "T1",
                    "attempt": 1, "limits_name": "LIS3DSH", "limits_version": "1"}
-        writer.submit(DutResult(batch, slot, serial, thermal=THERMAL_JSON, verdict=verdict))
+        writer.submit(DutResult(batch, slot, serial, thermal=THERMAL_JSON))  # data: no MES record
         writer.submit(SlotStateChanged(batch, slot, serial, "done"))
+        writer.submit(DutVerdict(batch, slot, serial, verdict=verdict))  # the final verdict: the MES record
         time.sleep(rng.uniform(0.005, 0.04))
     writer.close()
     db.dispose()

@@ -16,13 +16,13 @@ from db import Database, DbWriter
 from db import repository as repo
 from db.export import run_log
 from db.models import SCHEMA_REVISION, Base
-from station.events import DutResult, SamplesReceived, SegmentLogged, SlotStateChanged
+from station.events import DutResult, DutVerdict, SamplesReceived, SegmentLogged, SlotStateChanged
 from station.logfile import ACC_DECIMALS, TEMP_DECIMALS
 from station.types import SampleBlock, StationError
 from db_helpers import SFEM_JSON, THERMAL_JSON, lis3dsh_stream, pg_database, pg_reachable, segment
 
 TABLES = {"dut", "batch", "dut_run", "segment", "thermal_result", "sfem_result", "sample_chunk", "outbox", "alembic_version",
-          "result_counter", "audit",
+          "result_counter", "audit", "verdict_history",
           "program_verify"}
 
 
@@ -95,6 +95,7 @@ def _round_trip(db: Database) -> None:
     w.submit(SegmentLogged(batch, "s1", "PG0001", 0, segment(0)))
     w.submit(DutResult(batch, "s1", "PG0001", thermal=THERMAL_JSON, sfem=SFEM_JSON))
     w.submit(SlotStateChanged(batch, "s1", "PG0001", "done"))
+    w.submit(DutVerdict(batch, "s1", "PG0001", verdict={"verdict": "pass", "grade": "A", "tray": "T1"}))  # the MES record
     w.close()
     out = run_log(db, run)
     assert np.array_equal(out.acc_g, np.round(acc, ACC_DECIMALS))
@@ -105,7 +106,7 @@ def _round_trip(db: Database) -> None:
     assert d["sfem"]["steps"][1]["temp_c"] == 45.0 and d["sfem"]["polynomial_coefficients"]["scale_x"][1] == 1e-5
     assert repo.segments_of_run(db, run)[0]["acc_mean_g"][1] == 0.578
     assert repo.batch_detail(db, batch)["config_snapshot"]["nested"] == {"a": [1, 2]}
-    assert [r["run_id"] for r in repo.results_since(db, 0)] == [run]
+    assert [(r["run_id"], r["revision"], r["verdict"]) for r in repo.results_since(db, 0)] == [(run, 1, "pass")]
 
 
 def test_sqlite_round_trip(tmp_path):

@@ -16,7 +16,8 @@ from db import repository as repo
 from db.export import run_log
 from db.models import Batch, DutRun, Outbox, SampleChunk, SegmentRow, utcnow
 from station.events import (
-    BatchStateChanged, DutResult, LampChanged, SamplesReceived, SegmentLogged, SlotStateChanged, StepStarted,
+    BatchStateChanged, DutResult, DutVerdict, LampChanged, SamplesReceived, SegmentLogged, SlotStateChanged,
+    StepStarted,
 )
 from station.logfile import ACC_DECIMALS
 from station.types import SampleBlock
@@ -85,28 +86,43 @@ def test_submit_never_blocks_even_when_the_database_is_locked(tmp_path):
 
 
 def test_state_events_results_and_results_since_paging(tmp_path):
+    """The MES record is the final verdict (design 8): results are data (no result_seq), each
+    DutVerdict is one record, and a second verdict of a run is a new record that supersedes it."""
     db, batch, runs = _setup(tmp_path, n_slots=5)
     w = DbWriter(db, interval_s=0.01)
     for i, run in enumerate(runs):
         w.bind_run(batch, f"s{i}", run)
     w.submit(BatchStateChanged(batch, "running"))
+    for i in range(5):
+        w.submit(DutResult(batch, f"s{i}", f"SIM{i:04d}", thermal=THERMAL_JSON))
+    w.submit(DutResult(batch, "s3", "SIM0003", sfem=SFEM_JSON))  # a newer result for run 3: still data only
+    w.flush()
+    assert repo.results_since(db, 0) == []  # no verdict yet: nothing reaches the MES
     order = [3, 1, 4, 0, 2]
     for i in order:
-        w.submit(DutResult(batch, f"s{i}", f"SIM{i:04d}", thermal=THERMAL_JSON))
+        w.submit(DutVerdict(batch, f"s{i}", f"SIM{i:04d}", verdict={"verdict": "error", "reason": "interrupted"}))
         w.flush()
     w.submit(SlotStateChanged(batch, "s2", "SIM0002", "faulted", fault_reason="link lost"))
-    w.submit(DutResult(batch, "s3", "SIM0003", sfem=SFEM_JSON))  # a newer result for run 3
+    w.submit(DutVerdict(batch, "s3", "SIM0003", verdict={"verdict": "pass", "grade": "A", "tray": "T1"}))  # re-judged
     w.submit(BatchStateChanged(batch, "finished"))
     w.close()
     page1 = repo.results_since(db, 0, limit=3)
     page2 = repo.results_since(db, page1[-1]["id"], limit=3)
     got = [r["run_id"] for r in page1 + page2]
-    assert got == [runs[i] for i in (1, 4, 0, 2, 3)]  # run 3 moved to the end: it has a newer result
+    assert got == [runs[i] for i in (3, 1, 4, 0, 2, 3)]  # run 3 again at the end: its superseding record
     ids = [r["id"] for r in page1 + page2]
-    assert ids == sorted(ids) and len(set(ids)) == 5
+    assert ids == sorted(ids) and len(set(ids)) == 6
     assert repo.results_since(db, ids[-1]) == []
-    assert page2[-1]["sfem"]["steps"][0]["rmse_after_mg"] == 0.9 and page2[-1]["thermal"]["x"]["tdb_mg_per_c"] == 0.42
-    assert page1[0]["idempotency_key"] == f"run-{runs[1]}-result-{ids[0]}" and page1[0]["created_at"]
+    first, again = page1[0], page2[-1]
+    assert (first["revision"], first["supersedes"], first["verdict"]) == (1, None, "error")
+    assert (again["revision"], again["supersedes"], again["verdict"]) == (2, first["idempotency_key"], "pass")
+    assert [r["revision"] for r in page1 + page2][1:5] == [1, 1, 1, 1]
+    assert again["sfem"]["steps"][0]["rmse_after_mg"] == 0.9 and again["thermal"]["x"]["tdb_mg_per_c"] == 0.42
+    assert page1[0]["idempotency_key"] == f"run-{runs[3]}-result-{ids[0]}" and page1[0]["created_at"]
+    assert repo.run_detail(db, runs[3])["result_seq"] == ids[-1]  # the run carries its latest record
+    audit = [a for a in repo.audit_list(db) if a["action"] == "verdict superseded"]
+    assert len(audit) == 1 and audit[0]["detail"]["old"]["result_seq"] == ids[0]
+    assert audit[0]["detail"]["new"]["result_seq"] == ids[-1] and audit[0]["detail"]["new"]["verdict"] == "pass"
     d = repo.batch_detail(db, batch)
     assert d["state"] == "finished" and d["ended_at"] is not None
     assert {r["slot"]: r["state"] for r in d["runs"]}["s2"] == "faulted"
@@ -181,12 +197,59 @@ def test_outbox_enqueue_pending_delivered_failed(tmp_path):
     assert [(m["id"], m["attempts"], m["last_error"], m["payload"]["x"]) for m in later] == [(a, 1, "HTTP 503", 0.5)]
     with pytest.raises(KeyError):
         repo.outbox_mark_delivered(db, 999)
-    # the writer's transactional outbox (opt-in): the result and its message in one commit
+    # the writer's transactional outbox (opt-in): the verdict record and its message in one commit;
+    # a result alone is data, no MES message
     w = DbWriter(db, outbox=True)
     w.bind_run(batch, "s0", runs[0])
     w.submit(DutResult(batch, "s0", "SIM0000", thermal=THERMAL_JSON))
+    assert w.flush(30)
+    with db.session() as s:
+        assert s.scalar(select(func.count(Outbox.id))) == 2
+    w.submit(DutVerdict(batch, "s0", "SIM0000", verdict={"verdict": "pass", "grade": "A"}))
     w.close()
     with db.session() as s:
         keys = list(s.scalars(select(Outbox.idempotency_key).order_by(Outbox.id)))
-        assert keys[-1] == f"result:{runs[0]}:1"
+        assert keys[-1] == f"result:{runs[0]}:1" and len(keys) == 3
+        last = s.scalars(select(Outbox).order_by(Outbox.id.desc())).first()
+        assert (last.payload["verdict"], last.payload["revision"], last.payload["supersedes"]) == ("pass", 1, None)
         assert s.get(Batch, batch).state == "created"
+
+
+def test_a_replays_verdict_is_stored_but_never_reaches_the_mes(tmp_path):
+    db = sqlite_db(tmp_path)
+    batch = db.create_batch("fast-thermal", "op", {}, replay_of="batch 1 of line-A")
+    run = db.create_run(batch, "s0", "REPLAY1", "LIS3DSH", {})
+    with DbWriter(db, interval_s=0.01) as w:
+        w.bind_run(batch, "s0", run)
+        w.submit(DutVerdict(batch, "s0", "REPLAY1", verdict={"verdict": "pass", "grade": "A"}))
+        w.submit(DutVerdict(batch, "s0", "REPLAY1", verdict={"verdict": "fail", "grade": "reject"}))
+    detail = repo.run_detail(db, run)
+    assert (detail["verdict"], detail["result_seq"]) == ("fail", None)
+    assert repo.results_since(db, 0) == []
+    assert [a for a in repo.audit_list(db) if a["action"] == "verdict superseded"] == []
+    from db.models import VerdictHistoryRow
+
+    with db.session() as s:
+        rows = s.execute(select(VerdictHistoryRow.verdict, VerdictHistoryRow.result_seq, VerdictHistoryRow.supersedes_seq)
+                         .order_by(VerdictHistoryRow.id)).all()
+    assert [tuple(r) for r in rows] == [("pass", None, None), ("fail", None, None)]
+
+
+def test_upgrade_from_0006_keeps_every_record_in_the_feed(tmp_path):
+    """Migration 0007 makes every run that had a result_seq revision 1 of its run."""
+    from alembic import command
+    from sqlalchemy import text
+
+    from db import Database
+
+    db = Database(f"sqlite:///{tmp_path / 'old.db'}")
+    with db.engine.begin() as conn:
+        command.upgrade(db._alembic_config(conn), "0006")
+    batch = db.create_batch("fast-thermal", "op", {})
+    runs = [db.create_run(batch, f"s{i}", f"OLD{i}", "LIS3DSH", {}) for i in range(3)]
+    with db.engine.begin() as conn:
+        conn.execute(text("UPDATE dut_run SET result_seq = 7, verdict = 'pass', grade = 'A' WHERE id = :r"), {"r": runs[0]})
+        conn.execute(text("UPDATE dut_run SET result_seq = 9 WHERE id = :r"), {"r": runs[2]})  # a result, no verdict
+    assert db.upgrade() == "0007"
+    got = [(r["id"], r["run_id"], r["revision"], r["supersedes"], r["verdict"]) for r in repo.results_since(db, 0)]
+    assert got == [(7, runs[0], 1, None, "pass"), (9, runs[2], 1, None, None)]

@@ -18,10 +18,11 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from db import Database
+from db import Database, DbWriter
 from db import repository as repo
 from db.models import DutRun
 from db.writer import take_result_seq
+from station.events import DutVerdict
 from db_helpers import pg_database, pg_reachable
 from web.app import create_app, make_server
 from web.auth import TokenStore
@@ -110,17 +111,18 @@ def test_two_stations_one_postgresql_mes_gets_every_result_once():
                 def poll() -> int:
                     nonlocal cursor, polls
                     n = 0
-                    while True:  # page on (limit 7) until a page says it is the last
+                    while True:  # follow `next` (limit 7) until a page is not full: the last for now
                         polls += 1
                         r = client.get("/api/results", params={"since": str(cursor), "limit": 7})
                         assert r.status_code == 200, r.text
                         page = r.json()
                         for item in page["results"]:
                             assert item["id"] > cursor  # strictly increasing across pages
-                            cursor = item["id"]
                             delivered.append(item)
                             n += 1
-                        if page["next"] is None:
+                        assert page["next"] == str(page["results"][-1]["id"] if page["results"] else cursor)
+                        cursor = int(page["next"])  # never null: the last page's cursor is where to poll from
+                        if len(page["results"]) < 7:
                             return n
 
                 while any(c.poll() is None for c in children):
@@ -164,12 +166,11 @@ def test_sqlite_counter_and_station_names(tmp_path):
     a.upgrade()
     ba, bb = a.create_batch("fast-thermal", "op", {}, state="running"), b.create_batch("fast-thermal", "op", {}, state="running")
     ra, rb = a.create_run(ba, "s1", "SA", "LIS3DSH"), b.create_run(bb, "s1", "SB", "LIS3DSH")
-    with a.engine.begin() as conn:
-        s1 = take_result_seq(conn)
-        conn.execute(DutRun.__table__.update().where(DutRun.id == ra).values(result_seq=s1))
-    with b.engine.begin() as conn:
-        s2 = take_result_seq(conn)
-        conn.execute(DutRun.__table__.update().where(DutRun.id == rb).values(result_seq=s2))
+    for db, batch, run, serial in ((a, ba, ra, "SA"), (b, bb, rb, "SB")):  # each station's final verdict
+        with DbWriter(db) as w:
+            w.bind_run(batch, "s1", run)
+            w.submit(DutVerdict(batch, "s1", serial, verdict={"verdict": "pass"}))
+    s1, s2 = (repo.run_detail(a, r)["result_seq"] for r in (ra, rb))
     assert (s1, s2) == (1, 2)
     assert [(r["station"], r["id"]) for r in repo.results_since(a, 0)] == [("A", 1), ("B", 2)]
     assert [r["id"] for r in repo.results_since(a, 0, station="B")] == [2]

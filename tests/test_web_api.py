@@ -224,10 +224,13 @@ def test_results_feed_pages_with_a_cursor(client, batch, seeded):
     while True:
         pages += 1
         items += page["results"]
-        if page["next"] is None:
+        assert page["next"] == str(items[-1]["id"])  # never null: the last page's cursor is where to poll from
+        if len(page["results"]) < 3:  # not full: the last page for now
             break
         page = get(client, "/api/results", "mes", params={"limit": 3, "since": page["next"]}).json()
     assert pages == 3 and len(items) == 8
+    again = get(client, "/api/results", "mes", params={"limit": 3, "since": page["next"]}).json()
+    assert again == {"results": [], "next": page["next"]}  # polling from there reads nothing twice
     ids = [it["id"] for it in items]
     assert ids == sorted(ids) and len(set(ids)) == 8
     keys = [it["idempotency_key"] for it in items]
@@ -242,7 +245,7 @@ def test_results_feed_pages_with_a_cursor(client, batch, seeded):
         assert np.allclose(got, truth["tdb"])
     # an ISO time: results created at/after it
     future = (datetime.now(timezone.utc) + timedelta(hours=1)).isoformat()
-    assert get(client, "/api/results", "mes", params={"since": future}).json() == {"results": [], "next": None}
+    assert get(client, "/api/results", "mes", params={"since": future}).json() == {"results": [], "next": future}
     past = (datetime.now(timezone.utc) - timedelta(hours=1)).isoformat().replace("+00:00", "Z")
     assert len(get(client, "/api/results", "admin", params={"since": past, "limit": 100}).json()["results"]) == 8
     # the last id as cursor: nothing newer

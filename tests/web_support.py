@@ -249,7 +249,7 @@ def seed_results(db, n_duts: int = 5, *, batch_profile: str = "fast-thermal", se
 
     Returns {serial: {"run_id", "tdb", "tdsf"}} (the truth the API must give back)."""
     from db.writer import DbWriter
-    from station.events import DutResult, SamplesReceived, SegmentLogged, SlotStateChanged
+    from station.events import DutResult, DutVerdict, SamplesReceived, SegmentLogged, SlotStateChanged
     from station.types import SampleBlock, Segment
 
     rng = np.random.default_rng(seed)
@@ -285,6 +285,10 @@ def seed_results(db, n_duts: int = 5, *, batch_profile: str = "fast-thermal", se
                        "offline": thermal_json(tdb, tdsf, "offline")}
             writer.submit(DutResult(batch_id, slot=slot, serial=serial, thermal=thermal, sfem=None))
             writer.submit(SlotStateChanged(batch_id, slot=slot, serial=serial, state="done"))
+            # the run's final verdict: the MES record (design 8; results alone are data)
+            writer.submit(DutVerdict(batch_id, slot=slot, serial=serial, verdict={
+                "verdict": "pass", "grade": "A", "tray": "A", "reason": "all limits met", "attempt": 1,
+                "run_id": run_id}))
             truth[serial] = {"run_id": run_id, "tdb": tdb, "tdsf": tdsf, "slot": slot, "batch_id": batch_id}
         assert writer.flush(30)
     finally:

@@ -1,9 +1,11 @@
 """WebRepository on the station database (db.repository and db.export).
 
-The MES key of a result is `result:<run_id>:<result_seq>`, the same key db.writer uses when it
-queues the message in the result's own transaction (DbWriter(outbox=True)). The webhook worker also
-enqueues every stored result under that key (enqueue is idempotent on the key), so whichever path
-queued it, one result is one outbox row and one MES record; the results feed carries the same key.
+The MES record is a run's final verdict (design 8). Its key is `result:<run_id>:<result_seq>`
+(db.writer.record_key), the same key db.writer uses when it queues the message in the verdict's own
+transaction (DbWriter(outbox=True)). The webhook worker also enqueues every record under that key
+(enqueue is insert-or-get on the key), so whichever path queued it, one record is one outbox row
+and one MES record; the results feed carries the same key, and a superseding record names the key
+of the one it replaces (`supersedes`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from sqlalchemy import func, select, text
 
 from db import repository as R
 from db.database import Database
+from db.writer import record_key
 from db.models import Dut, DutRun, Outbox
 from station.logfile import DutLog
 from station.types import StationError
@@ -21,8 +24,8 @@ from web.repo import WebRepository
 
 
 def result_key(run_id: int, result_seq: int) -> str:
-    """Same key as db.writer puts on the outbox row of this result."""
-    return f"result:{run_id}:{result_seq}"
+    """Same key as db.writer puts on the outbox row of this record."""
+    return record_key(run_id, result_seq)
 
 
 def _with_methods(d: dict) -> dict:
@@ -131,18 +134,16 @@ class DbRepository(WebRepository):
         rows = R.results_since(self.db, after_id, limit, since_time=t, station=station)
         for r in rows:
             r["idempotency_key"] = result_key(r["run_id"], r["id"])
+            seq = r.pop("supersedes_seq", None)
+            r["supersedes"] = None if seq is None else result_key(r["run_id"], seq)
             if not r.get("created_at"):
                 r["created_at"] = r.get("ended_at")
             _with_methods(r)
         return rows
 
     def outbox_enqueue(self, idempotency_key: str, payload: dict) -> bool:
-        with self.db.session() as s:
-            exists = s.scalar(select(Outbox.id).where(Outbox.idempotency_key == idempotency_key))
-        if exists is not None:
-            return False
-        R.outbox_enqueue(self.db, idempotency_key, payload)
-        return True
+        """Insert-or-get on the key (two stations' workers may enqueue the same record at once)."""
+        return R.outbox_enqueue_new(self.db, idempotency_key, payload)[1]
 
     def outbox_high_water(self) -> int:
         """Highest result id (result_seq) already in the outbox: a restart scans only newer ones."""

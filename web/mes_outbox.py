@@ -1,7 +1,8 @@
-"""Webhook delivery of finished-DUT results to the MES (transactional outbox).
+"""Webhook delivery of the MES records, each a run's final verdict (design 8), with its results.
 
-The worker copies every stored result into the db outbox table (enqueue is idempotent on the
-result's idempotency key), then POSTs each due entry to the configured URL with the key in an
+The worker copies every verdict record into the db outbox table (enqueue is idempotent on the
+record's idempotency key; a superseding record has its own key and names the one it replaces in
+`supersedes`, with `revision` N + 1), then POSTs each due entry to the configured URL with the key in an
 `Idempotency-Key` header and in the payload. Failures (non-2xx, timeout, refused) are retried
 with exponential backoff; the schedule lives in the table, so a restart resumes where it stopped.
 The same result always carries the same key, so a retry after a lost reply is recognisable by the
@@ -18,7 +19,7 @@ from dataclasses import dataclass
 
 import httpx
 
-from station.events import DutResult, DutVerdict
+from station.events import DutVerdict
 from web.repo import WebRepository
 from web.views import clean
 
@@ -78,6 +79,9 @@ def payload_of(result: dict, station_name: str) -> dict:
             "batch_id": result.get("batch_id"),
             "slot": result.get("slot"),
             "created_at": result.get("created_at"),
+            # a later verdict of the same run is a new record: revision N + 1, naming the key it replaces
+            "revision": result.get("revision"),
+            "supersedes": result.get("supersedes"),
             "thermal": axes,
             "streaming": thermal.get("streaming") if isinstance(thermal, dict) else None,
             "offline": thermal.get("offline") if isinstance(thermal, dict) else None,
@@ -130,7 +134,7 @@ class MesOutbox:
         try:
             while True:
                 ev = await q.get()
-                if isinstance(ev, (DutResult, DutVerdict)):
+                if isinstance(ev, DutVerdict):  # the only event that makes an MES record
                     # the db writer commits in batches; look again shortly after
                     await asyncio.sleep(0.2)
                     self.wake()

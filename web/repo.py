@@ -46,11 +46,12 @@ class WebRepository(abc.ABC):
     @abc.abstractmethod
     def results_since(self, after_id: int = 0, since_time: float | None = None, limit: int = 100,
                       station: str | None = None) -> list[dict]:
-        """Finished-DUT results with id > after_id (and created at/after since_time, and of that
-        station when given), oldest first.
+        """Verdict records (a run's final verdict, and each later one that supersedes it) with
+        id > after_id (and judged at/after since_time, and of that station when given), oldest
+        first.
 
-        Each: {"id", "idempotency_key", "serial", "run_id", "batch_id", "slot", "created_at",
-        "thermal", "sfem"}.
+        Each: {"id", "idempotency_key", "revision", "supersedes", "serial", "run_id", "batch_id",
+        "slot", "created_at", "thermal", "sfem", verdict fields}.
         """
 
     @abc.abstractmethod

@@ -249,9 +249,18 @@ class SegmentOut(_Out):
     step_index: int | None = None
 
 
+REVISION_HELP = ("1 for a run's first final verdict; N + 1 for a later verdict of the same run that supersedes "
+                 "revision N (a resumed batch judged again, a re-judge). Keep the latest revision per run_id")
+SUPERSEDES_HELP = "idempotency_key of the record this one replaces; null for revision 1"
+
+
 class ResultOut(DecisionFields):
-    id: int
+    """One MES record: a run's final verdict with its results (design 8)."""
+
+    id: int = Field(description="the record's cursor (result_seq), increasing in commit order")
     idempotency_key: str
+    revision: int | None = Field(default=None, description=REVISION_HELP)
+    supersedes: str | None = Field(default=None, description=SUPERSEDES_HELP)
     serial: str
     run_id: int | None = None
     batch_id: int | None = None
@@ -265,16 +274,20 @@ class ResultOut(DecisionFields):
 
 class ResultsPage(BaseModel):
     results: list[ResultOut]
-    next: str | None = Field(description="cursor for the next page (pass as since=); null when this page is the last")
+    next: str = Field(description="cursor to go on with (pass as since=), never null: the last id of this page, or, "
+                      "when the page is empty, the since that was given ('0' when none). Poll with it: each "
+                      "record is read once")
 
 
 class MesResultPayload(DecisionFields):
-    """The body of each MES webhook POST (one per stored result or verdict; the same
-    Idempotency-Key header on every retry)."""
+    """The body of each MES webhook POST (one per verdict record: a run's final verdict, and each
+    later one that supersedes it; the same Idempotency-Key header on every retry)."""
 
     idempotency_key: str
     station: str
     result_id: int | None = Field(default=None, description="the results feed cursor of this record")
+    revision: int | None = Field(default=None, description=REVISION_HELP)
+    supersedes: str | None = Field(default=None, description=SUPERSEDES_HELP)
     serial: str
     run_id: int | None = None
     batch_id: int | None = None

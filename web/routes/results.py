@@ -69,7 +69,29 @@ def parse_since(since: str | None) -> tuple[int, float | None]:
         raise HTTPException(status_code=422, detail=f"since: time {since!r} is out of range") from None
 
 
-@router.get("/results", response_model=ResultsPage, dependencies=[Depends(require_results)])
+RESULTS_DESCRIPTION = """The MES feed: one record per final verdict of a DUT run (design 8), with its results,
+in increasing `id` (commit order, also with many stations on one database).
+
+**Cursor.** Pass `since` = the `next` of the previous page. `next` is never null: it is the last `id`
+of this page or, when the page is empty, the `since` given (`"0"` when none). A page with fewer than
+`limit` records is the last for now: poll again later with its `next`. A client that always follows
+`next` reads each record exactly once (it used to get `next: null` on the last page and start again
+from the beginning).
+
+**Supersession.** A later verdict of the same run (a batch interrupted, then resumed and judged
+again; a re-judge) is a new record with its own `id` and `idempotency_key`, `revision` N + 1 and
+`supersedes` = the key of the record it replaces. Keep the latest revision per `run_id`."""
+
+
+def next_cursor(rows: list[dict], since: str | None) -> str:
+    """Where the client goes on from: the last id returned, or the since given (never null)."""
+    if rows:
+        return str(rows[-1]["id"])
+    return since or "0"
+
+
+@router.get("/results", response_model=ResultsPage, dependencies=[Depends(require_results)],
+            description=RESULTS_DESCRIPTION)
 async def results(
     request: Request,
     since: str | None = Query(default=None, max_length=64, description="cursor, RFC 3339 time (with offset) or date",
@@ -80,16 +102,14 @@ async def results(
 ):
     after_id, since_time = parse_since(since)
     by_station = {"station": station} if station else {}  # repositories without stations still serve the rest
-    rows = await run_in_threadpool(request.app.state.repo.results_since, after_id, since_time, limit + 1, **by_station)
-    more = len(rows) > limit
+    rows = await run_in_threadpool(request.app.state.repo.results_since, after_id, since_time, limit, **by_station)
     rows = rows[:limit]
     out = []
     for r in rows:
         v = dut_view(r)
         v["thermal"] = r.get("thermal")
         out.append(clean(v))
-    nxt = str(rows[-1]["id"]) if more and rows else None
-    return {"results": out, "next": nxt}
+    return {"results": out, "next": next_cursor(rows, since)}
 
 
 @router.get("/outbox", response_model=list[OutboxEntry], dependencies=[Depends(require_admin)])
@@ -111,6 +131,8 @@ def register_webhooks(app) -> None:
 
     @app.webhooks.post("mes-result")
     def mes_result(body: MesResultPayload) -> None:
-        """One DUT result with the station's verdict, grade, attempt and limits version. Header
+        """One MES record: a DUT run's final verdict (grade, attempt, limits version) with its results;
+        a later verdict of the same run is a new record (`revision` N + 1, `supersedes` = the key it
+        replaces). Header
         `Idempotency-Key` = body.idempotency_key: a retry after a lost reply carries the same key.
         Reply 2xx once stored; anything else is retried with exponential backoff."""
