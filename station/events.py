@@ -103,13 +103,14 @@ class DutResult(Event):
     serial: str
     thermal: dict | None = None
     sfem: dict | None = None
-    verdict: dict | None = None  # the station's decision (station/judging.py), stored with the result
+    verdict: dict | None = None  # unused by the daemon: the verdict is final only at the run's end (DutVerdict)
 
 
 @dataclass(frozen=True)
 class DutVerdict(Event):
-    """The decision on a DUT run that has no result to carry it (faulted, aborted, analysis failed):
-    verdict error, stored on the run and sent to the MES like a result."""
+    """THE decision on a DUT run, final: published once when the run ends (station/judging.py);
+    the database numbers it for the MES (result_seq) and the webhook sends it. A later one for the
+    same run (a resumed batch, a re-judge) is a new record that supersedes the earlier."""
 
     slot: str
     serial: str | None

@@ -1,32 +1,36 @@
 """Hooks between the daemon and the decision (station/verdicts.py, which stays pure).
 
-The supervisor calls three functions, each one line at its site:
-- `judge_result(station, seq, dut)` right after a DUT's analysis: the verdict travels in the same
-  DutResult event as the result, so the database stores both in one transaction and the MES never
-  sees a result without its verdict;
-- `judge_unjudged(station, seq)` when the batch releases its DUTs: every DUT that has no verdict yet
-  (faulted, analysis failed, batch aborted/failed) gets `error` and a DutVerdict event, which the
-  MES receives like a result. An interrupted batch (daemon stopped, resumable) is not judged: its
-  runs are not over. Profiles without analysis are not judged either (nothing was measured);
+The verdict's moment (design 8): a run is judged ONCE, when it ends, from everything it stored
+(`verdicts.final_verdict` of a `RunRecord`), never earlier. The supervisor calls:
+- `judge_final(station, seq)` when the batch releases its DUTs, after every DUT's end state is set
+  (done, faulted, interrupted by an abort, a failure, a daemon stop): each run gets its verdict, on
+  the DUT for the batch status and as one DutVerdict event: the one record the database numbers for
+  the MES (result_seq) and the webhook sends. The analysis before it publishes results WITHOUT a
+  verdict, so a later fault, abort or failed verification can never leave a pass behind;
+- `judge_interrupted_runs(station, batch_ids)` at daemon start, for the runs a killed daemon left
+  running (marked interrupted by the database): error, "interrupted: station restarted". A batch
+  resumed later judges its runs again at its end: a new record that supersedes the error;
 - `batch_extras(station, seq)` for the batch status: verdict counts, the sorting list (slot ->
   tray) and the time left in the step and the batch.
-`rejudge(station, seq, dut, extra)` judges a DUT again with more measurements (program-and-verify's
-verified drift error) and publishes the new verdict.
+Profiles without analysis (validation) are not judged: nothing was measured for a verdict.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import Any
 
 from station.events import DutVerdict
 from station.science.residual import DEFAULT_OPERATING_RANGE_C
-from station.verdicts import decide, link_measurements, sfem_measurements, summarize, thermal_measurements
+from station.verdicts import RunRecord, final_verdict, summarize
+
+log = logging.getLogger("station.judging")
 
 
 def _spec(station: Any, identity: Any):
-    sensor = getattr(identity, "sensor", None)
+    sensor = getattr(identity, "sensor", None) if not isinstance(identity, dict) else identity.get("sensor")
     return station.config.product_for(sensor)
 
 
@@ -60,64 +64,82 @@ def _link_stats(station: Any, d: Any) -> dict:
     return dict(d.link_stats or {})
 
 
-def _verdict(station: Any, seq: Any, d: Any, state: str, fault_reason: str) -> dict:
-    analysis = seq.profile.analysis
-    ms = []
-    if analysis == "thermal":
-        ms += thermal_measurements(d.result)
-    elif analysis == "sfem":
-        ms += sfem_measurements(d.result)
-    ms += link_measurements(_link_stats(station, d), d.n_samples)
-    ms += list(getattr(d, "extra_measurements", []) or [])  # e.g. a verified E from program-and-verify
-    v = decide(ms, _spec(station, d.identity), analysis=analysis, state=state, fault_reason=fault_reason).to_json()
-    v["attempt"] = attempt_of(station.db, d.run_id, d.serial)
-    v["run_id"] = d.run_id
-    d.verdict = slim(v)
-    return v
-
-
 def slim(v: dict) -> dict:
     """The verdict without the list of every passing check: what the batch status carries for each
     slot (polled by every page; the full list is stored with the run, verdict_detail)."""
     return {k: x for k, x in v.items() if k != "checks"}
 
 
-def judge_result(station: Any, seq: Any, d: Any) -> dict:
-    """Verdict of a DUT whose analysis just produced d.result (it is live: judged as done)."""
-    return _verdict(station, seq, d, "done", "")
-
-
-def judge_unjudged(station: Any, seq: Any) -> None:
-    """Error verdicts for the DUTs that got none (see module doc); published as DutVerdict."""
+def end_of(seq: Any, d: Any) -> tuple[str, str]:
+    """(end state, reason) of a DUT run once its batch has released it. Only a DUT that ended
+    `done` in a batch that finished can pass; every other end names why it is error."""
     ending = seq.ending or seq.state
+    if d.state == "faulted":
+        return "faulted", f"faulted: {d.fault_reason}" if d.fault_reason else "faulted"
+    if d.state == "done" and ending == "finished":
+        return "done", ""
+    why = d.fault_reason or f"batch {ending}" + (f": {seq.error}" if seq.error else "")
+    if ending == "interrupted":
+        why += " (resumable: station serve --resume)"
+    return (d.state if d.state != "done" else ending), f"{why}, DUT incomplete"
+
+
+def run_record(station: Any, seq: Any, d: Any) -> RunRecord:
+    state, why = end_of(seq, d)
+    return RunRecord(analysis=seq.profile.analysis, program_verify=getattr(seq.profile, "program_step", None) is not None,
+                     end_state=state, end_reason=why, result=d.result, link_stats=_link_stats(station, d),
+                     n_samples=int(d.n_samples), program=d.program, verification=d.verification)
+
+
+def _judge(station: Any, batch_id: int, slot: str, serial: str | None, run_id: int | None, run: RunRecord,
+           identity: Any) -> dict:
+    """The final verdict of one run as the MES record carries it; published when the run exists."""
+    v = final_verdict(run, _spec(station, identity)).to_json()
+    v["attempt"] = attempt_of(station.db, run_id, serial)
+    v["run_id"] = run_id
+    if run_id is not None:
+        station.bus.publish(DutVerdict(batch_id, slot=slot, serial=serial, verdict=v))
+    return v
+
+
+def judge_final(station: Any, seq: Any) -> None:
+    """The final verdict of every DUT of a released batch (see module doc), once per run."""
     if seq.profile.analysis == "none":
         return
     for d in seq.duts:
         if getattr(d, "verdict", None) is not None:
+            continue  # judged once (release runs once; a second call must not send a second record)
+        d.verdict = slim(_judge(station, seq.batch_id, d.slot, d.serial, d.run_id, run_record(station, seq, d),
+                                d.identity))
+
+
+def judge_interrupted_runs(station: Any, batch_ids: list[int], reason: str = "station restarted") -> int:
+    """Error verdicts for the runs a killed daemon left running (the database marked them
+    interrupted at start): their end is now. Returns how many runs were judged."""
+    n = 0
+    resume_point = getattr(station.db, "resume_point", None)
+    if resume_point is None:
+        return 0
+    profiles = getattr(station, "_profiles", {})
+    for bid in batch_ids:
+        try:
+            rp = resume_point(int(bid))
+        except KeyError:
             continue
-        if ending == "interrupted" and d.state != "faulted":
-            continue  # resumable: the run is not over (a faulted run is, and is judged now)
-        if d.state == "faulted":
-            state, why = "faulted", f"faulted: {d.fault_reason}" if d.fault_reason else "faulted"
-        elif ending != "finished":
-            state, why = d.state, f"batch {ending}" + (f": {seq.error}" if seq.error else "") + ", DUT incomplete"
-        else:
-            state, why = d.state, ""
-        v = _verdict(station, seq, d, state, why)
-        if d.run_id is not None:
-            station.bus.publish(DutVerdict(seq.batch_id, slot=d.slot, serial=d.serial, verdict=v))
-
-
-def rejudge(station: Any, seq: Any, d: Any, extra: Any = ()) -> dict:
-    """Judge a DUT again with more measurements (e.g. program-and-verify's verified drift error:
-    `Measurement("verified_drift_error_fs_pct", value, "%FS", axis, sigma)`), publish the new
-    verdict as a DutVerdict: stored on the run and sent to the MES as a new record."""
-    d.extra_measurements = list(getattr(d, "extra_measurements", []) or []) + list(extra)
-    state = "faulted" if d.state == "faulted" else ("done" if d.live or d.state == "done" else d.state)
-    v = _verdict(station, seq, d, state, f"faulted: {d.fault_reason}" if state == "faulted" else "")
-    if d.run_id is not None:
-        station.bus.publish(DutVerdict(seq.batch_id, slot=d.slot, serial=d.serial, verdict=v))
-    return v
+        prof = profiles.get(rp.profile)
+        analysis = prof.analysis if prof is not None else "thermal"
+        if analysis == "none":
+            continue
+        for r in rp.runs:
+            if r.state != "interrupted":
+                continue
+            run = RunRecord(analysis=analysis, program_verify=getattr(prof, "program_step", None) is not None,
+                            end_state="interrupted",
+                            end_reason=f"interrupted: {reason} during the batch, DUT incomplete "
+                                       "(resumable: station serve --resume)")
+            _judge(station, int(bid), r.slot, r.serial, r.run_id, run, r.identity or {"sensor": r.sensor})
+            n += 1
+    return n
 
 
 # ------------------------------------------------------------------------------- batch status
@@ -224,4 +246,5 @@ def batch_extras(station: Any, seq: Any) -> dict:
     return {"decision": summarize(verdicts), "sorting": sorting, "time_left": left}
 
 
-__all__ = ["judge_result", "judge_unjudged", "rejudge", "slim", "batch_extras", "operating_range_c", "attempt_of", "time_left"]
+__all__ = ["judge_final", "judge_interrupted_runs", "run_record", "end_of", "slim", "batch_extras", "operating_range_c",
+           "attempt_of", "time_left"]

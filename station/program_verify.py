@@ -13,7 +13,8 @@ The supervisor only calls the two entry points (it stays a facade):
                               samples of the `heat` (verification) step after its settle time ->
                               station.science.verify.verify_compensated, with the uncompensated E of
                               the same orientation from the first pass as "before".
-Both publish events (DutProgrammed, DutVerified) that the writer stores and the web shows.
+Both publish events (DutProgrammed, DutVerified) that the writer stores and the web shows; neither
+judges: the run's verdict is decided once at its end (station/judging.py), from these records.
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ async def program_duts(station: Any, seq: Any) -> None:
     async def one(d: Any) -> None:
         # Every DUT with a result is written and verified, whatever its first-pass verdict: the
         # verification is measured evidence (a part the fit already rejects for curvature shows
-        # its residual drift), and the final verdict takes both (_rejudge_with_verification).
+        # its residual drift), and the final verdict takes both (station/judging.py judge_final).
         coeffs = coefficients(d.result)
         if coeffs is None:
             d.program = {"programmed": False, "error_kind": "no_result", "error": "no thermal result to write"}
@@ -147,7 +148,7 @@ def _verify_one(blocks: list, segments: list, t_start: float, t_end: float | Non
     if len(segs) >= 2:
         before = drift_before_mg(np.array([s[1] for s in segs]), np.array([s[2] for s in segs]),
                                  profile.verify.full_range_c)
-    res = verify_compensated(block.acc_g[m], block.temp_c[m], before, profile.verify)
+    res = verify_compensated(block.acc_g[m], block.temp_c[m], before, profile.verify, time_s=block.time_s[m])
     out = res.to_json()
     out["step_index"] = heat_index
     out["duration_s"] = float(t_end - t_start) if np.isfinite(t_start) and t_end is not None else None
@@ -191,26 +192,8 @@ async def verify_duts(station: Any, seq: Any) -> None:
         if not out["passed"]:
             log.warning("batch %d slot %s verification failed: %s", seq.batch_id, d.slot, "; ".join(out["flags"]))
         station.bus.publish(DutVerified(seq.batch_id, slot=d.slot, serial=d.serial or "", verification=out))
-        _rejudge_with_verification(station, seq, d, out)
 
     await asyncio.gather(*(one(d) for d in duts))
-
-
-def _rejudge_with_verification(station: Any, seq: Any, d: Any, out: dict) -> None:
-    """The verdict takes the verified figures (design 4: the verified E is what the verdict uses):
-    E_FS of the compensated output per axis, and how many axes failed the verification's rules."""
-    from station import judging
-    from station.verdicts import Measurement
-
-    extra = [Measurement("verified_drift_error_fs_pct", float(v), "%FS", a, None, "program-and-verify")
-             for a, v in (out.get("e_after_fs_pct") or {}).items() if v is not None and np.isfinite(v)]
-    axes = out.get("axes") or {}
-    failed = sum(1 for ax in axes.values() if not ax.get("passed", False)) if axes else (0 if out["passed"] else 3)
-    extra.append(Measurement("verify_failed_axes", float(failed), "axes", None, None, "program-and-verify"))
-    try:
-        judging.rejudge(station, seq, d, extra)
-    except Exception:  # the verification is stored either way; a judging bug must not end the batch
-        log.exception("batch %d slot %s: verdict after verification failed", seq.batch_id, d.slot)
 
 
 __all__ = ["program_duts", "verify_duts", "uses_program_verify", "after_programming", "coefficients"]

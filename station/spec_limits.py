@@ -17,6 +17,12 @@ Measurement names (units in the names, per axis x/y/z unless said otherwise), se
     lost_samples_pct, link_errors           per DUT (no axis)
     sfem_bias_mg, sfem_scale_error_pct      SFEM (sensors2023) bias and |scale - 1|
     verified_drift_error_fs_pct             E of the compensated output measured by program-and-verify
+    verify_failed_axes                      axes whose compensated output fails the verification rules
+    program_crc_match, compensation_on      1/0: readback CRC equal to the written one; compensation on
+                                            (fixed contract checks of a verified profile, station/verdicts.py)
+
+Version 2 of the built-in sets (this change): grades are judged with the spec's systematic term and
+a part meeting no grade is its own outcome (no_grade_tray), not the last grade.
 """
 
 from __future__ import annotations
@@ -85,6 +91,8 @@ class ProductSpec(_Model):
     reject_tray: str = "reject"
     marginal_tray: str = "hold (review / retest)"
     error_tray: str = "retest"
+    no_grade_tray: str = Field(default="reject (no grade)", max_length=64,
+                               description="a part inside the limits that meets no grade (verdict fail, grade 'none')")
 
 
 def _lim(measurement: str, unit: str, label: str, low=None, high=None, marginal=0.0, required=False,
@@ -93,11 +101,18 @@ def _lim(measurement: str, unit: str, label: str, low=None, high=None, marginal=
                  required=required, analysis=analysis, axes=axes, u_sys=u_sys)
 
 
-# Systematic uncertainty of the fast-thermal coefficients beyond the fit's own (batch-means) sigma:
-# in live simulated batches (daemon, 6 DUTs, seed 3) |fit - truth| reached 2.6 sigma_fit, 1.3e-3
-# mg/C and 2.4 ppm/C (die lag, self-heating, 1 C temperature steps); these bring it within 2 sigma.
-U_SYS_TDB_MG_PER_C = 1e-3
-U_SYS_TDSF_PPM_PER_C = 2.0
+# Systematic uncertainty of the fast-thermal coefficients, i.e. only what no DUT's own sigma can
+# hold (docs/verdicts.md "Uncertainty budget"). The DUT's sigma now carries bias wander, the 1 C
+# quantiser, MEMS lag and the fit (benchmarks/coverage.py: 2u covers 94-98 % of simulated errors,
+# RMS(error/u) 0.86-0.95, without u_sys). What is left is common to every DUT of a sensor lot and
+# invisible in any one record: the scale of the on-die temperature reading against true C (TD is
+# per reading-degree; compensation on the board uses the same reading, so it is harmless there,
+# but the coefficient judged against a datasheet limit in mg per true C carries it). Taken as
+# 0.1 % of the largest coefficient the limits allow (1.5 mg/C, 500 ppm/C): an assumption until a
+# reference-chamber run of one lot measures it; the simulator has no such error, so coverage
+# benchmarks report with and without it.
+U_SYS_TDB_MG_PER_C = 1.5e-3
+U_SYS_TDSF_PPM_PER_C = 0.5
 
 
 def _common(noise_high: float, lost_pct: float = 1.0, link_errors: float = 50) -> list[Limit]:
@@ -116,7 +131,7 @@ def _common(noise_high: float, lost_pct: float = 1.0, link_errors: float = 50) -
 def default_products() -> dict[str, ProductSpec]:
     """Built-in limits (sources in the comments); a site replaces them in its config."""
     lis3dsh = ProductSpec(
-        name="LIS3DSH-default", version="1", sensor="LIS3DSH",
+        name="LIS3DSH-default", version="2", sensor="LIS3DSH",
         limits=[
             # martinez2022 Table 6 (LIS3DSH population): TDB -1.2..1.4 mg/C -> +-1.5 mg/C
             _lim("tdb_mg_per_c", "mg/C", "TDB", low=-1.5, high=1.5, marginal=0.05, required=True,
@@ -145,7 +160,7 @@ def default_products() -> dict[str, ProductSpec]:
         ],
     )
     adxl355 = ProductSpec(
-        name="ADXL355-default", version="1", sensor="ADXL355",
+        name="ADXL355-default", version="2", sensor="ADXL355",
         limits=[
             # ADXL355 datasheet: offset vs temperature +-0.15 mg/C max
             _lim("tdb_mg_per_c", "mg/C", "TDB", low=-0.15, high=0.15, marginal=0.01, required=True,

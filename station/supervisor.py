@@ -592,6 +592,10 @@ class Station:
         return {"state": lamp.state, "on_commanded": lamp.is_on, "relay_error": lamp.relay_error,
                 "watchdog_s": lamp.watchdog_s if lamp.watchdog_armed else 0, "trip": lamp.trip_reason}
 
+    def judge_interrupted(self, batch_ids: list[int], reason: str = "station restarted") -> int:
+        """Error verdicts for the runs of batches a killed daemon left running (judging.py)."""
+        return judging.judge_interrupted_runs(self, list(batch_ids or []), reason)
+
     def batch_ids(self) -> list[int]:
         return sorted(self.batches)
 
@@ -717,7 +721,7 @@ class Station:
                 slot.state = "identified"
 
         await asyncio.gather(*(stop_one(d) for d in seq.duts))
-        judging.judge_unjudged(self, seq)  # faulted / incomplete DUTs: verdict error
+        judging.judge_final(self, seq)  # the verdict's moment: every run, once, from its final state
 
     def fault_dut(self, seq: Sequencer, d: DutRun, reason: str) -> None:
         if not d.live:
@@ -869,13 +873,11 @@ class Station:
                     if kind == "thermal":
                         res = await asyncio.to_thread(_thermal_result, d, judging.operating_range_c(self, d.identity))
                         d.result = res
-                        self.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", thermal=res,
-                                                   verdict=judging.judge_result(self, seq, d)))
+                        self.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", thermal=res))
                     elif kind == "sfem":
                         res = await asyncio.to_thread(_sfem_result, d, seq.profile)
                         d.result = res
-                        self.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", sfem=res,
-                                                   verdict=judging.judge_result(self, seq, d)))
+                        self.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", sfem=res))
                 except StationError as exc:  # InsufficientData and friends: this DUT only
                     self.fault_dut(seq, d, f"analysis: {exc}")
 

@@ -72,8 +72,9 @@ def write_batches(db: Database, n_batches: int = 3, per_batch: int = 6, seed: in
             for sg in segments_for(tdb, tdsf):
                 w.submit(SegmentLogged(batch, slot, serial, 0, sg))
             v = verdict_of(tdb, tdsf)
-            w.submit(DutResult(batch, slot, serial, thermal=thermal_result(tdb, tdsf), verdict=v))
+            w.submit(DutResult(batch, slot, serial, thermal=thermal_result(tdb, tdsf)))
             w.submit(SlotStateChanged(batch, slot, serial, "done"))
+            w.submit(DutVerdict(batch, slot, serial, verdict=v))  # the final verdict: the MES record (design 8)
             written.append({"batch": batch, "run": run, "serial": serial, "slot": slot, "tdb": tdb, "tdsf": tdsf,
                             "verdict": v["verdict"]})
         w.flush()

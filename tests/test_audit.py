@@ -106,7 +106,8 @@ def test_limit_set_changes_are_audited_at_start(tmp_path):
     spec = default_products()["LIS3DSH"].model_dump(mode="json")
     spec["limits"][0]["high"] = 1.2  # edited without a version bump
     changed = record_limit_changes(db, parse_config({**base, "products": {"LIS3DSH": spec}}))
-    assert changed["changed"] == [{"set": "LIS3DSH", "old_version": "1", "new_version": "1", "version_bumped": False}]
+    v = spec["version"]  # the built-in set's version (2 since issue 21), unchanged by the edit
+    assert changed["changed"] == [{"set": "LIS3DSH", "old_version": v, "new_version": v, "version_bumped": False}]
     rows = repo.audit_list(db)
     assert [(a["action"], a["actor"], a["station"]) for a in rows] == [("limits.change", "config", "line-3")] * 2
     db.dispose()

@@ -7,13 +7,12 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 from station.config import parse_config
-from station.events import DutVerdict, EventBus
+from station.events import EventBus
 from station.profiles import all_profiles
 from station.sequencer import DutRun
 from station.supervisor import MemoryDb
-from station.judging import judge_result, judge_unjudged, rejudge, time_left
+from station.judging import judge_final, time_left
 from station.types import Identity
-from station.verdicts import Measurement
 
 CFG = parse_config({"slots": [{"name": "s1", "serial": "/dev/null"}], "lamp": {"tcp": {"host": "127.0.0.1"}, "unit": 1},
                     "products": {"LIS3DSH": {"sensor": "LIS3DSH", "version": "4", "limits": [
@@ -32,7 +31,9 @@ def station_and_batch(n: int = 2, ending: str = "finished"):
         d = DutRun(slot=f"s{i + 1}", identity=Identity(serial=f"SER{i}", sensor="LIS3DSH"), state="running")
         d.run_id = db.create_run(1, d.slot, d.serial)
         d.n_samples = 1000
-        d.result = {"axes": {ax: {"tdb_mg_per_c": 0.1, "tdsf_ppm_per_c": -100.0, "tdsf_sigma_ppm_per_c": 1.0} for ax in "xyz"}}
+        d.result = {"axes": {ax: {"tdb_mg_per_c": 0.1, "tdsf_ppm_per_c": -100.0, "tdsf_sigma_ppm_per_c": 1.0} for ax in "xyz"},
+                    "residual": {"axes": {ax: {"drift_error_fs_pct": 0.3, "drift_error_fs_sigma_pct": 0.02, "bow_mg": 0.5,
+                                               "bow_sigma_mg": 0.2} for ax in "xyz"}}}
         duts.append(d)
     seq = SimpleNamespace(batch_id=1, profile=all_profiles(CFG)["fast-thermal"], duts=duts, ending=ending, state="analysing",
                           error="")
@@ -46,42 +47,72 @@ def events(q):
     return out
 
 
-def test_result_then_a_faulted_dut_then_a_verified_error():
+def test_each_run_is_judged_once_at_the_end_from_its_final_state():
     st, seq, q = station_and_batch()
     d1, d2 = seq.duts
-    v = judge_result(st, seq, d1)
-    assert (v["verdict"], v["attempt"], v["limits_version"]) == ("pass", 1, "4")
+    d1.state = "done"
     d2.state, d2.fault_reason = "faulted", "serial /dev/pts/9: link lost"
-    judge_unjudged(st, seq)
+    judge_final(st, seq)
+    assert (d1.verdict["verdict"], d1.verdict["attempt"], d1.verdict["limits_version"]) == ("pass", 1, "4")
     assert d2.verdict["verdict"] == "error" and "link lost" in d2.verdict["reason"]
     evs = events(q)
-    assert [type(e).__name__ for e in evs] == ["DutVerdict"] and evs[0].slot == "s2"
-    # program-and-verify adds the verified drift error of the compensated output: judged again
-    v = rejudge(st, seq, d1, [Measurement("verified_drift_error_fs_pct", 1.3, "%FS", "z", 0.02)])
-    assert v["verdict"] == "fail" and v["reason"] == "z verified E_FS 1.3 %FS, limit 1"
-    assert isinstance(events(q)[0], DutVerdict)
+    assert [(type(e).__name__, e.slot) for e in evs] == [("DutVerdict", "s1"), ("DutVerdict", "s2")]
+    judge_final(st, seq)  # released once: a second call sends no second record
+    assert events(q) == []
 
 
-def test_aborted_batch_gives_error_and_interrupted_batch_waits():
+def test_a_verified_profile_requires_crc_compensation_and_verified_figures():
+    st, seq, q = station_and_batch(n=3)
+    seq.profile = all_profiles(CFG)["fast-thermal-verified"]
+    good_program = {"programmed": True, "crc": "1A2B3C4D", "readback_crc": "1A2B3C4D", "readback_identical": True,
+                    "comp": True}
+    verified = {"passed": True, "e_after_fs_pct": {a: 0.1 for a in "xyz"}, "e_after_fs_sigma_pct": {a: 0.02 for a in "xyz"},
+                "axes": {a: {"passed": True} for a in "xyz"}}
+    ok, bad_crc, unverified = seq.duts
+    for d in seq.duts:
+        d.state = "done"
+    ok.program, ok.verification = good_program, verified
+    bad_crc.program, bad_crc.verification = dict(good_program, readback_crc="00000000"), verified
+    unverified.program = good_program  # e.g. the verification heat never produced its figures
+    judge_final(st, seq)
+    assert ok.verdict["verdict"] == "pass", ok.verdict["reasons"]
+    assert bad_crc.verdict["verdict"] == "fail" and "readback CRC" in bad_crc.verdict["reason"]
+    assert unverified.verdict["verdict"] == "error"
+    assert "verified E_FS not measured" in unverified.verdict["reason"]
+    # resumed after its program step: no programming record in this run -> error, the cause first
+    st, seq, q = station_and_batch(n=1)
+    seq.profile = all_profiles(CFG)["fast-thermal-verified"]
+    seq.duts[0].state = "done"
+    judge_final(st, seq)
+    v = seq.duts[0].verdict
+    assert v["verdict"] == "error" and v["reasons"][0].startswith("not programmed: no programming record")
+
+
+def test_aborted_and_interrupted_batches_give_error_naming_the_end():
     st, seq, q = station_and_batch(ending="aborted")
     seq.error = "operator"
     for d in seq.duts:
-        d.state = "interrupted"
-    judge_unjudged(st, seq)
+        d.state, d.fault_reason = "interrupted", "batch aborted: operator"
+    judge_final(st, seq)
     assert all(d.verdict["verdict"] == "error" and "batch aborted: operator" in d.verdict["reason"] for d in seq.duts)
     st, seq, q = station_and_batch(ending="interrupted")
+    seq.error = "daemon shutdown"
     seq.duts[0].state = "interrupted"
     seq.duts[1].state, seq.duts[1].fault_reason = "faulted", "no samples for 10 s"
-    judge_unjudged(st, seq)
-    assert seq.duts[0].verdict is None  # resumable: not over
-    assert seq.duts[1].verdict["verdict"] == "error"
+    judge_final(st, seq)
+    # the run ended here (a resumed batch judges it again: a new record that supersedes this one)
+    assert seq.duts[0].verdict["verdict"] == "error" and "resumable" in seq.duts[0].verdict["reason"]
+    assert seq.duts[1].verdict["verdict"] == "error" and "no samples" in seq.duts[1].verdict["reason"]
+    assert len(events(q)) == 2
 
 
 def test_retest_attempt_in_memory():
     st, seq, q = station_and_batch(n=1)
     d = seq.duts[0]
     d.run_id = st.db.create_run(2, "s1", d.serial)  # the same serial seen again
-    assert judge_result(st, seq, d)["attempt"] == 2
+    d.state = "done"
+    judge_final(st, seq)
+    assert d.verdict["attempt"] == 2
 
 
 def test_time_left_is_zero_after_the_end_and_capped_by_timeouts():

@@ -58,8 +58,8 @@ def test_dut_and_mes_results_carry_program_verify(live):
         by_serial = {r["serial"]: r for r in res}
         assert by_serial[ok]["program_verify"]["verified"] is True
         assert by_serial[ok]["program_verify"]["e_after_mg"] == {"x": 0.8, "y": 1.1, "z": 2.4}
-        # a verification is a new result of the run: it comes after the thermal result in the feed
-        assert by_serial[ok]["id"] == max(r["id"] for r in res)
+        # a verification is data of the run, not a record (design 8): the run's one record is its verdict
+        assert sum(1 for r in res if r["serial"] == ok) == 1 and by_serial[ok]["revision"] == 1
 
 
 @pytest.mark.skipif(shutil.which("node") is None, reason="node not installed")
@@ -72,12 +72,14 @@ def test_page_script_parses_and_renders_program_verify():
 
 
 def test_writer_outbox_carries_program_verify(tmp_path):
-    """With the writer's own outbox on, a verification is a new MES message of its run."""
+    """With the writer's own outbox on, a verification is stored as data (no MES message); the MES
+    message is the run's final verdict (design 8), and the feed carries the program-and-verify."""
     from sqlalchemy import select
 
     from db.models import Outbox
+    from db.repository import results_since
     from db.writer import DbWriter
-    from station.events import DutProgrammed, DutVerified
+    from station.events import DutProgrammed, DutVerdict, DutVerified
     from station.supervisor import open_database
 
     db = open_database(f"sqlite:///{tmp_path / 'o.db'}")
@@ -96,10 +98,19 @@ def test_writer_outbox_carries_program_verify(tmp_path):
         finally:
             w.close()
         with db.session() as s:
-            payloads = [o.payload for o in s.scalars(select(Outbox)).all()]
-        (p,) = [p for p in payloads if "program_verify" in p]
-        assert p["serial"] == "OBX1" and p["program_verify"]["program"]["crc"] == "00000001"
-        v = p["program_verify"]["verification"]
-        assert v["passed"] is False and v["e_after_mg"] == {"x": 9.5, "y": None, "z": 0.4}  # NaN stored as null
+            assert s.scalars(select(Outbox)).all() == []  # program and verify: data, no MES message
+        w = DbWriter(db, interval_s=0.05, outbox=True)
+        try:
+            w.bind_run(bid, "s01", run)
+            w.submit(DutVerdict(bid, slot="s01", serial="OBX1", verdict={"verdict": "fail", "grade": "reject"}))
+        finally:
+            w.close()
+        with db.session() as s:
+            (p,) = [o.payload for o in s.scalars(select(Outbox)).all()]
+        assert p["serial"] == "OBX1" and p["verdict"] == "fail" and p["revision"] == 1
+        (item,) = results_since(db, 0)
+        assert item["program_verify"]["crc"] == "00000001"
+        assert item["program_verify"]["verified"] is False
+        assert item["program_verify"]["e_after_mg"] == {"x": 9.5, "y": None, "z": 0.4}  # NaN stored as null
     finally:
         db.dispose()

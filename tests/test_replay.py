@@ -43,8 +43,11 @@ def _db(url: str):
 
 
 def _tight_limits(folder: Path, rec) -> tuple[Path, list[str], list[str], dict]:
-    """A config whose TDSF floor two of the recorded parts miss by far and two meet by far."""
-    tdsf = {d.serial: min(d.outcome["thermal"][ax]["tdsf_ppm_per_c"] for ax in "xyz") for d in rec.duts}
+    """A config whose TDSF floor two of the recorded passing parts miss by far and two meet by far
+    (chosen among the parts recorded `pass`: a part the recording judged marginal stays marginal)."""
+    tdsf = {d.serial: min(d.outcome["thermal"][ax]["tdsf_ppm_per_c"] for ax in "xyz") for d in rec.duts
+            if d.outcome["verdict"] == "pass"}
+    assert len(tdsf) >= 4, {d.serial: d.outcome["verdict"] for d in rec.duts}
     chosen = sorted(tdsf, key=tdsf.get)
     worst, best = chosen[:2], chosen[-2:]
     floor = (tdsf[worst[1]] + tdsf[best[0]]) / 2

@@ -53,8 +53,9 @@ def seed(db) -> dict[str, list[int]]:
                     writer.submit(DutVerdict(batch, slot=slot, serial=serial, verdict=v))
                 else:
                     axes = {ax: {"tdb_mg_per_c": 0.1, "tdsf_ppm_per_c": TDSF[kinds[attempt]]} for ax in "xyz"}
-                    writer.submit(DutResult(batch, slot=slot, serial=serial, thermal={"axes": axes}, verdict=v))
+                    writer.submit(DutResult(batch, slot=slot, serial=serial, thermal={"axes": axes}))
                     writer.submit(SlotStateChanged(batch, slot=slot, serial=serial, state="done"))
+                    writer.submit(DutVerdict(batch, slot=slot, serial=serial, verdict=v))  # final: the MES record
                 runs[serial].append(run_id)
             assert writer.flush(30)
             db.set_batch_state(batch, "finished")

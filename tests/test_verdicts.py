@@ -276,3 +276,37 @@ def test_limits_from_a_site_toml(tmp_path):
     ms += [Measurement("drift_error_fs_pct", 0.7, "%FS", ax, 0.05) for ax in AXES]
     v = decide(ms, spec)
     assert (v.verdict, v.grade, v.tray) == ("pass", "B", "B (right)")
+
+
+# ------------------------------------------------------------------ grades (issue 21)
+def test_a_grade_uses_the_verdicts_guard_band_with_the_specs_systematic_term():
+    # TDB 0.9 with u_sys 0.2: the interval 0.9 +- 2 x 0.2 reaches 1.3, over grade A's 1.0 -> not A
+    s = spec(limits=[Limit(measurement="tdb_mg_per_c", low=-1.5, high=1.5, u_sys=0.2, required=True)],
+             grades=[Grade(name="A", limits=[Limit(measurement="tdb_mg_per_c", low=-1.0, high=1.0)]), Grade(name="B")])
+    ms = [Measurement("tdb_mg_per_c", 0.9, "mg/C", ax, 0.0) for ax in AXES]
+    assert decide(ms, s).grade == "B"
+    ms = [Measurement("tdb_mg_per_c", 0.55, "mg/C", ax, 0.0) for ax in AXES]  # 0.55 + 0.4 < 1.0
+    assert decide(ms, s).grade == "A"
+
+
+def test_a_grade_needs_every_axis():
+    v = decide(good(e_x=0.2, e_y=0.2, e_z=0.6, e_fs=(0.2, 0.01)), spec())
+    assert (v.verdict, v.grade) == ("pass", "B")  # z misses grade A's 0.5
+    v = decide(good(e_fs=(0.2, 0.01)), spec())
+    assert (v.verdict, v.grade) == ("pass", "A")
+
+
+def test_meeting_no_grade_is_its_own_outcome():
+    s = spec(grades=[Grade(name="A", limits=[Limit(measurement="drift_error_fs_pct", high=0.5)]),
+                     Grade(name="B", limits=[Limit(measurement="drift_error_fs_pct", high=0.7)])])
+    v = decide(good(e_fs=(0.8, 0.01)), s)  # inside the spec's 1.0, outside every grade
+    assert (v.verdict, v.grade, v.tray) == ("fail", "none", "reject (no grade)")
+    assert v.reason.startswith("meets no grade: A:") and "B:" in v.reason
+
+
+def test_numpy_scalars_are_measurements():
+    import numpy as np
+
+    ms = [Measurement(m.name, np.float32(m.value), m.unit, m.axis, np.float64(m.sigma)) for m in good()]
+    v = decide(ms, spec())
+    assert v.verdict == "pass", v.reasons

@@ -241,8 +241,7 @@ async def _main(args: argparse.Namespace) -> int:
         cfg = parse_config(sim_config(sim, speed=args.speed, db_url=db_url, fixture=not args.no_fixture,
                                       http_host=args.host, http_port=args.port), "<demo>")
         db = open_database(cfg.database_url, station=cfg.name)
-        if hasattr(db, "mark_interrupted"):
-            db.mark_interrupted("station restarted")
+        interrupted = db.mark_interrupted("station restarted") if hasattr(db, "mark_interrupted") else []
         from station.limits_audit import record_limit_changes
 
         record_limit_changes(db, cfg)  # a limit set edited in the config since the last start: audited
@@ -256,6 +255,7 @@ async def _main(args: argparse.Namespace) -> int:
             hands = asyncio.get_running_loop().create_task(operator_hands(station.bus, sim.world))
         try:
             await station.start()
+            station.judge_interrupted(interrupted)  # a killed daemon's runs ended then: error verdicts
             faulted = [s for s in station.slots_status() if s["state"] == "faulted"]
             for s in faulted:
                 print(f"station demo: slot {s['slot']}: {s['fault_reason']}", file=sys.stderr)

@@ -61,8 +61,7 @@ async def _main(args: argparse.Namespace, cfg) -> int:
         raise
     except Exception as exc:  # SQLAlchemy: bad URL, unwritable file, server down
         raise StationError(f"database {cfg.database_url}: {exc}") from None
-    if hasattr(db, "mark_interrupted"):
-        db.mark_interrupted("station restarted")
+    interrupted = db.mark_interrupted("station restarted") if hasattr(db, "mark_interrupted") else []
     from station.limits_audit import record_limit_changes
 
     record_limit_changes(db, cfg)  # a limit set edited in the config since the last start: audited
@@ -71,6 +70,7 @@ async def _main(args: argparse.Namespace, cfg) -> int:
     rc = 0
     try:
         await station.start()
+        station.judge_interrupted(interrupted)  # a killed daemon's runs ended then: error verdicts
         slots = station.slots_status()
         for s in slots:
             if s["state"] == "faulted":
