@@ -5,6 +5,7 @@ order) do not end with one worker grinding through an 8-DUT diagnosis while the 
 from __future__ import annotations
 
 HEAVY_FIRST = (
+    "test_fault_matrix.py",
     "test_diagnostics_batch8.py",
     "test_diagnostics_batch8_control.py",
     "test_diagnostics.py",

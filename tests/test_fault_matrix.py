@@ -1,0 +1,307 @@
+"""Fault matrix (issue "A PASS you can trust", design 8): every fault x every profile over the whole
+daemon (simulated boards on real ptys / an slcan pty, Modbus relay, fixture and chamber on
+127.0.0.1, SQLite on disk, the real Station), each fault applied at the step where it hurts.
+
+The promise checked in every cell: no DUT with a fault or a missing required measurement is `pass`
+in the batch status, the database, the MES feed or the webhook, and its verdict's reason names the
+fault; the healthy DUTs of the same (finished) batch are judged per their data (pass / marginal /
+fail), so a cell cannot pass because everything is error; a pass anywhere is backed by the run's
+evidence (program and verify: CRC written == read back, compensation on, verified E per axis).
+
+Faults: board link lost (fast-thermal: during P hot; verified: on the first $CALW and, separately,
+during the verification heat; sfem-24: in the 45 C block), write refused / CRC mismatch /
+lost reply (persistent: refuse_writes(99), every write flipped, a damaged read-back CRC, every reply
+dropped; plus single transient faults that the 3 tries must absorb: those DUTs must be programmed
+on the retry (CRC match, compensation on) and judged per their data, never error),
+power cycle between write and read-back (the board restarts right after acking $CALW: NVM kept,
+RAM lost), operator abort in each step (sfem-24: its first step, the 45 C block and its last step),
+daemon SIGKILL then --resume, the Modbus relay stops answering, and the database's disk full.
+Cells that do not apply are n/a (write faults need program and verify).
+
+The matrix is printed (`pytest -s`) and written to artifacts/fault_matrix.txt; the list of broken
+promises under it names slot, place and reason. One batch per profile and fault moment, faults that
+do not interact on different slots of one batch, batches of a profile run PARALLEL at a time
+(longest first).
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from drivers.sim.station_sim import SimStation
+from tests.fault_matrix_support import (
+    MATRIX, PROFILES, VERIFIED, Ctx, Expect, KillCtx, Plan, board_hook, fill, run_all,
+)
+
+FAST = 250.0  # fast-thermal(-verified): x250, like tests/test_program_verify_e2e.py
+SFEM_SPEED = 3000.0  # sfem-24 is ~12 h of sample time: x3000 (tests/test_daemon_e2e.py runs it at x4000)
+PARALLEL = 4  # batches of one profile at a time: they mostly wait on simulated hardware
+
+LINK = ("link",)
+ABORT = ("abort",)
+RELAY = ("relay",)
+DISK = ("not stored", "database", "disk", "space")
+KILL = ("restart", "resum", "interrupt", "killed", "programming record")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def matrix_report():
+    yield
+    print("\n" + MATRIX.write())
+
+
+def _report(profile: str) -> None:
+    text = MATRIX.write()
+    print("\n" + text)
+    probs = MATRIX.problems(profile)
+    assert not probs, f"{len(probs)} broken promise(s) for {profile}:\n" + "\n".join(probs)
+
+
+# ------------------------------------------------------------------------------- shared injections
+def _abort_in(step: int, min_samples: int = 10):
+    async def inject(ctx: Ctx) -> None:
+        async with ctx.at_step(step, min_samples):
+            ctx.st.abort(ctx.bid, f"fault matrix: abort in step {step}")
+    return inject
+
+
+def _abort_in_program():
+    async def inject(ctx: Ctx) -> None:
+        async with ctx.at_program_step():
+            ctx.st.abort(ctx.bid, "fault matrix: abort in the program step")
+    return inject
+
+
+def _abort_in_heat():
+    async def inject(ctx: Ctx) -> None:
+        async with ctx.at_heat_lamp_on():
+            ctx.st.abort(ctx.bid, "fault matrix: abort during the verification heat")
+    return inject
+
+
+def _relay_off_at(moment):
+    """moment(ctx) -> a Ctx.held_at context (the plant held there while the relay goes silent)."""
+    async def inject(ctx: Ctx) -> None:
+        async with moment(ctx):
+            ctx.sim.modbus.relay_offline = True
+    return inject
+
+
+def _disk_full_at(moment):
+    async def inject(ctx: Ctx) -> None:
+        async with moment(ctx):
+            await ctx.st.flush_db()
+            ctx.filler = await asyncio.to_thread(fill, ctx.mount)
+        await ctx.wait(lambda: ctx.st.storage_status().startswith("error"), "the writer reports the full disk", 60)
+    return inject
+
+
+def _all(slots, row, kind="faulted", keywords=()):
+    return {s: Expect(row, kind, keywords) for s in slots}
+
+
+def _slots(n_serial, n_can):
+    return [f"s{i + 1:02d}" for i in range(n_serial)] + [f"c{j + 1:02d}" for j in range(n_can)]
+
+
+def _na(profile: str, rows: list[str], why: str = "n/a") -> None:
+    for r in rows:
+        MATRIX.na(r, profile, why)
+
+
+# ------------------------------------------------------------------------------- fast-thermal-verified
+def _verified_plans() -> list[Plan]:
+    P = VERIFIED
+    plans = []
+
+    # --- the write path: persistent faults (3 tries used up) and transient ones (retried: programmed)
+    def arm_write(sim: SimStation) -> None:
+        sim.board(0).cal.refuse_writes(99)
+        sim.board(1).cal.flip_next_write(99, field_index=2, bit=11)  # every write: stored CRC != written
+        sim.board(2).cal.corrupt_readback_crc(99)  # stored right, every read-back reports a damaged CRC
+        sim.board(3).cal.drop_replies(99)  # every calibration reply lost
+        sim.board(4).cal.flip_next_write(1, field_index=1, bit=17)  # one flip: retried
+        sim.board(5).cal.drop_replies(1)  # CAN: one lost commit reply: retried
+
+    plans.append(Plan("ftv-write", P, FAST, 5, 1, 21, arm=arm_write, expects={
+        "s01": Expect("write refused", "faulted", ("refused",)),
+        "s02": Expect("CRC mismatch on readback", "faulted", ("crc",)),
+        "s03": Expect("CRC mismatch on readback", "faulted", ("crc",)),
+        "s04": Expect("lost reply", "faulted", ("no_reply", "no reply", "timeout", "timed out")),
+        "s05": Expect("transient write fault (retried)", "retried"),
+        "c01": Expect("transient write fault (retried)", "retried"),
+    }))
+
+    # --- link lost on the first $CALW, power cycle between write and read-back, link lost in the heat
+    def arm_link(sim: SimStation) -> None:
+        b0 = sim.board(0)
+
+        def lose_link(cmd, args):
+            if cmd == "CALW":
+                b0.disconnect()  # the port closes as the first $CALW arrives: no reply, ever
+                return False
+            return True
+
+        board_hook(b0, before=lose_link)
+        cycled = []
+
+        def power_cycle(cmd, args):
+            if cmd == "CALW" and not cycled:  # right after the write is acked, before the read-back
+                cycled.append(1)
+                sim.power_cycle(1)
+
+        board_hook(sim.board(1), after=power_cycle)
+
+    async def lose_in_heat(ctx: Ctx) -> None:
+        first: list[int] = []
+
+        def s03_streams() -> bool:  # 10 compensated samples of s03 in the heat
+            n = ctx.st.samples_taken(ctx.bid).get("s03", 0)
+            first[:] = first or [n]
+            return n >= first[0] + 10
+
+        async with ctx.at_heat_lamp_on(then=s03_streams):
+            ctx.sim.board(2).disconnect()
+
+    plans.append(Plan("ftv-link", P, FAST, 3, 1, 22, arm=arm_link, inject=lose_in_heat, expects={
+        "s01": Expect("link lost", "faulted", LINK),
+        "s02": Expect("power cycle write->readback", "judged"),
+        "s03": Expect("link lost, verify heat", "faulted", LINK),
+        "c01": Expect("link lost", "healthy"),
+    }))
+
+    rows = ["abort, 1st step", "abort, 2nd step", "abort, 3rd step", "abort, 4th step"]
+    for k, row in enumerate(rows):
+        plans.append(Plan(f"ftv-abort{k}", P, FAST, 1, 1, 30 + k, inject=_abort_in(k),
+                          expects=_all(_slots(1, 1), row, keywords=ABORT)))
+    plans.append(Plan("ftv-abort-prog", P, FAST, 1, 1, 34, inject=_abort_in_program(),
+                      expects=_all(_slots(1, 1), "abort, program step", keywords=ABORT)))
+    plans.append(Plan("ftv-abort-heat", P, FAST, 2, 1, 35, inject=_abort_in_heat(),
+                      expects=_all(_slots(2, 1), "abort, verify heat", keywords=ABORT)))
+    # the relay dies as the boards are programmed: the heat needs it
+    plans.append(Plan("ftv-relay", P, FAST, 2, 1, 36, inject=_relay_off_at(lambda c: c.at_program_step()),
+                      expects=_all(_slots(2, 1), "relay failure", keywords=RELAY)))
+    # the relay dies while the verification heat runs (lamp on): the heat may still complete in
+    # compressed time, but a station that cannot confirm its lamp off has not finished the batch
+    plans.append(Plan("ftv-relay-heat", P, FAST, 1, 1, 39, inject=_relay_off_at(lambda c: c.at_heat_lamp_on()),
+                      expects=_all(_slots(1, 1), "relay failure, verify heat", keywords=RELAY)))
+    plans.append(Plan("ftv-disk", P, FAST, 2, 1, 37, disk_mb=16, inject=_disk_full_at(lambda c: c.at_heat_lamp_on()),
+                      expects=_all(_slots(2, 1), "full disk", keywords=DISK)))
+
+    async def kill_in_heat(k: KillCtx) -> None:
+        await k.wait_completed(4)  # the program step is done: the boards are programmed
+        await wait_until(lambda: k.sim.world.lamp_on, 60, "verification heat lamp on")
+        t0 = k.sim.world.time_s
+        await wait_until(lambda: k.sim.world.time_s > t0 + 30.0, 60, "30 s of the verification heat")
+
+    plans.append(Plan("ftv-kill", P, FAST, 2, 1, 38, kill=kill_in_heat, timeout_s=200,
+                      expects=_all(_slots(2, 1), "SIGKILL + --resume", keywords=KILL)))
+    _na(P, ["abort, 45 C block", "abort, last step"], "n/a (sfem-24 rows)")
+    return plans
+
+
+async def wait_until(pred, timeout_s: float, what: str) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout_s
+    while not pred():
+        if loop.time() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+# ------------------------------------------------------------------------------- fast-thermal
+def _fast_thermal_plans() -> list[Plan]:
+    P = "fast-thermal"
+    plans = []
+
+    async def lose_in_p_hot(ctx: Ctx) -> None:
+        async with ctx.at_step(1, 20):
+            ctx.sim.board(0).disconnect()
+
+    plans.append(Plan("ft-link", P, FAST, 3, 1, 41, inject=lose_in_p_hot, expects={
+        "s01": Expect("link lost", "faulted", LINK), "s02": Expect("link lost", "healthy"),
+        "s03": Expect("link lost", "healthy"), "c01": Expect("link lost", "healthy"),
+    }))
+    for k, row in enumerate(["abort, 1st step", "abort, 2nd step", "abort, 3rd step", "abort, 4th step"]):
+        plans.append(Plan(f"ft-abort{k}", P, FAST, 1, 1, 50 + k, inject=_abort_in(k),
+                          expects=_all(_slots(1, 1), row, keywords=ABORT)))
+    plans.append(Plan("ft-relay", P, FAST, 2, 1, 44, inject=_relay_off_at(lambda c: c.at_step(1, 10)),
+                      expects=_all(_slots(2, 1), "relay failure", keywords=RELAY)))
+    plans.append(Plan("ft-disk", P, FAST, 2, 1, 45, disk_mb=16, inject=_disk_full_at(lambda c: c.at_step(1, 10)),
+                      expects=_all(_slots(2, 1), "full disk", keywords=DISK)))
+
+    async def kill_in_n_hot(k: KillCtx) -> None:
+        await k.wait_completed(1)  # P ambient and P hot stored
+        await wait_until(lambda: k.sim.world.position == 1 and k.sim.world.lamp_on, 60, "N hot (plate turned)")
+        t0 = k.sim.world.time_s
+        await wait_until(lambda: k.sim.world.time_s > t0 + 60.0, 60, "60 s of N hot")
+
+    # a resumed run that completes every step may pass (design 8): its pass must be backed
+    plans.append(Plan("ft-kill", P, FAST, 2, 1, 46, kill=kill_in_n_hot, timeout_s=200,
+                      expects=_all(_slots(2, 1), "SIGKILL + --resume", kind="recovered")))
+    _na(P, ["link lost, verify heat", "write refused", "CRC mismatch on readback", "lost reply",
+            "transient write fault (retried)", "power cycle write->readback", "abort, program step",
+            "abort, verify heat", "relay failure, verify heat"], "n/a (no program/verify)")
+    _na(P, ["abort, 45 C block", "abort, last step"], "n/a (sfem-24 rows)")
+    return plans
+
+
+# ------------------------------------------------------------------------------- sfem-24
+def _sfem_plans() -> list[Plan]:
+    P = "sfem-24"
+    plans = []
+    mid = 24 + 6  # a static step of the 45 C block
+
+    async def lose_at_45(ctx: Ctx) -> None:
+        async with ctx.at_step(mid, timeout_s=150):
+            ctx.sim.board(0).disconnect()
+
+    plans.append(Plan("sfem-link", P, SFEM_SPEED, 2, 1, 61, inject=lose_at_45, timeout_s=200, expects={
+        "s01": Expect("link lost", "faulted", LINK), "s02": Expect("link lost", "healthy"),
+        "c01": Expect("link lost", "healthy"),
+    }))
+    for name, step, row in (("first", 0, "abort, 1st step"), ("45c", mid, "abort, 45 C block"), ("last", 71, "abort, last step")):
+        plans.append(Plan(f"sfem-abort-{name}", P, SFEM_SPEED, 1, 1, 62 + step, inject=_abort_in(step, 0), timeout_s=200,
+                          expects=_all(_slots(1, 1), row, keywords=ABORT)))
+    # sfem-24 never switches the lamp on, but a relay that does not answer cannot be trusted to
+    # hold it off (design 3.3): the batch fails at the third failed read, every DUT names it
+    plans.append(Plan("sfem-relay", P, SFEM_SPEED, 1, 1, 66, inject=_relay_off_at(lambda c: c.at_step(mid, 0, 150)),
+                      timeout_s=200, expects=_all(_slots(1, 1), "relay failure", keywords=RELAY)))
+    plans.append(Plan("sfem-disk", P, SFEM_SPEED, 1, 1, 67, disk_mb=64, timeout_s=200,
+                      inject=_disk_full_at(lambda c: c.at_step(mid, timeout_s=150)),
+                      expects=_all(_slots(1, 1), "full disk", keywords=DISK)))
+
+    async def kill_at_45(k: KillCtx) -> None:
+        await k.wait_completed(mid, timeout_s=200)
+
+    plans.append(Plan("sfem-kill", P, SFEM_SPEED, 1, 1, 68, kill=kill_at_45, timeout_s=200,
+                      expects=_all(_slots(1, 1), "SIGKILL + --resume", kind="recovered")))
+    _na(P, ["link lost, verify heat", "write refused", "CRC mismatch on readback", "lost reply",
+            "transient write fault (retried)", "power cycle write->readback", "abort, program step",
+            "abort, verify heat", "relay failure, verify heat"], "n/a (no program/verify)")
+    _na(P, ["abort, 2nd step", "abort, 3rd step", "abort, 4th step"], "n/a (see 45 C / last)")
+    return plans
+
+
+# ------------------------------------------------------------------------------- the tests
+@pytest.mark.timeout(420)
+async def test_fault_matrix_fast_thermal_verified(tmp_path):
+    await run_all(_verified_plans(), tmp_path, PARALLEL)
+    _report(VERIFIED)
+
+
+@pytest.mark.timeout(300)
+async def test_fault_matrix_fast_thermal(tmp_path):
+    await run_all(_fast_thermal_plans(), tmp_path, PARALLEL)
+    _report("fast-thermal")
+
+
+@pytest.mark.timeout(300)
+async def test_fault_matrix_sfem_24(tmp_path):
+    await run_all(_sfem_plans(), tmp_path, PARALLEL)
+    _report("sfem-24")
+
+
+assert set(PROFILES) == {"fast-thermal", VERIFIED, "sfem-24"}
