@@ -185,7 +185,16 @@ def small_disk(tmp_path):
 
 
 def _fill(directory) -> "object":
-    """Write a filler file until the file system is full; returns its path (delete it to free space)."""
+    """Write a filler file until the file system is full; returns its path (delete it to free space).
+    Only on a small test file system (the tmpfs of `small_disk` or the fault matrix): a directory
+    that is not one (a mount that silently did not happen) would fill the machine's own disk and
+    stall every other test's database."""
+    import os
+
+    fs = os.statvfs(directory)
+    total_mb = fs.f_blocks * fs.f_frsize / 2**20
+    if total_mb > 256:
+        raise AssertionError(f"refusing to fill {directory}: a {total_mb:.0f} MB file system is not a test tmpfs")
     filler = directory / "filler.bin"
     with open(filler, "wb") as f:
         try:
