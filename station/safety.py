@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 
 from drivers.base import LampRelay, Thermometer
+from station.aio import cancel_and_wait
 from station.events import Alarm, EventBus, LampChanged
 
 log = logging.getLogger("station.safety")
@@ -304,13 +305,9 @@ class LampGuard:
             self._watch_task = asyncio.get_running_loop().create_task(self._watch())
 
     async def close(self, reason: str = "daemon shutdown") -> bool:
-        if self._watch_task is not None:
-            self._watch_task.cancel()
-            try:
-                await self._watch_task
-            except (asyncio.CancelledError, Exception):
-                pass
-            self._watch_task = None
+        task, self._watch_task = self._watch_task, None
+        if not await cancel_and_wait(task):
+            log.error("lamp guard: the watch task did not stop within 5 s; switching the lamp off anyway")
         ok = await self.off(reason)
         if self._retry_task is not None and not self._retry_task.done():
             self._retry_task.cancel()

@@ -162,7 +162,14 @@ async def test_verdicts_against_the_truth_then_a_retest(tmp_path):
 
             # retest of the same serials: attempt 2 (aborted after connecting -> error)
             bid2 = st.start_batch("fast-thermal", None, "pytest")
+            loop = asyncio.get_running_loop()
+            end = loop.time() + 60
             while not all(s["run_id"] for s in st.batch_status(bid2)["slots"] if s["slot"] != slot[FAULTED]):
+                late = st.batch_status(bid2)
+                assert loop.time() < end and late["state"] not in ("finished", "failed", "aborted"), (
+                    "the retest's DUTs never all got a run: "
+                    f"{[(s['slot'], s['state'], s['run_id'], s.get('fault_reason')) for s in late['slots']]} "
+                    f"batch {late['state']}: {late['error']}")
                 await asyncio.sleep(0.05)
             st.abort(bid2, "operator")
             status2 = await st.wait_batch(bid2, timeout_s=90)

@@ -453,3 +453,36 @@ async def test_waiting_for_says_what_each_state_and_step_waits_for():
     assert [s["waiting_for"] for s in st["slots"]] == ["other DUTs", "dwell", None]
     assert st["waiting_for"] == "dwell" and "no calibration result" in st["note"] and st["analysis"] == "none"
     assert st["counts"] == {"running": 2, "done": 0, "faulted": 1, "interrupted": 0}
+
+
+async def test_lamp_guard_close_switches_off_even_when_its_watch_swallowed_a_cancel():
+    """CI hang (test_decide_e2e, 1 run in 6 on a loaded machine): close() cancelled the watch task
+    just as the relay read's asyncio.wait_for completed (Python 3.11 then returns the result and
+    the cancel is gone); the watch ran on, `await task` never returned, and the lamp OFF after it
+    was never sent. Here the watch swallows the first cancel the same way."""
+
+    class Guard(LampGuard):
+        async def _watch(self) -> None:
+            swallowed = False
+            while True:
+                try:
+                    await asyncio.sleep(0.01)
+                except asyncio.CancelledError:
+                    if swallowed:
+                        raise
+                    swallowed = True  # as wait_for does when its inner wait completes with the cancel
+
+    relay = MemRelay()
+    g = Guard(relay, EventBus(), max_on_s=1e9, max_dut_temp_c=85, max_plate_temp_c=90)
+    await g.set_lamp(True, "t")
+    g.start()
+    await asyncio.sleep(0.03)
+    closing = asyncio.create_task(g.close())
+    await asyncio.wait({closing}, timeout=5.0)  # not wait_for: its own cancel would unblock the old close
+    hung = not closing.done()
+    if hung:
+        g._watch_task = None
+        closing.cancel()
+    assert not hung, "LampGuard.close() hangs on a watch task that swallowed a cancel"
+    assert closing.result() is True
+    assert relay.coil is False and g.state == "off"

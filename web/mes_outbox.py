@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import httpx
 
+from station.aio import cancel_and_wait
 from station.events import DutVerdict
 from web.repo import WebRepository
 from web.views import clean
@@ -118,12 +119,8 @@ class MesOutbox:
 
     async def stop(self) -> None:
         for task in (self._bus_task, self._task):
-            if task is not None:
-                task.cancel()
-                try:
-                    await task
-                except (asyncio.CancelledError, Exception):  # noqa: BLE001
-                    pass
+            if not await cancel_and_wait(task):
+                log.error("MES outbox: task %s did not stop within 5 s", task.get_name())
         await self._client.aclose()
 
     def wake(self) -> None:
