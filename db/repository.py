@@ -107,15 +107,25 @@ VALID_VERDICTS = ("pass", "marginal", "fail")  # an attempt that ended in error 
 
 def verdict_json(r: DutRun) -> dict:
     """The station's decision on a run (None fields while it is not judged)."""
+    return _decision_json(r, r.attempt, r.verdict_reason)
+
+
+def record_verdict_json(h: Any, attempt: int) -> dict:
+    """The decision of one verdict record (verdict_history row), shaped as verdict_json."""
+    return _decision_json(h, attempt, h.reason)
+
+
+def _decision_json(row: Any, attempt: int, reason: str | None) -> dict:
+    """A dut_run or verdict_history row's decision columns (the two name the reason differently)."""
     return {
-        "attempt": r.attempt,
-        "verdict": r.verdict,
-        "grade": r.grade,
-        "tray": r.tray,
-        "reason": r.verdict_reason or None,
-        "limits_name": r.limits_name,
-        "limits_version": r.limits_version,
-        "judged_at": _iso(r.judged_at),
+        "attempt": attempt,
+        "verdict": row.verdict,
+        "grade": row.grade,
+        "tray": row.tray,
+        "reason": reason or None,
+        "limits_name": row.limits_name,
+        "limits_version": row.limits_version,
+        "judged_at": _iso(row.judged_at),
     }
 
 
@@ -270,6 +280,17 @@ def result_key(run_id: int, result_seq: int) -> str:
     return f"run-{run_id}-result-{result_seq}"
 
 
+def revision_of(run_id: Any, result_seq: Any) -> Any:
+    """The revision of verdict record (run_id, result_seq) as a scalar subquery: how many records
+    the MES has for that run up to and including it (1 = the first final verdict). Columns or
+    plain values: the feed asks it per row, the writer for the record it just stored."""
+    from db.models import VerdictHistoryRow
+
+    earlier = aliased(VerdictHistoryRow)
+    return (select(func.count(earlier.id)).where(earlier.run_id == run_id, earlier.result_seq.is_not(None),
+                                                 earlier.result_seq <= result_seq).scalar_subquery())
+
+
 def results_since(db: Database, since: int = 0, limit: int = 100, since_time: datetime | None = None,
                   station: str | None = None) -> list[dict]:
     """The MES feed: verdict records (a run's final verdict, and each later one that supersedes it)
@@ -282,12 +303,9 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
     from db.models import VerdictHistoryRow as H
 
     limit = max(1, min(int(limit), 1000))
-    earlier = aliased(H)
-    revision = (select(func.count(earlier.id)).where(earlier.run_id == H.run_id, earlier.result_seq.is_not(None),
-                                                     earlier.result_seq <= H.result_seq).scalar_subquery())
     with db.session() as s:
         q = (
-            select(H, revision, DutRun, Dut.serial, Batch.profile)
+            select(H, revision_of(H.run_id, H.result_seq), DutRun, Dut.serial, Batch.profile)
             .join(DutRun, DutRun.id == H.run_id)
             .join(Dut, Dut.id == DutRun.dut_id)
             .join(Batch, Batch.id == DutRun.batch_id)
@@ -322,20 +340,6 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
             item.update(_run_results(s, r.id))
             out.append(item)
         return out
-
-
-def record_verdict_json(h: Any, attempt: int) -> dict:
-    """The decision of one verdict record (verdict_history row), shaped as verdict_json."""
-    return {
-        "attempt": attempt,
-        "verdict": h.verdict,
-        "grade": h.grade,
-        "tray": h.tray,
-        "reason": h.reason or None,
-        "limits_name": h.limits_name,
-        "limits_version": h.limits_version,
-        "judged_at": _iso(h.judged_at),
-    }
 
 
 def _real_batches() -> Any:
@@ -588,6 +592,7 @@ __all__ = [
     "run_detail",
     "segments_of_run",
     "results_since",
+    "revision_of",
     "audit_append",
     "outbox_enqueue_new",
     "judged_runs",

@@ -605,8 +605,7 @@ class DbWriter:
 
     def _result(self, conn: Connection, run_id: int, ev: DutResult) -> None:
         """The analysis' results (thermal, SFEM): data only. No result_seq, no MES message: the
-        record the MES gets is the run's final verdict (DutVerdict). A verdict a DutResult may
-        still carry (an older daemon) is not final (design 8) and is ignored."""
+        record the MES gets is the run's final verdict (DutVerdict)."""
         now = utcnow()
         for row in thermal_rows(ev.thermal):
             conn.execute(insert(ThermalResultRow).values(run_id=run_id, station=self.station, created_at=now, **row))
@@ -656,8 +655,9 @@ class DbWriter:
 
     def _outbox_verdict(self, conn: Connection, run_id: int, ev: DutVerdict, seq: int, supersedes: int | None,
                         now: Any) -> None:
-        revision = int(conn.execute(select(func.count(VerdictHistoryRow.id)).where(
-            VerdictHistoryRow.run_id == run_id, VerdictHistoryRow.result_seq.is_not(None))).scalar_one())
+        from db.repository import revision_of
+
+        revision = int(conn.execute(select(revision_of(run_id, seq))).scalar_one())
         payload = {
             "result_seq": seq, "run_id": run_id, "batch_id": ev.batch_id, "slot": ev.slot, "serial": ev.serial,
             "revision": revision, "supersedes": None if supersedes is None else record_key(run_id, supersedes),

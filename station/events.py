@@ -97,13 +97,13 @@ class SegmentLogged(Event):
 
 @dataclass(frozen=True)
 class DutResult(Event):
-    """Final results of one DUT run: thermal (streaming and offline) and/or SFEM, as JSON dicts."""
+    """Results of one DUT run's analysis: thermal (streaming and offline) and/or SFEM, as JSON dicts.
+    No verdict: the run is judged once, at its end (DutVerdict)."""
 
     slot: str
     serial: str
     thermal: dict | None = None
     sfem: dict | None = None
-    verdict: dict | None = None  # unused by the daemon: the verdict is final only at the run's end (DutVerdict)
 
 
 @dataclass(frozen=True)

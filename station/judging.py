@@ -23,6 +23,7 @@ import time
 from typing import Any
 
 from station.events import DutVerdict
+from station.program_verify import uses_program_verify
 from station.science.residual import DEFAULT_OPERATING_RANGE_C
 from station.verdicts import RunRecord, final_verdict, summarize
 
@@ -86,7 +87,7 @@ def end_of(seq: Any, d: Any) -> tuple[str, str]:
 
 def run_record(station: Any, seq: Any, d: Any) -> RunRecord:
     state, why = end_of(seq, d)
-    return RunRecord(analysis=seq.profile.analysis, program_verify=getattr(seq.profile, "program_step", None) is not None,
+    return RunRecord(analysis=seq.profile.analysis, program_verify=uses_program_verify(seq.profile),
                      end_state=state, end_reason=why, result=d.result, link_stats=_link_stats(station, d),
                      n_samples=int(d.n_samples), program=d.program, verification=d.verification)
 
@@ -133,7 +134,7 @@ def judge_interrupted_runs(station: Any, batch_ids: list[int], reason: str = "st
         for r in rp.runs:
             if r.state != "interrupted":
                 continue
-            run = RunRecord(analysis=analysis, program_verify=getattr(prof, "program_step", None) is not None,
+            run = RunRecord(analysis=analysis, program_verify=uses_program_verify(prof),
                             end_state="interrupted",
                             end_reason=f"interrupted: {reason} during the batch, DUT incomplete "
                                        "(resumable: station serve --resume)")
