@@ -221,6 +221,23 @@ def block_features(time_s, temp_filt_c, quantum_c: float, blocks, n_harm: int = 
     return np.array(bt), np.array(bg), np.array(ph).reshape(len(bt), n_harm)
 
 
+def budget_inputs(time_s, acc_g, temp_c, trace: GateTrace, use: np.ndarray, alpha: float,
+                  sensor: str | None = None, wander: BiasWander | str | None = None
+                  ) -> tuple[float, float, np.ndarray, BiasWander]:
+    """What every budget of one record shares (the offline slope and the residual's curvature
+    alike): (temperature quantum C, its dither C, the quantiser amplitudes A_k C, the bias-wander
+    class). wander None: white noise only; a string ("auto"): `wander_for(sensor, white noise)`."""
+    temp = np.asarray(temp_c, dtype=np.float64)
+    runs = [(s, e) for s, e in _runs(use) if e - s >= 2]
+    quantum = temperature_quantum_c(temp[use]) if use.any() else 0.0
+    dither = temperature_dither_c(temp, runs, quantum)
+    if wander is None:
+        wander = NO_WANDER
+    elif isinstance(wander, str):
+        wander = wander_for(sensor, white_density_ug_per_sqrt_hz(time_s, acc_g, trace, use, alpha))
+    return quantum, dither, quantiser_amplitudes_c(quantum, dither), wander
+
+
 def combination_budget(weights, block_time_s, block_rate_c_per_s, block_phasor, sensitivity_g_per_c,
                        wander: BiasWander, amplitudes_c: np.ndarray, lag_sigma_s: float) -> dict[str, np.ndarray]:
     """Variances (g^2, per axis) that a linear combination sum_b w_b y_b of block means (a slope or
@@ -270,14 +287,7 @@ def offline_fit(
     if trace is None:
         trace, _ = trace_gate(t, acc, temp, cfg)
     use = usable_mask(acc, trace, still_sigma)
-    all_runs = [(s, e) for s, e in _runs(use) if e - s >= 2]
-    quantum = temperature_quantum_c(temp[use]) if use.any() else 0.0
-    dither = temperature_dither_c(temp, all_runs, quantum)
-    amps = quantiser_amplitudes_c(quantum, dither)
-    if wander is None:
-        wander = NO_WANDER
-    elif isinstance(wander, str):  # "auto": the DUT's sensor class
-        wander = wander_for(sensor, white_density_ug_per_sqrt_hz(t, acc, trace, use, cfg.alpha_acc))
+    quantum, dither, amps, wander = budget_inputs(t, acc, temp, trace, use, cfg.alpha_acc, sensor, wander)
     budget: dict[int, dict[str, np.ndarray]] = {}
     span_needed = cfg.pair_delta_c() if min_span_c is None else float(min_span_c)
     drifts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -375,5 +385,5 @@ def _uncertainty_doc(drifts, budget, sigmas, quantum, dither, wander, lag_sigma_
 
 
 __all__ = ["offline_fit", "usable_mask", "BiasWander", "WANDER_BY_SENSOR", "NO_WANDER", "LAG_SIGMA_S", "wander_for", "white_density_ug_per_sqrt_hz",
-           "characterise_bias_wander", "temperature_quantum_c", "temperature_dither_c", "quantiser_amplitudes_c",
+           "characterise_bias_wander", "budget_inputs", "temperature_quantum_c", "temperature_dither_c", "quantiser_amplitudes_c",
            "block_features", "combination_budget"]

@@ -33,10 +33,8 @@ import math
 
 import numpy as np
 
-from station.science.offline_fit import (LAG_SIGMA_S, NO_WANDER, BiasWander, _runs, block_features,
-                                         combination_budget, quantiser_amplitudes_c, temperature_dither_c,
-                                         temperature_quantum_c, usable_mask, wander_for,
-                                         white_density_ug_per_sqrt_hz)
+from station.science.offline_fit import (LAG_SIGMA_S, BiasWander, _runs, block_features, budget_inputs,
+                                         combination_budget, usable_mask)
 from station.science.streaming import GateTrace, StreamingConfig, trace_gate
 from station.science.thermal_model import FULL_SCALE_MG, compensate
 from station.types import AXES, T_REF_C
@@ -91,13 +89,7 @@ def residual_report(
     tdsf = np.asarray(tdsf_ppm_per_c, dtype=np.float64)
     comp = compensate(acc, temp, tdb, tdsf)
     rng = float(operating_range_c)
-    all_runs = [(s, e) for s, e in _runs(use) if e - s >= 2]
-    quantum = temperature_quantum_c(temp[use]) if use.any() else 0.0
-    amps = quantiser_amplitudes_c(quantum, temperature_dither_c(temp, all_runs, quantum))
-    if wander is None:
-        wander = NO_WANDER
-    elif isinstance(wander, str):
-        wander = wander_for(sensor, white_density_ug_per_sqrt_hz(t, acc, trace, use, cfg.alpha_acc))
+    quantum, _, amps, wander = budget_inputs(t, acc, temp, trace, use, cfg.alpha_acc, sensor, wander)
 
     c2 = np.full(3, np.nan)
     c2_sig = np.full(3, np.nan)
