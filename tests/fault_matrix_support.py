@@ -189,9 +189,6 @@ class Ctx:
     def status(self) -> dict:
         return self.st.batch_status(self.bid)
 
-    def slot(self, name: str) -> dict:
-        return next(s for s in self.status()["slots"] if s["slot"] == name)
-
     async def wait(self, pred: Callable[[], Any], what: str, timeout_s: float = 120.0) -> None:
         await wait_for(pred, timeout_s, f"{self.plan.name}: {what}")
 

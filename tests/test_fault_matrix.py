@@ -32,7 +32,7 @@ import pytest
 
 from drivers.sim.station_sim import SimStation
 from tests.fault_matrix_support import (
-    MATRIX, PROFILES, VERIFIED, Ctx, Expect, KillCtx, Plan, board_hook, fill, run_all,
+    MATRIX, PROFILES, VERIFIED, Ctx, Expect, KillCtx, Plan, board_hook, fill, run_all, wait_for,
 )
 
 FAST = 250.0  # fast-thermal(-verified): x250, like tests/test_program_verify_e2e.py
@@ -192,23 +192,14 @@ def _verified_plans() -> list[Plan]:
 
     async def kill_in_heat(k: KillCtx) -> None:
         await k.wait_completed(4)  # the program step is done: the boards are programmed
-        await wait_until(lambda: k.sim.world.lamp_on, 60, "verification heat lamp on")
+        await wait_for(lambda: k.sim.world.lamp_on, 60, "verification heat lamp on")
         t0 = k.sim.world.time_s
-        await wait_until(lambda: k.sim.world.time_s > t0 + 30.0, 60, "30 s of the verification heat")
+        await wait_for(lambda: k.sim.world.time_s > t0 + 30.0, 60, "30 s of the verification heat")
 
     plans.append(Plan("ftv-kill", P, FAST, 2, 1, 38, kill=kill_in_heat, timeout_s=200,
                       expects=_all(_slots(2, 1), "SIGKILL + --resume", keywords=KILL)))
     _na(P, ["abort, 45 C block", "abort, last step"], "n/a (sfem-24 rows)")
     return plans
-
-
-async def wait_until(pred, timeout_s: float, what: str) -> None:
-    loop = asyncio.get_running_loop()
-    end = loop.time() + timeout_s
-    while not pred():
-        if loop.time() > end:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.05)
 
 
 # ------------------------------------------------------------------------------- fast-thermal
@@ -234,9 +225,9 @@ def _fast_thermal_plans() -> list[Plan]:
 
     async def kill_in_n_hot(k: KillCtx) -> None:
         await k.wait_completed(1)  # P ambient and P hot stored
-        await wait_until(lambda: k.sim.world.position == 1 and k.sim.world.lamp_on, 60, "N hot (plate turned)")
+        await wait_for(lambda: k.sim.world.position == 1 and k.sim.world.lamp_on, 60, "N hot (plate turned)")
         t0 = k.sim.world.time_s
-        await wait_until(lambda: k.sim.world.time_s > t0 + 60.0, 60, "60 s of N hot")
+        await wait_for(lambda: k.sim.world.time_s > t0 + 60.0, 60, "60 s of N hot")
 
     # a resumed run that completes every step may pass (design 8): its pass must be backed
     plans.append(Plan("ft-kill", P, FAST, 2, 1, 46, kill=kill_in_n_hot, timeout_s=200,
