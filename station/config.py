@@ -169,6 +169,21 @@ class ProfileConfig(_Model):
     program_verify: ProgramVerifyConfig | None = None
 
 
+class CertificateConfig(_Model):
+    """`[certificate]`: who issues the station's calibration certificates (station/certificate.py,
+    ISO/IEC 17025:2017 7.8.2.1). Stored with every batch (the config snapshot), so a certificate
+    reprinted later names the issuer of its run. A key left empty prints "not configured": the
+    station never makes up an organisation or a signatory."""
+
+    issuer: str = Field(default="", max_length=200, description="organisation (laboratory) issuing the certificates")
+    address: str = Field(default="", max_length=300, description="its address / the place the calibrations are done")
+    authorised_by: str = Field(default="", max_length=200,
+                               description="name and function of the person authorising the certificates")
+    reference_thermometer: str = Field(default="", max_length=300,
+                                       description="the plate reference thermometer's own calibration (certificate "
+                                                   "no., due date), quoted in the traceability statement")
+
+
 def _hostname() -> str:
     import socket
 
@@ -197,6 +212,8 @@ class StationConfig(_Model):
     # set by `station replay` (station/replay): every batch of this daemon re-runs recorded data
     # from this source; such batches are stored as replays and never sent to the MES
     replay_of: str | None = Field(default=None, max_length=256)
+    # who issues the calibration certificates (optional; printed as "not configured" when empty)
+    certificate: CertificateConfig = CertificateConfig()
 
     @model_validator(mode="after")
     def _unique(self) -> "StationConfig":

@@ -157,3 +157,76 @@ def test_verdicts_reasons_and_sorting_on_the_page(tmp_path):
             raise
         finally:
             browser.close()
+
+
+def test_slot_card_flags_a_clamped_tdsf(tmp_path):
+    """A stored batch whose z TDSF was clamped (a positive TDSF, not observable): the slot card on
+    the operator page says so instead of a bare "0.0", as the API (tdsf_clamped) and the
+    certificate do; an unclamped axis shows its number alone."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    from fastapi import HTTPException
+
+    from db import Database, DbWriter
+    from station.events import DutResult, DutVerdict, SlotStateChanged
+    from web.app import create_app
+    from web.auth import TokenStore
+    from web.db_repo import DbRepository
+    from web_support import IdleStation, serve_in_thread
+
+    class StoredOnly(IdleStation):
+        def batch_status(self, batch_id):  # a batch this daemon no longer holds: the page gets the stored one
+            raise HTTPException(status_code=404, detail=f"batch {batch_id} not found")
+
+    db = Database(f"sqlite:///{tmp_path / 'clamp.db'}", station="line-3")
+    db.upgrade()
+    batch = db.create_batch("fast-thermal", "Ana", {}, state="running")
+    run = db.create_run(batch, "s01", "CLAMP1", "LIS3DSH", {"serial": "CLAMP1", "sensor": "LIS3DSH"})
+    axes = {ax: {"tdb_mg_per_c": 0.2, "tdsf_ppm_per_c": s, "tdb_sigma_mg_per_c": 0.01, "tdsf_sigma_ppm_per_c": 4.0,
+                 "tdsf_clamped": ax == "z"} for ax, s in zip("xyz", (-143.2, -88.0, 0.0))}
+    w = DbWriter(db, interval_s=0.02)
+    try:
+        w.bind_run(batch, "s01", run)
+        w.submit(DutResult(batch, "s01", "CLAMP1", thermal={"offline": {"method": "offline", "axes": axes}}))
+        w.submit(SlotStateChanged(batch, "s01", "CLAMP1", "done"))
+        w.submit(DutVerdict(batch, "s01", "CLAMP1", verdict={"verdict": "pass", "grade": "A", "tray": "A", "attempt": 1,
+                                                             "run_id": run}))
+        assert w.flush(30)
+    finally:
+        w.close()
+    db.set_batch_state(batch, "finished")
+    app = create_app(StoredOnly(db), repo=DbRepository(db), outbox=False,
+                     tokens=TokenStore([(TOKENS["operator"], "operator", "line operators")]))
+    url, stop_server = serve_in_thread(app)
+    try:
+        stored = httpx.get(f"{url}/api/runs/{run}", headers=auth("operator"), timeout=30).json()
+        assert stored["thermal"]["z"]["tdsf_clamped"] is True and stored["thermal"]["x"]["tdsf_clamped"] is False
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True,
+                                         args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+            try:
+                page = browser.new_page(viewport={"width": 1400, "height": 1000})
+                errors: list[str] = []
+                page.on("pageerror", lambda e: errors.append(str(e)))
+                page.set_default_timeout(20_000)
+                page.add_init_script(f"localStorage.setItem('station.token', {TOKENS['operator']!r});"
+                                     f"localStorage.setItem('station.batch', '{batch}');")
+                page.goto(url + "/")
+                card = '.slot-card[data-slot="s01"]'
+                try:
+                    page.wait_for_selector(f'{card} tr[data-axis="z"] td.tdsf')
+                except Exception:
+                    page.screenshot(path=str(ARTIFACTS / "browser-clamped-failed.png"), full_page=True)
+                    raise
+                z = page.inner_text(f'{card} tr[data-axis="z"] td.tdsf')
+                assert " ".join(z.split()) == "0.0 (clamped: not observable)", z
+                assert page.get_attribute(f'{card} tr[data-axis="z"] td.tdsf', "class") == "tdsf clamped"
+                assert page.inner_text(f'{card} tr[data-axis="x"] td.tdsf') == "-143.2"
+                assert page.locator(f"{card} .clamped-flag").count() == 1
+                ARTIFACTS.mkdir(exist_ok=True)
+                page.locator(card).screenshot(path=str(ARTIFACTS / "browser-clamped-tdsf.png"))
+                assert errors == []
+            finally:
+                browser.close()
+    finally:
+        stop_server()
+        db.dispose()

@@ -42,7 +42,7 @@ async def dut_runs(request: Request, serial: str = Serial):
 
 
 @router.get("/{serial}/certificate.pdf", dependencies=[Depends(require_read)], response_class=Response,
-            responses={200: {"content": {"application/pdf": {}}, "description": "the certificate, one A4 page"},
+            responses={200: {"content": {"application/pdf": {}}, "description": "the certificate (A4, as many pages as its checks need)"},
                        409: {"model": ErrorOut, "description": "the DUT has no stored result yet"}})
 async def dut_certificate(request: Request, serial: str = Serial):
     """Calibration certificate of the DUT's result run (its latest valid attempt): identity,

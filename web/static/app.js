@@ -216,13 +216,22 @@ function storedResult(run) {
   return { axes: axesOf(run.thermal), method: run.thermal_method, streaming: axesOf(by.streaming), sfem: run.sfem };
 }
 
+// A positive TDSF is clamped to 0 by the method (martinez2022): it was not observable in this run.
+// A bare "0.0" would read as a measured zero, so the cell says so, as the API (tdsf_clamped) and
+// the certificate do.
+function tdsfCell(a) {
+  if (!a.tdsf_clamped) return el("td", { class: "tdsf" }, fmt(a.tdsf_ppm_per_c, 1));
+  return el("td", { class: "tdsf clamped", title: "positive TDSF clamped to 0: not observable in this run" },
+    fmt(a.tdsf_ppm_per_c, 1) + " ", el("span", { class: "clamped-flag" }, "(clamped: not observable)"));
+}
+
 function resultTable(result) {
   const wrap = el("div", { class: "result" });
   if (result.axes) {
     const rows = ["x", "y", "z"].map((ax) => {
       const a = result.axes[ax] || {};
       return el("tr", { "data-axis": ax }, el("td", {}, ax), el("td", { class: "tdb" }, fmt(a.tdb_mg_per_c, 3)),
-        el("td", { class: "tdsf" }, fmt(a.tdsf_ppm_per_c, 1)));
+        tdsfCell(a));
     });
     wrap.append(el("table", { class: "results" },
       el("thead", {}, el("tr", {}, el("th", {}, "axis"), el("th", {}, "TDB mg/°C"), el("th", {}, "TDSF ppm/°C"))),
