@@ -10,7 +10,8 @@ The supervisor only calls the two entry points (it stays a facade):
                               write fails (CRC mismatch, refused, no reply, read-back differs) is
                               faulted ALONE with the named reason; the others go on.
   verify_duts(station, seq)   at the end of the batch: for every programmed DUT, the compensated
-                              samples of the `heat` (verification) step after its settle time ->
+                              samples from its restart + the heat step's settle time until its own
+                              temperature has risen heat_c (rise_window: sample-defined) ->
                               station.science.verify.verify_compensated, with the uncompensated E of
                               the same orientation from the first pass as "before".
 Both publish events (DutProgrammed, DutVerified) that the writer stores and the web shows; neither
@@ -136,11 +137,13 @@ def _verify_one(blocks: list, segments: list, t_start: float, t_end: float | Non
     """Pure part of the verification of one DUT (runs in a worker thread on snapshots):
     blocks = [(SampleBlock, step index)], segments = [(Segment, step index)]."""
     step = profile.steps[heat_index]
-    block = SampleBlock.concat([b for b, st in blocks if st == heat_index])
-    t0 = t_start + step.settle_s if np.isfinite(t_start) else -np.inf
-    if comp_from_t is not None:  # never judge a sample the board may have sent before compensation was on
-        t0 = max(t0, comp_from_t)
-    m = block.time_s > t0
+    if comp_from_t is not None:
+        block = SampleBlock.concat([b for b, st in blocks if st >= program_index])
+        m = rise_window(block.time_s, block.temp_c, comp_from_t + step.settle_s, step.heat_c)
+    else:  # no program record of the restart point: the step's own window (as the sequencer saw it)
+        block = SampleBlock.concat([b for b, st in blocks if st == heat_index])
+        t0 = t_start + step.settle_s if np.isfinite(t_start) else -np.inf
+        m = block.time_s > t0
     segs = [(s.t_end_s, s.acc_mean_g, s.temp_mean_c) for s, st in segments
             if st < program_index and s.position == step.position]
     segs.sort(key=lambda x: x[0])
@@ -155,6 +158,30 @@ def _verify_one(blocks: list, segments: list, t_start: float, t_end: float | Non
     out["before_source"] = (f"{len(segs)} first-pass segment(s) at position {step.position_name}, uncompensated"
                             if before is not None else "none: fewer than two first-pass segments at this position")
     return out
+
+
+def rise_window(time_s: np.ndarray, temp_c: np.ndarray, t_from: float, heat_c: float, n_edge: int = 8) -> np.ndarray:
+    """Mask of the verification window: the compensated samples after t_from (the board's
+    restart after programming + the step's settle time) until this DUT's own temperature has risen
+    heat_c (median of n_edge samples against the first n_edge, as the sequencer's heat step
+    measures a rise), or all of them if it never did.
+
+    Both ends are defined by the samples, not by when the daemon happened to read them: the heat
+    step starts when the last board is programmed and ends when the last DUT has risen, which in
+    compressed time moves by a read block (tens of sample seconds). So a live run, a replay of it
+    and the same samples from a file give the same E."""
+    t = np.asarray(time_s, dtype=np.float64)
+    m = t > t_from
+    idx = np.flatnonzero(m)
+    if len(idx) < 2 * n_edge:
+        return m
+    temps = np.asarray(temp_c, dtype=np.float64)[idx]
+    ref = float(np.median(temps[:n_edge]))
+    rolling = np.median(np.lib.stride_tricks.sliding_window_view(temps, n_edge), axis=1)
+    hit = np.flatnonzero(rolling - ref >= heat_c)
+    if len(hit):
+        m[idx[hit[0] + n_edge - 1] + 1:] = False
+    return m
 
 
 async def verify_duts(station: Any, seq: Any) -> None:

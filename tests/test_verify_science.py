@@ -75,3 +75,23 @@ def test_too_small_a_rise_is_not_a_pass():
     comp = np.tile(ACC0, (len(temp), 1)) + noise
     r = verify_compensated(comp, temp, [50.0, 50.0, 50.0], VerifyCriteria(min_rise_c=10.0))
     assert not r.passed and any("heated only" in f for f in r.flags)
+
+
+def test_the_verification_window_is_defined_by_the_samples_not_the_read_timing():
+    """rise_window: after t_from until the DUT's own temperature has risen heat_c (median of 8
+    against the first 8), whatever blocks the samples arrived in (program_verify._verify_one)."""
+    from station.program_verify import rise_window
+
+    t = np.arange(0.0, 1000.0, 0.5)
+    temp = 25.0 + np.clip(t - 200.0, 0.0, None) * 0.05  # flat until 200 s, then +0.05 C/s
+    m = rise_window(t, temp, 100.0, 15.0)
+    kept = t[m]
+    assert kept[0] == 100.5
+    # +15 C above the first 8 samples (25 C) is reached at 200 + 300 = 500 s; a median of the
+    # latest 8 samples crosses it 3.5 samples later: the window ends there
+    assert 500.0 < kept[-1] <= 502.0, kept[-1]
+    # the same samples split differently (a later t_from inside the flat part) end at the same rise
+    m2 = rise_window(t, temp, 150.0, 15.0)
+    assert t[m2][-1] == kept[-1]
+    # never risen enough: every sample after t_from
+    assert rise_window(t, temp, 100.0, 100.0).sum() == int((t > 100.0).sum())
