@@ -28,7 +28,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="fast-thermal", help="profile of the automatic batch")
     p.add_argument("--no-batch", action="store_true", help="do not start a batch automatically")
     p.add_argument("--once", action="store_true", help="run one batch headless, print the results and exit")
-    p.add_argument("--no-fixture", action="store_true", help="no motorized fixture: the operator is prompted")
+    p.add_argument("--no-fixture", action="store_true", help="no motorized fixture: the operator is prompted "
+                   "(with --once a simulated operator confirms each prompt after --operator-delay)")
+    p.add_argument("--operator-delay", type=float, default=1.0, metavar="S",
+                   help="with --once --no-fixture: wall seconds the simulated operator takes to turn the plate")
     p.add_argument("--host", default="127.0.0.1", help="HTTP host (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     p.add_argument("--no-web", action="store_true", help="do not serve the web page")
@@ -126,8 +129,52 @@ def results_table(status: dict, truths: dict | None = None) -> tuple[str, dict]:
             entry.update(verdict=v["verdict"], grade=v.get("grade"), tray=v.get("tray"), reason=v.get("reason"),
                          attempt=v.get("attempt"))
         lines.append(row)
+        pv = program_verify_summary(s.get("program"), s.get("verification"))
+        if pv is not None:
+            entry["program_verify"] = pv
+            lines.append(" " * 6 + program_verify_line(pv))
         summary["duts"][s["slot"]] = entry
     return "\n".join(lines), summary
+
+
+def program_verify_summary(program: dict | None, verification: dict | None) -> dict | None:
+    """Program and verify of one DUT as the demo reports it (None: the profile has no program step)."""
+    if not program:
+        return None
+    ver = verification or {}
+    return {
+        "programmed": bool(program.get("programmed")),
+        "crc": program.get("crc"),
+        "readback_crc": program.get("readback_crc"),
+        "crc_match": bool(program.get("readback_identical")),
+        "comp_on": bool(program.get("comp")),
+        "attempts": program.get("attempts"),
+        "error_kind": program.get("error_kind"),
+        "error": program.get("error"),
+        "written_tdb_mg_per_c": program.get("tdb_mg_per_c"),
+        "written_tdsf_ppm_per_c": program.get("tdsf_ppm_per_c"),
+        "verified": ver.get("passed") if verification else None,
+        "e_before_mg": ver.get("e_before_mg"),
+        "e_after_mg": ver.get("e_after_mg"),
+        "flags": list(ver.get("flags") or []),
+    }
+
+
+def program_verify_line(pv: dict) -> str:
+    """One table line: what was written and proven, and the verified drift error per axis."""
+    if not pv["programmed"]:
+        return f"program: NOT programmed ({pv.get('error_kind') or '-'}: {pv.get('error') or '-'})"
+    text = (f"program: CRC {pv['crc']} {'= read back' if pv['crc_match'] else '!= read back ' + str(pv['readback_crc'])}"
+            f", compensation {'on' if pv['comp_on'] else 'OFF'}, {pv['attempts']} attempt(s)")
+    after, before = pv.get("e_after_mg") or {}, pv.get("e_before_mg") or {}
+    if pv["verified"] is None:
+        return text + "; not verified"
+    per_axis = " ".join(f"{a} {_mg(after.get(a))} (was {_mg(before.get(a))})" for a in AXES)
+    return text + f"; verified E after [mg]: {per_axis}: {'PASS' if pv['verified'] else 'FAIL'}"
+
+
+def _mg(v) -> str:
+    return "-" if v is None else f"{float(v):.2f}"
 
 
 async def serve_web(station, host: str, port: int):
@@ -248,7 +295,7 @@ async def _main(args: argparse.Namespace) -> int:
         station = Station(cfg, db=db)
         server = task = None
         rc = 0
-        hands = None
+        hands = confirming = None
         if args.no_fixture:  # the simulated operator turns the plate when a prompt is confirmed
             from drivers.sim.operator import operator_hands
 
@@ -273,6 +320,13 @@ async def _main(args: argparse.Namespace) -> int:
                 print(f"station demo: batch {batch_id} ({args.profile}) started", flush=True)
             if args.once:
                 assert batch_id is not None
+                if args.no_fixture:  # headless: nobody is at the page, a simulated operator confirms
+                    from drivers.sim.operator import operator_confirms
+
+                    confirming = asyncio.get_running_loop().create_task(operator_confirms(
+                        lambda: station.prompt(batch_id),
+                        lambda pid: station.answer_prompt(batch_id, pid, "done", by="simulated operator"),
+                        delay_s=args.operator_delay))
                 t0 = time.monotonic()
                 done = asyncio.create_task(station.wait_batch(batch_id))
                 stopper = asyncio.create_task(stop.wait())
@@ -306,8 +360,9 @@ async def _main(args: argparse.Namespace) -> int:
             else:
                 await stop.wait()
         finally:
-            if hands is not None:
-                hands.cancel()
+            for task in (hands, confirming):
+                if task is not None:
+                    task.cancel()
             await station.close("daemon shutdown")  # lamp off first, then the web server
             await stop_web(server, task)
             if hasattr(db, "dispose"):
