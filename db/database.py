@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import random
+import sqlite3
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -84,6 +85,31 @@ def _sqlite_on_connect(dbapi_conn: Any, _record: Any) -> None:
     cur.close()
 
 
+def _sqlite_read_only_on_connect(dbapi_conn: Any, _record: Any) -> None:
+    cur = dbapi_conn.cursor()
+    cur.execute("PRAGMA query_only=ON")
+    cur.execute("PRAGMA busy_timeout=30000")
+    cur.close()
+
+
+def make_read_only_engine(url: str) -> Engine:
+    """An engine that cannot change the database: SQLite opened with mode=ro (a file that does not
+    exist is an error, never created; no WAL switch, no migration), PostgreSQL in read-only
+    transactions."""
+    u = make_url(url)
+    if u.get_backend_name() == "sqlite":
+        path = u.database or ""
+        if path in ("", ":memory:") or not Path(path).expanduser().is_file():
+            raise StationError(f"database {url}: no such file (a source database is never created)")
+        uri = "file:" + str(Path(path).expanduser().resolve()) + "?mode=ro"
+        engine = create_engine("sqlite://", creator=lambda: sqlite3.connect(uri, uri=True, timeout=30,
+                                                                            check_same_thread=False))
+        event.listen(engine, "connect", _sqlite_read_only_on_connect)
+        return engine
+    return create_engine(u, pool_pre_ping=True,
+                         connect_args={"options": "-c default_transaction_read_only=on"})
+
+
 def make_engine(url: str, **kwargs: Any) -> Engine:
     """An engine for `url`; SQLite gets WAL, synchronous=FULL, foreign keys, a busy timeout."""
     u = make_url(url)
@@ -145,13 +171,14 @@ def retry_collisions(fn: Any, what: str, attempts: int = COLLISION_RETRIES,
 class Database:
     """The station database: `Database(url)`, then `.upgrade()` (or `.check()`) before use."""
 
-    def __init__(self, url: str, echo: bool = False, station: str = "") -> None:
+    def __init__(self, url: str, echo: bool = False, station: str = "", read_only: bool = False) -> None:
         self.url = url
         # this station's name (config `name`): stamped on its batches, runs and results; the
         # restart bookkeeping (mark_interrupted, interrupted_batches) touches only its own batches
         self.station = station
+        self.read_only = read_only  # a replay's source: read, never migrated or created
         self.collision_retries = 0  # create_run calls retried after a unique collision (see retry_collisions)
-        self.engine = make_engine(url, echo=echo)
+        self.engine = make_read_only_engine(url) if read_only else make_engine(url, echo=echo)
         self.Session = sessionmaker(self.engine, expire_on_commit=False)
 
     @property
@@ -178,7 +205,8 @@ class Database:
 
         cfg = Config(str(ALEMBIC_INI))
         cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
-        cfg.set_main_option("sqlalchemy.url", self.engine.url.render_as_string(hide_password=False).replace("%", "%%"))
+        url = self.url if self.read_only else self.engine.url.render_as_string(hide_password=False)
+        cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
         if connection is not None:
             cfg.attributes["connection"] = connection
         return cfg
@@ -239,6 +267,9 @@ class Database:
     def upgrade(self) -> str:
         """Migrate to the newest schema this code knows; refuse a database from newer code."""
         from alembic import command
+
+        if self.read_only:
+            raise StationError(f"database {self.url} is opened read-only: it is never migrated")
 
         self.check_integrity()
         self._refuse_unknown(self.current_revision())

@@ -82,11 +82,23 @@ def _run_results(s: Any, run_id: int) -> dict:
             "program_verify": None if pv is None else program_verify_json(pv)}
 
 
+def program_record(db: Database, run_id: int) -> dict | None:
+    """The program step's own record of one run (what the driver reported: the coefficients
+    written, comp_from_t, error kind), as the daemon stored it; None if the run was not programmed."""
+    with db.session() as s:
+        row = s.scalars(select(ProgramVerifyRow).where(ProgramVerifyRow.run_id == run_id)).one_or_none()
+        return None if row is None else dict(row.program or {})
+
+
 def program_verify_json(row: ProgramVerifyRow) -> dict:
-    """Program and verify of one run: programmed (CRC written = read back), compensation on, and
-    the verified drift error E before/after per axis (mg)."""
+    """Program and verify of one run: programmed (CRC written = read back), compensation on, the
+    coefficients written (TDB mg/C, TDSF ppm/C per axis), and the verified drift error E
+    before/after per axis (mg)."""
+    prog = row.program or {}
     return {
         "programmed": row.programmed,
+        "written": {k: dict(zip(AXES, prog[k])) for k in ("tdb_mg_per_c", "tdsf_ppm_per_c")
+                    if isinstance(prog.get(k), list) and len(prog[k]) == 3} or None,
         "crc": row.crc,
         "readback_crc": row.readback_crc,
         "readback_identical": bool(row.programmed and row.crc is not None and row.crc == row.readback_crc),
@@ -408,6 +420,7 @@ def batch_detail(db: Database, batch_id: int) -> dict | None:
             "config_snapshot": b.config_snapshot,
             "replay_of": b.replay_of,
             "replay_diff": b.replay_diff,
+            "step_windows": b.step_windows or {},
             "schema_version": b.schema_version,
             "created_at": _iso(b.created_at),
             "ended_at": _iso(b.ended_at),

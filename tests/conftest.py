@@ -15,6 +15,8 @@ HEAVY_FIRST = (
     "test_program_verify_e2e.py",
     "test_clean_install.py",
     "test_replay.py",
+    "test_replay_line_faults.py",
+    "test_replay_line.py",
 )
 
 

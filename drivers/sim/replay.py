@@ -10,6 +10,20 @@ data: the relay, fixture and chamber accept the commands (SimModbusServer, as in
 station/replay/agreement.py compares the plate state the daemon stored beside every replayed
 sample with the one recorded beside the same sample.
 
+A recorded stream pauses where the recorded line paused it, so that the daemon meets every sample
+in the same state as the recorded one did:
+- while a board is stopped (the program step stops it to write its calibration), its record does
+  not advance: a board that is not streaming measures nothing, and the recorded stream has no
+  samples for that time either;
+- a DUT whose recorded board was stopped for programming waits at that point of its record (the
+  sample after `restart_after_t`) until the replaying daemon stops it too; its samples after the
+  restart are the recorded ones, compensated on the board exactly as recorded (the replay boards
+  never compensate again: `compensates = False`);
+- `hold(i, index)` keeps DUT i at a recorded index until `release()` (station/replay/director.py:
+  an operator prompt is answered at the sample where the recorded operator's answer took effect).
+A DUT released from a pause or a hold continues from where it stopped, at the current world time
+(its record is re-anchored), so no backlog bursts out.
+
 ReplayStation is the SimStation that plays a Recording: serial DUTs on ptys with a 64-bit board
 clock (so t_us goes over the wire exactly as recorded), CAN DUTs behind the slcan adapter.
 """
@@ -31,6 +45,9 @@ from station.replay.recording import RecordedDut, Recording
 from station.types import Identity
 
 START_GRACE_S = 3.0
+# A board stopped at most this many sample seconds before its recorded program stop sends the
+# recorded samples up to that stop (they were in flight); an earlier stop (a reconnect) does not.
+FLUSH_MAX_S = 1200.0
 
 
 @dataclass
@@ -41,6 +58,7 @@ class ReplayPart:
     acc_counts: np.ndarray
     temp_counts: np.ndarray
     seq: np.ndarray
+    flush: bool = False  # sent although the board is stopped: the recorded samples before its stop
 
 
 @dataclass
@@ -73,6 +91,11 @@ class ReplayWorld:
         self._temp_now = np.array([float(d.identity.temp_c(d.temp_counts[:1])[0]) for d in self.duts])
         self.sent = [0] * len(self.duts)
         self._crc = [0] * len(self.duts)
+        n = len(self.duts)
+        self.streaming_of: Callable[[int], bool] = lambda i: True  # set by ReplayStation: board i streams
+        self._stop_at: list[int | None] = [d.restart_index() for d in self.duts]  # recorded program stops
+        self._hold_at: list[int | None] = [None] * n  # holds set by the director
+        self._held = [False] * n  # DUT i did not advance with the world last time: re-anchor before it does
 
     # ---- SimWorld interface ------------------------------------------------------------------
     @property
@@ -118,6 +141,38 @@ class ReplayWorld:
         if self._start[i] is None:
             self._start[i] = self.time_s + self._delay[i]
 
+    # ---- pauses and holds (see module doc) ----------------------------------------------------
+    def next_index(self, i: int) -> int:
+        """Index of the next recorded sample DUT i will send."""
+        return int(self._next[i])
+
+    def hold(self, i: int, index: int) -> None:
+        """Send DUT i's record up to (not including) `index`, then wait there until release()."""
+        self._hold_at[i] = int(index)
+
+    def at_hold(self, i: int) -> bool:
+        h = self._hold_at[i]
+        return h is None or int(self._next[i]) >= h or not self.started(i) or self.done(i)
+
+    def release(self) -> None:
+        self._hold_at = [None] * len(self.duts)
+
+    def started(self, i: int) -> bool:
+        return self._start[i] is not None
+
+    def done(self, i: int) -> bool:
+        """DUT i has sent its whole record."""
+        return int(self._next[i]) >= len(self.duts[i])
+
+    def waiting_for_stop(self, i: int) -> bool:
+        """DUT i waits at its recorded program stop for the daemon to stop its board."""
+        s = self._stop_at[i]
+        return s is not None and int(self._next[i]) >= s
+
+    def drop_stop(self, i: int) -> None:
+        """Give up DUT i's recorded program stop (the replaying daemon does not stop this board)."""
+        self._stop_at[i] = None
+
     def advance(self, n: int) -> ReplayChunk:
         t0 = self.time_s
         world_t = t0 + np.arange(n) / self._odr_hz
@@ -127,10 +182,31 @@ class ReplayWorld:
         for i, d in enumerate(self.duts):
             s = self._start[i]
             a = int(self._next[i])
+            empty = ReplayPart(d.time_s[:0], d.acc_counts[:0], d.temp_counts[:0], self._seq[i][:0])
             if s is None or a >= len(d):
-                parts.append(ReplayPart(d.time_s[:0], d.acc_counts[:0], d.temp_counts[:0], self._seq[i][:0]))
+                parts.append(empty)
                 continue
+            if not self.streaming_of(i):  # stopped: nothing measured, the record waits
+                stop = self._stop_at[i]
+                self._held[i] = True
+                self._stop_at[i] = None  # the recorded stop happened (here or a little earlier)
+                if stop is not None and a < stop and float(self._rel[i][stop] - self._rel[i][a]) <= FLUSH_MAX_S:
+                    # stopped before the recorded point: the recorded board's samples up to its stop
+                    # were already on their way when STOP took effect; they arrive now
+                    self._next[i] = stop
+                    parts.append(ReplayPart(d.time_s[a:stop], d.acc_counts[a:stop], d.temp_counts[a:stop],
+                                            self._seq[i][a:stop], flush=True))
+                    continue
+                parts.append(empty)
+                continue
+            if self._held[i]:  # continue from where it stopped, at the current world time
+                s = self._start[i] = t0 - float(self._rel[i][a])
+                self._held[i] = False
             b = int(np.searchsorted(self._rel[i], t_end - s, side="left"))
+            cap = min((x for x in (self._stop_at[i], self._hold_at[i]) if x is not None), default=None)
+            if cap is not None and b >= cap:
+                b = max(a, cap)
+                self._held[i] = True
             self._next[i] = b
             parts.append(ReplayPart(d.time_s[a:b], d.acc_counts[a:b], d.temp_counts[a:b], self._seq[i][a:b]))
             if b > a:
@@ -145,6 +221,27 @@ class ReplayWorld:
 
     def sent_digest(self, i: int) -> tuple[int, int]:
         return self.sent[i], self._crc[i]
+
+
+# How the recorded board answered the station's calibration write (db program record's error_kind)
+# -> the fault its replay twin is armed with, so that it answers the same way (board_nvm.CalFirmware).
+_WRITE_FAULTS: dict[str, Callable[[Any], None]] = {
+    "refused": lambda cal: cal.refuse_writes(1_000_000),
+    "no_reply": lambda cal: cal.drop_replies(1_000_000),
+    "crc_mismatch": lambda cal: cal.flip_next_write(1_000_000),
+    "readback_mismatch": lambda cal: cal.corrupt_readback_crc(1_000_000),
+}
+
+
+def _as_recorded(board: Any, d: RecordedDut) -> Any:
+    """A replay board: its samples go out as recorded (never compensated again), and its
+    calibration write fails the way the recorded one did; otherwise it takes the daemon's writes
+    and answers read-backs from what it was given."""
+    board.compensates = False
+    arm = _WRITE_FAULTS.get(d.program_error_kind or "")
+    if arm is not None:
+        arm(board.cal)
+    return board
 
 
 def _lamp_alignment(duts: list[RecordedDut]) -> list[float]:
@@ -186,12 +283,21 @@ class ReplayStation(SimStation):
         self.recording = recording
         self.ordered: list[RecordedDut] = serial + can
         world = ReplayWorld(self.ordered)
+        world.streaming_of = self._streams
         self._first_start: float | None = None
         super().__init__(n_serial=len(serial), n_can=len(can), speed=speed, world=world,
                          can_interface=can_interface, tick_s=tick_s, move_time_s=move_time_s)
 
+    def _streams(self, i: int) -> bool:
+        b = self.board(i)
+        return bool(b.streaming) and not getattr(b, "muted", False)
+
     def _make_serial_board(self, i: int) -> SimSerialBoard:
-        return SimSerialBoard(self.world.identity(i), clock_bits=None)  # 64-bit clock: t_us as recorded
+        board = SimSerialBoard(self.world.identity(i), clock_bits=None)  # 64-bit clock: t_us as recorded
+        return _as_recorded(board, self.ordered[i])
+
+    def _make_can_board(self, j: int, node: int) -> SimCanBoard:
+        return _as_recorded(super()._make_can_board(j, node), self.ordered[self.n_serial + j])
 
     def _deliver(self, chunk: Any) -> None:
         world: ReplayWorld = self.world  # type: ignore[assignment]
@@ -209,14 +315,16 @@ class ReplayStation(SimStation):
             if not len(part.time_s):
                 continue
             board = self.board(i)
-            if not board.streaming or getattr(board, "muted", False):
+            if getattr(board, "muted", False) or not (board.streaming or part.flush):
                 continue
+            was_streaming, board.streaming = board.streaming, True  # a flush goes out past the STOP
             mask = 0xFF if isinstance(board, SimCanBoard) else 0xFFFFFFFF
             # contiguous pieces between recorded gaps: the board skips the lost sequence numbers
             cuts = np.flatnonzero(np.diff(part.seq) != 1) + 1
             for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(part.seq)]):
                 board.seq = int(part.seq[a]) & mask
                 board.feed(part.time_s[a:b], part.acc_counts[a:b], part.temp_counts[a:b])
+            board.streaming = was_streaming
             world.note_sent(i, part)
         for cb in self._listeners:
             cb(chunk)

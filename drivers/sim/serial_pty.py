@@ -151,6 +151,9 @@ class SimSerialBoard:
         self.parser = sf.FrameParser(board_side=True)
         self.streaming = False
         self.muted = False  # stop_streaming(): alive, answers commands, sends no samples
+        # False: the counts fed are already what the board sent (a replay of recorded output, which
+        # is compensated or raw exactly as recorded), so $COMP changes the NVM flag only
+        self.compensates = True
         self.seq = 0
         self._decim = 1
         self._phase = 0
@@ -286,7 +289,7 @@ class SimSerialBoard:
         t_us = t_us_arr.tolist()
         acc_arr = np.asarray(acc_counts)[sel].astype(np.int64)
         tc_arr = np.asarray(temp_counts)[sel].astype(np.int64)
-        if self.cal.nvm.comp:  # on-board compensation with the board's own temperature reading
+        if self.cal.nvm.comp and self.compensates:  # on-board compensation with the board's own temperature
             acc_arr = self.cal.compensate_counts(acc_arr, self.identity.temp_c(tc_arr), self.identity.ug_per_lsb)
             acc_arr = np.clip(acc_arr, -(1 << 31), (1 << 31) - 1)
         acc = acc_arr.tolist()

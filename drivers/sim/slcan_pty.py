@@ -51,6 +51,7 @@ class SimCanBoard:
         self.shift, self.ug_per_lsb = can_scale(identity)
         self.streaming = False
         self.muted = False
+        self.compensates = True  # False: fed counts are the board's recorded output (see SimSerialBoard)
         self.seq = 0
         self._decim = 1
         self._phase = 0
@@ -165,7 +166,7 @@ class SimCanBoard:
         if len(sel) == 0:
             return
         acc = np.asarray(acc_counts)[sel].astype(np.int64)
-        if self.cal.nvm.comp:  # on-board compensation with the board's own (full-resolution) temperature
+        if self.cal.nvm.comp and self.compensates:  # on-board compensation, board's own temperature
             acc = self.cal.compensate_counts(acc, self.identity.temp_c(np.asarray(temp_counts)[sel]),
                                              self.identity.ug_per_lsb)
         if self.shift:

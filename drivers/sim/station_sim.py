@@ -117,7 +117,7 @@ class SimStation:
             self.serial_ports.append(b.path)
         for j in range(self.n_can):
             node = j + 1
-            self.can_boards.append(self._hub.add(SimCanBoard(node, w.identity(self.n_serial + j))))
+            self.can_boards.append(self._hub.add(self._make_can_board(j, node)))
             self.can_node_ids.append(node)
         if self.n_can:
             if self.can_interface == "slcan":
@@ -139,6 +139,9 @@ class SimStation:
 
     def _make_serial_board(self, i: int) -> SimSerialBoard:
         return SimSerialBoard(self.world.identity(i))
+
+    def _make_can_board(self, j: int, node: int) -> SimCanBoard:
+        return SimCanBoard(node, self.world.identity(self.n_serial + j))
 
     async def close(self) -> None:
         if self._clock is not None:

@@ -102,9 +102,16 @@ def print_table(diff: ReplayDiff) -> None:
         a = ag.get(dev)
         if a:
             state = "agrees" if a["agrees"] else f"DISAGREES ({len(a['episodes'])} episodes, {a['disagree_s']:.0f} s)"
-            console.print(f"{dev}: {state} with the recording (compared over {a['checked_s']:.0f} s)")
+            console.print(f"{dev}: {state} with the recording (compared over {a['checked_s']:.0f} s, "
+                          f"episodes shorter than {ag.get('window_s', 0):.0f} s of sample time ignored)")
+            for ep in a["episodes"]:
+                console.print(f"  {ep.get('explanation') or ep}")
     if ag.get("note"):
         console.print(ag["note"])
+    for note in diff.notes:
+        console.print(f"replay: {note}")
+    if diff.ended_at_recording_end and not diff.end_changed:
+        console.print(f"batch ended where the recording ends, as recorded ({diff.recorded_state})")
     rate = ag.get("rate") or {}
     if rate:
         console.print(f"replayed {rate['samples_sent']} samples in {rate['wall_s']} s wall "
@@ -126,12 +133,18 @@ def run(args: argparse.Namespace) -> int:
         raise StationError("--speed must be > 0")
     recording = load_recording(args)
     db_url = args.db or args.source_db or f"sqlite:///{Path('var').resolve() / 'replay.db'}"
+    if recording.source_note and db_url == (args.source_db or args.db):
+        raise StationError(f"batch {args.batch}: its database has an older schema and a replay never migrates "
+                           "its source: give --source-db for it and --db for the replay's results "
+                           "(e.g. --db sqlite:///var/replay.db)")
     if db_url.startswith("sqlite:///") and not args.db and not args.source_db:
         Path("var").mkdir(exist_ok=True)
     opts = ReplayOptions(db_url=db_url, speed=args.speed, overrides=_overrides(args.config), rtol=args.rtol,
                          atol=args.atol, agree_window_s=args.agree_window)
     for note in recording.skipped:
         print(f"station replay: not replayed: {note}", file=sys.stderr)
+    if recording.source_note:
+        print(f"station replay: source {recording.source_note}", file=sys.stderr)
     print(f"station replay: {recording.source}: {len(recording.duts)} DUTs, profile {recording.profile}, "
           f"speed x{args.speed:g}", file=sys.stderr, flush=True)
     diff = asyncio.run(run_replay(recording, opts))
@@ -144,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json_out != "-":
         print_table(diff)
     plate_bad = args.fail_on_plate and diff.agreement.get("agrees") is False
-    ended_otherwise = diff.replay_state != recording.batch_state
-    if ended_otherwise:
-        print(f"batch ended {diff.replay_state} ({diff.replay_error or '-'}), the recorded one {recording.batch_state}")
-    return 1 if diff.changed or ended_otherwise or plate_bad else 0
+    if diff.end_changed:
+        print(f"batch ended {diff.replay_state} ({diff.replay_error or '-'}), the recorded one {recording.batch_state}"
+              + (f" ({recording.batch_error})" if recording.batch_error else ""))
+    return 1 if diff.changed or diff.end_changed or plate_bad else 0

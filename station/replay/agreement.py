@@ -69,3 +69,34 @@ def plate_agreement(recorded_time_s: np.ndarray, recorded_lamp: np.ndarray | Non
                           "episodes": eps}
     out["agrees"] = all(v["agrees"] for k2, v in out.items() if k2 in ("lamp", "fixture"))
     return out
+
+
+# What a disagreement means, by device (printed with every episode: a bare "DISAGREES" says nothing).
+WHY = {
+    "lamp": ("the replayed samples were measured under the recorded lamp whatever this daemon commanded; "
+             "no result reads the lamp column (TDB/TDSF/SFEM come from the samples), so the results above "
+             "are not changed by it, but live hardware under this daemon would have been heated otherwise"),
+    "fixture": ("this daemon believed the plate at another position than the recorded one: segments of that "
+                "time carry its position, so position-dependent results (TDSF sign, SFEM) can change; "
+                "the per-DUT changes above say whether they did"),
+}
+STATE_WORDS = {"lamp": {0: "off", 1: "on"}}
+
+
+def describe_episode(device: str, ep: dict, step: str | None = None) -> str:
+    """One line for one disagreement: what, when (sample time), during which replayed step, why
+    it matters or not."""
+    words = STATE_WORDS.get(device, {})
+    rep = words.get(ep["replay"], f"position {ep['replay']}")
+    rec = words.get(ep["recorded"], f"position {ep['recorded']}")
+    where = f" during step {step}" if step else ""
+    return (f"{device}: replay {rep}, recorded {rec}, from {ep['from_s']:.0f} s to {ep['to_s']:.0f} s of sample time "
+            f"({ep['duration_s']:.0f} s){where}: {WHY.get(device, '')}")
+
+
+def step_at(step_spans: list[tuple[float, float, str]], t_s: float) -> str | None:
+    """The name of the replayed step whose sample-time span holds t_s (None: between steps)."""
+    for a, b, name in step_spans:
+        if a < t_s <= b:
+            return name
+    return None

@@ -2,8 +2,10 @@
 
 An outcome is what db/repository.py reports for a run (`state`, `verdict`, `grade`,
 `thermal_by_method`, `sfem`, `program_verify`). It is flattened to named numbers
-(`offline.x.tdb_mg_per_c`, `sfem.steps[1].rmse_after_mg`, ...) and words (`verdict`, `grade`,
-`state`). A number changed when |after - before| > atol + rtol * |before|; a word changed when
+(`offline.x.tdb_mg_per_c`, `sfem.steps[1].rmse_after_mg`, `program_verify.written.tdb_mg_per_c.x`,
+...) and words (`verdict`, `grade`, `state`, and for a programmed run `programmed`, `program_crc`
+(the CRC-32 of the float32 record written: the coefficients written now equal those written
+then, to the bit) and `program_error`). A number changed when |after - before| > atol + rtol * |before|; a word changed when
 it differs. Numbers present on one side only are listed as appeared/disappeared (a changed
 outcome too), except against a `partial` outcome (a log's offline fit), where only what it
 holds is compared.
@@ -46,8 +48,17 @@ def flatten_outcome(outcome: dict[str, Any]) -> tuple[dict[str, float], dict[str
         for ax, v in (pv.get(side) or {}).items():
             if _is_num(v):
                 nums[f"program_verify.{side}.{ax}"] = float(v)
+    for key, axes in (pv.get("written") or {}).items():  # the coefficients written into the board
+        for ax, v in (axes or {}).items():
+            if _is_num(v):
+                nums[f"program_verify.written.{key}.{ax}"] = float(v)
     if "verified" in pv:
         words["verified"] = str(pv["verified"])
+    if pv:
+        # written now = written then, to the bit: the CRC-32 over the float32 record (design 3.1)
+        words["programmed"] = str(pv.get("programmed"))
+        words["program_crc"] = pv.get("crc")
+        words["program_error"] = pv.get("error_kind")
     return nums, words
 
 
@@ -108,10 +119,21 @@ class ReplayDiff:
     replay_batch_id: int | None = None
     replay_state: str | None = None
     replay_error: str | None = None
+    recorded_state: str = "finished"
+    ended_at_recording_end: bool = False  # the replay stopped where the recording of an unfinished batch ends
+    notes: list[str] = field(default_factory=list)  # what the replay did for the recorded line (director.py)
 
     @property
     def changed(self) -> list[DutDiff]:
         return [d for d in self.duts if d.changed]
+
+    @property
+    def end_changed(self) -> bool:
+        """The batch ended otherwise than the recorded one. A recording of a batch that did not
+        finish (aborted, failed) ends where it ended: a replay stopped there ended as recorded."""
+        if self.ended_at_recording_end and self.recorded_state != "finished":
+            return False
+        return self.replay_state != self.recorded_state
 
     def largest(self) -> tuple[str, Change] | None:
         best = None
@@ -136,7 +158,9 @@ class ReplayDiff:
     def to_json(self) -> dict:
         return {"source": self.source, "before": self.before_label, "rtol": self.rtol, "atol": self.atol,
                 "replay_batch_id": self.replay_batch_id, "replay_state": self.replay_state,
-                "replay_error": self.replay_error,
+                "replay_error": self.replay_error, "recorded_state": self.recorded_state,
+                "ended_at_recording_end": self.ended_at_recording_end, "end_changed": self.end_changed,
+                "notes": list(self.notes),
                 "summary": self.summary(), "agreement": self.agreement, "duts": [d.to_json() for d in self.duts]}
 
 

@@ -44,20 +44,49 @@ class RecordedDut:
     lost_samples: int = 0
     source_run_id: int | None = None
     outcome: dict[str, Any] = field(default_factory=dict)  # the stored (or offline) result, see compare.py
+    # The board time of the last sample before the station stopped the board to program it (the
+    # program record's comp_from_t): the record pauses there until the replaying daemon stops it.
+    restart_after_t: float | None = None
+    # How the recorded board answered the calibration write when it failed (CAL_ERROR_KINDS): the
+    # replay board answers the same way (drivers/sim/replay.py).
+    program_error_kind: str | None = None
 
     def __len__(self) -> int:
         return int(self.time_s.shape[0])
 
+    def restart_index(self) -> int | None:
+        """Index of the first sample after the recorded program stop (None: no stop recorded, or
+        the record ends there)."""
+        if self.restart_after_t is None:
+            return None
+        k = int(np.searchsorted(self.time_s, float(self.restart_after_t), side="right"))
+        return k if 0 < k < len(self) else None
+
     def seq_index(self) -> np.ndarray:
         """Frame sequence number of every sample: gaps in the clock longer than 1.5 sample periods
         are samples the link lost, so the replay board skips as many sequence numbers (the
-        station then counts them lost, as it did when the data were recorded)."""
+        station then counts them lost, as it did when the data were recorded). The gap where the
+        station stopped the board to program it is no loss: the board measured nothing then."""
         n = len(self)
         if n == 0:
             return np.zeros(0, dtype=np.int64)
         dt = np.diff(self.time_s) * self.identity.odr_hz
         gaps = np.where(dt > 1.5, np.rint(dt) - 1, 0).astype(np.int64)
+        k = self.restart_index()
+        if k is not None:
+            gaps[k - 1] = 0
         return np.concatenate([[0], np.cumsum(gaps + 1)])
+
+
+def answer_index(position: np.ndarray | None, start: int, wanted: int) -> int | None:
+    """Where a recorded operator's answer to "turn the plate to `wanted`" took effect: the first
+    recorded sample at or after `start` that the station stored at that position (while a prompt
+    waits the station stores -1, unknown). None: the recording never reached it (the recorded
+    batch ended at that prompt, or the record is over)."""
+    if position is None:
+        return None
+    hit = np.flatnonzero(np.asarray(position[start:]) == int(wanted))
+    return int(start + hit[0]) if len(hit) else None
 
 
 @dataclass
@@ -71,6 +100,8 @@ class Recording:
     skipped: list[str] = field(default_factory=list)  # DUTs that cannot be replayed, with the reason
     before_label: str = "recorded"
     batch_state: str = "finished"  # how the recorded batch ended (logs: expected to finish)
+    batch_error: str = ""  # why, if it did not finish ("aborted by Ana at ...", "safety trip: ...")
+    source_note: str = ""  # how the source was read, e.g. through a migrated copy of an older schema
 
     def only(self, serials: list[str] | None) -> "Recording":
         """Keep the DUTs whose serial (or slot) is listed; unknown names are an error."""
@@ -83,7 +114,7 @@ class Recording:
                                f"(it has {', '.join(d.serial for d in self.duts)})")
         keep = [d for d in self.duts if d.serial in serials or d.slot in serials]
         return Recording(self.source, self.profile, keep, self.config_snapshot, self.skipped, self.before_label,
-                         self.batch_state)
+                         self.batch_state, self.batch_error, self.source_note)
 
 
 # ---- counts ---------------------------------------------------------------------------------
@@ -115,13 +146,51 @@ def _slot_links(snapshot: dict[str, Any]) -> dict[str, str]:
     return {s.get("name"): ("can" if s.get("can") else "serial") for s in snapshot.get("slots") or []}
 
 
+def open_source(db_url: str, station: str = "replay") -> tuple[Any, str, Any]:
+    """The database a recording is read from, opened read-only: never created, never migrated.
+    A SQLite file of an older schema (a copy from a station on an older release) is read through a
+    migrated temporary copy; (database, note, cleanup)."""
+    import shutil
+    import sqlite3
+    import tempfile
+
+    from db.database import Database
+
+    src = Database(db_url, station=station, read_only=True)
+    try:
+        rev = src.current_revision()
+        if rev is None:
+            raise StationError(f"database {_plain_url(db_url)} holds no station data (no schema): nothing to replay")
+        src._refuse_unknown(rev)
+        head = src.head_revision()
+        if rev == head:
+            return src, "", None
+        if not src.is_sqlite:
+            raise StationError(f"database {_plain_url(db_url)} has schema {rev}, this software reads {head}: "
+                               "a replay never migrates its source: upgrade it (station db upgrade) or replay a copy")
+        folder = tempfile.mkdtemp(prefix="station-replay-")
+        copy = Path(folder) / "source.db"
+        with src.engine.connect() as conn:
+            raw = conn.connection.driver_connection
+            dst = sqlite3.connect(copy)
+            try:
+                raw.backup(dst)
+            finally:
+                dst.close()
+    finally:
+        src.dispose()
+    db = Database(f"sqlite:///{copy}", station=station)
+    db.upgrade()
+    note = f"read through a migrated copy (schema {rev} -> {head}); the source file is unchanged"
+    return db, note, lambda: shutil.rmtree(folder, ignore_errors=True)
+
+
 def from_database(db_url: str, batch_id: int, station: str = "replay") -> Recording:
-    """A stored batch (also from a database copied from another station)."""
+    """A stored batch (also from a database copied from another station), read without changing it."""
     from db import repository as R
     from db.export import run_samples
-    from station.supervisor import open_database
 
-    db = open_database(db_url, station=station)
+    db, source_note, cleanup = open_source(db_url, station)
     try:
         batch = R.batch_detail(db, int(batch_id))
         if batch is None:
@@ -144,19 +213,25 @@ def from_database(db_url: str, batch_id: int, station: str = "replay") -> Record
             ident = _identity(run.get("identity") or {}, serial)
             acc, tc = to_counts(ident, smp.acc_g, smp.temp_c, f"batch {batch_id} slot {slot}")
             outcome = run_outcome(db, run)
+            program = R.program_record(db, run["id"]) or {}
             duts.append(RecordedDut(
                 slot=slot, serial=serial, link=links.get(slot, "serial"), identity=ident, time_s=smp.time_s,
                 acc_counts=acc, temp_counts=tc, lamp=smp.lamp.astype(np.int8), position=smp.position.astype(np.int64),
-                lost_samples=int(run.get("lost_samples") or 0), source_run_id=run["id"], outcome=outcome))
+                lost_samples=int(run.get("lost_samples") or 0), source_run_id=run["id"], outcome=outcome,
+                restart_after_t=program.get("comp_from_t") if program.get("programmed") else None,
+                program_error_kind=None if program.get("programmed") else program.get("error_kind")))
         if not duts:
             raise StationError(f"batch {batch_id}: nothing to replay ({'; '.join(skipped) or 'no runs'})")
         where = batch.get("station") or "?"
         kind = f"replay of {batch['replay_of']}" if batch.get("replay_of") else f"batch {batch_id} of {where}"
-        return Recording(f"{kind} ({_plain_url(db_url)})", batch["profile"], duts, snapshot, skipped,
-                         batch_state=batch["state"])
+        rec = Recording(f"{kind} ({_plain_url(db_url)})", batch["profile"], duts, snapshot, skipped,
+                        batch_state=batch["state"], batch_error=batch.get("reason") or "")
+        rec.source_note = source_note
+        return rec
     finally:
-        if hasattr(db, "dispose"):
-            db.dispose()
+        db.dispose()
+        if cleanup is not None:
+            cleanup()
 
 
 def run_outcome(db: Any, run: dict[str, Any]) -> dict[str, Any]:

@@ -15,7 +15,9 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from station.aio import cancel_and_wait
 from station.replay.compare import DEFAULT_ATOL, DEFAULT_RTOL, ReplayDiff, compare_outcomes
+from station.replay.director import Director
 from station.replay.recording import Recording, run_outcome
 from station.types import StationError
 
@@ -99,22 +101,31 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
             await station.start()
             batch_id = station.start_batch(recording.profile, None, "replay")
             sim.pace_by(lambda: station.samples_taken(batch_id), opts.max_lead_s)
+            director = Director(recording, station, sim, batch_id)
+            directing = asyncio.create_task(director.run(), name="replay-director")
             if on_started is not None:
                 on_started(batch_id, station, sim)
             t0 = time.monotonic()
             ran_out: float | None = None
-            while True:
-                try:
-                    await station.wait_batch(batch_id, timeout_s=0.5)
-                    break
-                except asyncio.TimeoutError:
-                    pass
-                if sim.world.exhausted:
-                    ran_out = ran_out or time.monotonic()
-                    if time.monotonic() - ran_out > opts.end_grace_s:
-                        station.abort(batch_id, "the recording ended before the batch finished", by="replay")
-                        await station.wait_batch(batch_id, timeout_s=60.0)
+            try:
+                while True:
+                    try:
+                        await station.wait_batch(batch_id, timeout_s=0.5)
                         break
+                    except asyncio.TimeoutError:
+                        pass
+                    if directing.done() and directing.exception() is not None:
+                        raise directing.exception()  # type: ignore[misc]
+                    if sim.world.exhausted and recording.batch_state == "finished":
+                        # the recorded batch finished: the replay should too; if it waits for more
+                        # (another profile or config), it is ended and the diff says so
+                        ran_out = ran_out or time.monotonic()
+                        if time.monotonic() - ran_out > opts.end_grace_s:
+                            station.abort(batch_id, "the recording ended before the batch finished", by="replay")
+                            await station.wait_batch(batch_id, timeout_s=60.0)
+                            break
+            finally:
+                await cancel_and_wait(directing)
             await station.flush_db()
             status = station.batch_status(batch_id)
             wall_s = time.monotonic() - t0
@@ -134,11 +145,14 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
                 duts.append(dd)
                 if run is not None and not plate and d.lamp is not None:  # the plate is one: one DUT tells
                     window = opts.agree_window_s if opts.agree_window_s is not None else agree_window(opts.speed)
-                    plate = _plate(db, run["id"], d, window)
+                    plate = _plate(db, run["id"], d, window, detail,
+                                   [st["name"] for st in station.profile(recording.profile)["steps"]])
             diff = ReplayDiff(recording.source, recording.before_label, opts.rtol, opts.atol, duts,
                               agreement=plate or {"agrees": None, "note": "the recording has no lamp/position "
                                                                           "columns: the plate cannot be compared"},
-                              replay_batch_id=batch_id, replay_state=status["state"], replay_error=status.get("error"))
+                              replay_batch_id=batch_id, replay_state=status["state"], replay_error=status.get("error"),
+                              recorded_state=recording.batch_state,
+                              ended_at_recording_end=director.ended_at_recording_end, notes=director.notes)
             samples = sum(sim.world.sent)
             diff.agreement["rate"] = {"wall_s": round(wall_s, 2), "samples_sent": samples,
                                       "samples_per_s": round(samples / wall_s, 1) if wall_s > 0 else None}
@@ -150,13 +164,23 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
                 db.dispose()
 
 
-def _plate(db: Any, run_id: int, d: Any, window_s: float) -> dict:
+def _plate(db: Any, run_id: int, d: Any, window_s: float, detail: dict | None = None,
+           step_names: list[str] | None = None) -> dict:
     from db.export import run_samples
-    from station.replay.agreement import plate_agreement
+    from station.replay.agreement import describe_episode, plate_agreement, step_at
 
     smp = run_samples(db, run_id)
     out = plate_agreement(d.time_s, d.lamp, d.position, smp.time_s, smp.lamp, smp.position, window_s)
     out["reference_slot"] = d.slot
+    spans = []
+    for k, by_slot in ((detail or {}).get("step_windows") or {}).items():
+        w = (by_slot or {}).get(d.slot)
+        if w and None not in w[:2] and step_names and int(k) < len(step_names):
+            spans.append((float(w[0]), float(w[1]), f"{int(k)} '{step_names[int(k)]}'"))
+    for dev in ("lamp", "fixture"):
+        for ep in (out.get(dev) or {}).get("episodes", []):
+            ep["step"] = step_at(spans, (ep["from_s"] + ep["to_s"]) / 2)
+            ep["explanation"] = describe_episode(dev, ep, ep["step"])
     return out
 
 

@@ -1,0 +1,153 @@
+"""The recorded line's hands in a replay: the operator's answers, the program stops, the end.
+
+A recorded batch is more than its samples: an operator confirmed "turn the plate to N" at some
+moment, the station stopped each board to program it, and the batch ended (finished, aborted,
+failed) where the recording ends. The replaying daemon must meet each of these at the same point
+of the recorded streams, or it sees other samples in another state than the line did (a prompt
+answered late leaves samples at an unknown position; a board programmed at another point gets raw
+samples judged as compensated). The director watches the replaying daemon and the replayed plant
+(drivers/sim/replay.py ReplayWorld) and acts only through what a line has: the prompt's answer,
+the operator's abort, and the boards' streams.
+
+- A prompt "turn the plate to P" is answered where the recorded operator's answer took effect:
+  each DUT's record is held at its first sample the station stored at P after the current point
+  (recording.answer_index); once every DUT is there and the daemon has taken in every sample sent,
+  the prompt is answered and the records go on. A prompt the recording never answered (the
+  recorded batch was aborted there, or the recording ends) stays open: the recording runs out.
+- A DUT whose record waits at its recorded program stop longer than HOLD_TIMEOUT_S without the
+  daemon stopping its board (another profile or config replayed) is let go, with a note.
+- When the recording is over and the recorded batch did not finish, the replay ends there too:
+  the batch is aborted "where the recording ends", which the comparison reads as unchanged
+  (runner.py), instead of a stalled daemon faulting slots or a lamp timer running on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from station.replay.recording import Recording, answer_index
+
+log = logging.getLogger(__name__)
+
+POLL_S = 0.02
+HOLD_TIMEOUT_S = 5.0  # wall seconds a hold may wait for what the daemon should do there
+RECORDING_END = "the recording ends here"
+
+
+@dataclass
+class Director:
+    recording: Recording
+    station: Any  # station.supervisor.Station
+    sim: Any  # drivers.sim.replay.ReplayStation
+    batch_id: int
+    notes: list[str] = field(default_factory=list)
+    ended_at_recording_end: bool = False
+    _answered: set[int] = field(default_factory=set)
+
+    # ---- the loop -------------------------------------------------------------------------
+    async def run(self) -> None:
+        """Until cancelled (the runner cancels it when the batch has ended)."""
+        world = self.sim.world
+        stop_waits: dict[int, float] = {}
+        while True:
+            await asyncio.sleep(POLL_S)
+            try:
+                prompt = self.station.prompt(self.batch_id)
+            except KeyError:
+                return
+            if prompt is not None and prompt["id"] not in self._answered:
+                await self._answer(prompt)
+                continue
+            self._let_go_of_stops(world, stop_waits)
+            if not self.ended_at_recording_end and self._recording_over(world):
+                await self._end_at_recording_end()
+
+    # ---- prompts ----------------------------------------------------------------------------
+    async def _answer(self, prompt: dict) -> None:
+        world = self.sim.world
+        self._answered.add(prompt["id"])
+        wanted = prompt.get("position")
+        holds = {}
+        for i, d in enumerate(self.sim.ordered):
+            if wanted is None or not world.started(i) or world.done(i):
+                continue
+            k = answer_index(d.position, world.next_index(i), int(wanted))
+            if k is not None:
+                holds[i] = k
+        if wanted is not None and not holds:
+            self.notes.append(f"prompt '{prompt['text']}' left open: the recording never reaches position "
+                              f"{prompt.get('position_name')} after it")
+            return
+        for i, k in holds.items():
+            world.hold(i, k)
+        t0 = time.monotonic()
+        while not all(world.at_hold(i) for i in holds) or not self._taken_all():
+            if time.monotonic() - t0 > HOLD_TIMEOUT_S:
+                self.notes.append(f"prompt '{prompt['text']}': not every DUT reached the recorded answer in "
+                                  f"{HOLD_TIMEOUT_S:g} s; answered anyway")
+                break
+            await asyncio.sleep(POLL_S)
+        try:
+            self.station.answer_prompt(self.batch_id, prompt["id"], "done", by="replay (as recorded)")
+        except (ValueError, KeyError):  # the batch ended or moved on meanwhile
+            world.release()
+            return
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < HOLD_TIMEOUT_S:  # the sequencer takes the answer (position set)
+            try:
+                now = self.station.prompt(self.batch_id)
+            except KeyError:
+                break
+            if now is None or now["id"] != prompt["id"]:
+                break
+            await asyncio.sleep(POLL_S / 4)
+        world.release()
+        ref = next(iter(holds), None)
+        if ref is not None:
+            d = self.sim.ordered[ref]
+            self.notes.append(f"prompt '{prompt['text']}' answered at the recorded answer "
+                              f"({d.slot}: sample {holds[ref]}, t = {float(d.time_s[holds[ref]]):.1f} s)")
+
+    def _taken_all(self) -> bool:
+        """The daemon has taken in every sample the replay boards have sent (live DUTs)."""
+        try:
+            taken = self.station.samples_taken(self.batch_id)
+        except KeyError:
+            return True
+        world = self.sim.world
+        return all(taken.get(d.slot, world.sent[i]) >= world.sent[i] for i, d in enumerate(self.sim.ordered))
+
+    # ---- program stops ------------------------------------------------------------------------
+    def _let_go_of_stops(self, world: Any, since: dict[int, float]) -> None:
+        now = time.monotonic()
+        for i, d in enumerate(self.sim.ordered):
+            if not world.waiting_for_stop(i):
+                since.pop(i, None)
+                continue
+            t = since.setdefault(i, now)
+            if now - t > HOLD_TIMEOUT_S:
+                world.drop_stop(i)
+                since.pop(i, None)
+                self.notes.append(f"{d.slot}: the replaying daemon did not stop the board where the recorded "
+                                  f"one was stopped for programming (t = {d.restart_after_t:.1f} s): let go")
+
+    # ---- the end ------------------------------------------------------------------------------
+    def _recording_over(self, world: Any) -> bool:
+        return self.recording.batch_state != "finished" and world.exhausted
+
+    async def _end_at_recording_end(self) -> None:
+        t0 = time.monotonic()
+        while not self._taken_all() and time.monotonic() - t0 < HOLD_TIMEOUT_S:
+            await asyncio.sleep(POLL_S)
+        rec = self.recording
+        why = f"{RECORDING_END} (the recorded batch {rec.batch_state}: {rec.batch_error or '-'})"
+        try:
+            self.station.abort(self.batch_id, why, by="replay")
+        except (ValueError, KeyError):
+            return  # it ended on its own meanwhile
+        self.ended_at_recording_end = True
+        self.notes.append(why)
