@@ -122,7 +122,10 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
                     for ax in "xyz":
                         row = c.locator(f'table.results tr[data-axis="{ax}"]')
                         shown_tdb = float(row.locator("td.tdb").inner_text())
-                        shown_tdsf = float(row.locator("td.tdsf").inner_text())
+                        tdsf_text = row.locator("td.tdsf").inner_text()
+                        shown_tdsf = float(tdsf_text.split()[0])
+                        # a clamped TDSF is flagged on the card as in the API, never a bare 0.0
+                        assert ("clamped" in tdsf_text) == bool(dut["thermal"][ax].get("tdsf_clamped")), tdsf_text
                         assert shown_tdb == pytest.approx(dut["thermal"][ax]["tdb_mg_per_c"], abs=0.0006)
                         assert shown_tdsf == pytest.approx(dut["thermal"][ax]["tdsf_ppm_per_c"], abs=0.06)
             assert "Fault" not in page.inner_text("#slots")
