@@ -9,28 +9,46 @@ separated, with their own column names and units. This reader maps them onto the
 - delimiter: sniffed from the header line (comma, tab, semicolon) unless given;
 - columns: `key=name` pairs for time, ax, ay, az, temp (and optional position, lamp); without a
   mapping, common names are recognised (time_s/time/timestamp/t, ax_g/ax/acc_x/accel_x/x, ...);
-- accel_units: g, m/s2 (divided by 9.80665) or counts (divided by counts_per_g);
+- accel_units: g, mg (divided by 1000), m/s2 (divided by 9.80665) or counts (divided by counts_per_g);
 - time_units: s, ms, us, ns; time is made relative to the first sample;
+- temp_units: C or K (273.15 subtracted);
 - leading `# key: value` lines become metadata (serial, sensor, ...); the serial defaults to the
   file name.
 
-Pure parsing (text in, DutLog out); every user mistake is one StationError line.
+Rows with another field count, or a required field that is not a number, are skipped (another
+sensor's line in a shared log). What is left is checked like a design-5.1 log before any science
+(station.logfile.LogChecker): units by the static magnitude (the median |a| must be about 1 g
+once converted; m/s2, mg or raw counts are named with the option that converts them), plausible
+temperatures (kelvin named), strictly increasing time, finite header numbers in range.
+
+Pure parsing (text in, DutLog out), a few MB at a time; every user mistake is one StationError line.
 """
 
 from __future__ import annotations
 
-import io
+import math
 from pathlib import Path
 
 import numpy as np
 
-from station.logfile import DutLog
+from station.logfile import (
+    G0_M_S2,
+    DutLog,
+    LogChecker,
+    _blocks_of_file,
+    _blocks_of_text,
+    _Header,
+    _parse_rows,
+    check_meta,
+)
 from station.types import StationError
 
-G0_M_S2 = 9.80665
 TIME_SCALE = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
-ACCEL_UNITS = ("g", "m/s2", "counts")
+ACCEL_UNITS = ("g", "mg", "m/s2", "counts")
+TEMP_UNITS = ("C", "K")
+KELVIN_OFFSET = 273.15
 KEYS = ("time", "ax", "ay", "az", "temp")
+REF_KEYS = ("ref_x", "ref_y", "ref_z")
 ALIASES = {
     "time": ("time_s", "time", "timestamp", "t", "time_ms", "time_us", "timestamp_us", "t_s"),
     "ax": ("ax_g", "ax", "acc_x", "accel_x", "x", "accx", "acc_x_m_s2", "xacc"),
@@ -39,6 +57,9 @@ ALIASES = {
     "temp": ("temp_c", "temp", "temperature", "temperature_c", "t_c", "imu_temp"),
     "position": ("position", "pos"),
     "lamp": ("lamp",),
+    "ref_x": ("ref_x",),
+    "ref_y": ("ref_y",),
+    "ref_z": ("ref_z",),
 }
 
 
@@ -69,31 +90,45 @@ def sniff_delimiter(header: str) -> str:
     return best
 
 
-def parse_import(text: str, source: str = "<log>", columns: str | dict | None = None, accel_units: str = "g",
-                 time_units: str = "s", counts_per_g: float | None = None, delimiter: str | None = None) -> DutLog:
+def _check_options(accel_units: str, time_units: str, temp_units: str, counts_per_g: float | None) -> None:
     if accel_units not in ACCEL_UNITS:
         raise StationError(f"--accel-units must be one of {', '.join(ACCEL_UNITS)} (got {accel_units!r})")
     if time_units not in TIME_SCALE:
         raise StationError(f"--time-units must be one of {', '.join(TIME_SCALE)} (got {time_units!r})")
-    if accel_units == "counts" and not (counts_per_g and counts_per_g > 0):
-        raise StationError("--accel-units counts needs --counts-per-g (the sensor's LSB per g)")
-    meta: dict[str, str] = {}
-    lines = text.splitlines()
-    k = 0
-    while k < len(lines) and (not lines[k].strip() or lines[k].lstrip().startswith("#")):
-        ln = lines[k].lstrip()[1:].strip() if lines[k].strip() else ""
-        if ":" in ln:
-            key, val = ln.split(":", 1)
-            meta[key.strip()] = val.strip()
-        k += 1
-    if k >= len(lines):
+    if str(temp_units).upper() not in TEMP_UNITS:
+        raise StationError(f"--temp-units must be one of {', '.join(TEMP_UNITS)} (got {temp_units!r})")
+    if accel_units == "counts":
+        if counts_per_g is None:
+            raise StationError("--accel-units counts needs --counts-per-g (the sensor's LSB per g)")
+        if not (math.isfinite(counts_per_g) and counts_per_g > 0):
+            raise StationError(f"--counts-per-g must be a positive number (got {counts_per_g:g})")
+
+
+def _is_meta(line: str) -> bool:
+    return not line.strip() or line.lstrip().startswith("#")
+
+
+def parse_import(text: str, source: str = "<log>", columns: str | dict | None = None, accel_units: str = "g",
+                 time_units: str = "s", counts_per_g: float | None = None, delimiter: str | None = None,
+                 temp_units: str = "C") -> DutLog:
+    return _import(_blocks_of_text(text), source, len(text), columns=columns, accel_units=accel_units,
+                   time_units=time_units, counts_per_g=counts_per_g, delimiter=delimiter, temp_units=temp_units)
+
+
+def _import(blocks, source: str, size: int, columns=None, accel_units: str = "g", time_units: str = "s",
+            counts_per_g: float | None = None, delimiter: str | None = None, temp_units: str = "C") -> DutLog:
+    _check_options(accel_units, time_units, temp_units, counts_per_g)
+    kelvin = str(temp_units).upper() == "K"
+    head = _Header(blocks, _is_meta)
+    meta = head.meta
+    if head.line is None:
         raise StationError(f"{source}: no header row")
-    delim = delimiter or sniff_delimiter(lines[k])
-    header = [h.strip().strip('"') for h in lines[k].split(delim)]
+    delim = delimiter or sniff_delimiter(head.line)
+    header = [h.strip().strip('"') for h in head.line.split(delim)]
     lower = {h.lower(): i for i, h in enumerate(header)}
     mapping = parse_columns(columns)
     idx: dict[str, int] = {}
-    for key in list(KEYS) + ["position", "lamp"]:
+    for key in ALIASES:
         if key in mapping:
             name = mapping[key]
             if name.lower() not in lower:
@@ -107,43 +142,107 @@ def parse_import(text: str, source: str = "<log>", columns: str | dict | None = 
     if missing:
         raise StationError(f"{source}: cannot find column(s) for {', '.join(missing)} (columns: {', '.join(header)}); "
                            f"map them with --columns {','.join(f'{m}=NAME' for m in missing)}")
-    body = "\n".join(lines[k + 1:])
-    try:
-        data = np.genfromtxt(io.StringIO(body), delimiter=delim, dtype=np.float64, invalid_raise=False)
-    except ValueError as exc:
-        raise StationError(f"{source}: cannot parse the rows ({exc})") from None
-    data = np.atleast_2d(data)
-    if data.size == 0 or data.shape[1] < len(header):
+    check_meta(meta, source)
+    has_ref = all(k in idx for k in REF_KEYS)
+    names = {k: header[idx[k]] for k in ("time", "ax", "ay", "az", "temp", "lamp", "position") if k in idx}
+    req = [idx[key] for key in KEYS]
+    acc_cols = [idx["ax"], idx["ay"], idx["az"]]
+    chk: LogChecker | None = None
+    parsed = 0
+    for rows, nos in head.rows():
+        data, nos = _parse_rows(rows, nos, len(header), delim, source, lenient=True)
+        parsed += len(data)
+        ok = np.all(np.isfinite(data[:, req]), axis=1)  # incomplete rows (another sensor's line) are skipped
+        if not ok.all():
+            data, nos = data[ok], nos[ok]
+        if chk is None:  # capacity from the first block's bytes per row
+            per_row = max(1.0, sum(map(len, rows)) / len(rows))
+            chk = LogChecker(source, names, capacity=int(size / per_row * 1.02) + 1024,
+                             lamp="lamp" in idx, position="position" in idx, ref=has_ref)
+        temp = data[:, idx["temp"]]
+        if kelvin:
+            temp = temp - KELVIN_OFFSET
+        chk.add(data[:, idx["time"]], data[:, acc_cols], temp,
+                data[:, idx["lamp"]] if "lamp" in idx else None,
+                data[:, idx["position"]] if "position" in idx else None,
+                data[:, [idx[k] for k in REF_KEYS]] if has_ref else None, lines=nos)
+    if parsed == 0:
         raise StationError(f"{source}: no data rows with {len(header)} fields")
-    cols = [idx[key] for key in KEYS]
-    ok = np.all(np.isfinite(data[:, cols]), axis=1)
-    data = data[ok]
-    if data.shape[0] < 2:
+    if chk is None or chk.n < 2:
         raise StationError(f"{source}: fewer than 2 complete rows")
-    t = data[:, idx["time"]] * TIME_SCALE[time_units]
-    t = t - t[0]
-    acc = data[:, [idx["ax"], idx["ay"], idx["az"]]]
-    if accel_units == "m/s2":
-        acc = acc / G0_M_S2
-    elif accel_units == "counts":
-        acc = acc / float(counts_per_g)
+    chk.finish(meta, accel_units=accel_units, counts_per_g=counts_per_g, temp_units=temp_units,
+               time_scale=TIME_SCALE[time_units])
+    t = chk.time  # converted in place: seconds from the first sample
+    t *= TIME_SCALE[time_units]
+    t0 = float(t[0])
+    t -= t0
+    if (meta.get("t_power_on_s") or "").strip():  # on the log's clock (seconds): moved with it
+        meta["t_power_on_s"] = repr(float(meta["t_power_on_s"]) - t0)
+    divisor = {"g": None, "mg": 1000.0, "m/s2": G0_M_S2, "counts": counts_per_g}[accel_units]
+    acc = chk.acc
+    if divisor:
+        acc /= float(divisor)
     meta.setdefault("serial", Path(source).stem)
     meta.setdefault("source", f"imported from {Path(source).name}")
-    position = data[:, idx["position"]].astype(np.int64) if "position" in idx else None
-    lamp = data[:, idx["lamp"]].astype(np.int8) if "lamp" in idx else None
-    return DutLog(time_s=t, acc_g=acc, temp_c=data[:, idx["temp"]], meta=meta, lamp=lamp, position=position)
+    return DutLog(time_s=t, acc_g=acc, temp_c=chk.temp, meta=meta, lamp=chk.lamp, position=chk.position,
+                  ref_dir=chk.ref)
 
 
 def import_log(path: str | Path, **kw) -> DutLog:
-    """Read a delimited text log from another tool (see module doc)."""
+    """Read a delimited text log from another tool (see module doc), a few MB at a time."""
     p = Path(path)
     if not p.is_file():
         raise StationError(f"{p}: no such file")
     try:
-        text = p.read_text(encoding="utf-8", errors="replace")
+        with open(p, encoding="utf-8", errors="replace") as f:
+            return _import(_blocks_of_file(f), str(p), p.stat().st_size, **kw)
     except OSError as exc:
         raise StationError(f"{p}: cannot read ({exc.strerror})") from None
-    return parse_import(text, source=str(p), **kw)
 
 
-__all__ = ["import_log", "parse_import", "parse_columns", "sniff_delimiter", "ACCEL_UNITS", "TIME_SCALE"]
+# ---- the command line: the same import options on calibrate, sfem and diagnose ------------------
+IMPORT_OPTIONS = ("columns", "accel_units", "time_units", "temp_units", "delimiter", "counts_per_g")
+
+
+def add_import_arguments(parser) -> None:
+    """--columns, --accel-units, --counts-per-g, --time-units, --temp-units, --delimiter: read a log
+    from another tool, or a design-5.1 log written in other units."""
+    parser.add_argument("--columns", metavar="MAP",
+                        help="read a log from another tool: key=name pairs for time, ax, ay, az, temp "
+                             "(e.g. time=timestamp,ax=acc_x,ay=acc_y,az=acc_z,temp=temperature); "
+                             "comma, tab or semicolon delimited, header row required")
+    parser.add_argument("--accel-units", choices=ACCEL_UNITS, default=None,
+                        help="acceleration units of the log (default g; m/s2 divided by 9.80665, mg by 1000, "
+                             "counts by --counts-per-g)")
+    parser.add_argument("--counts-per-g", type=float, default=None, help="LSB per g for --accel-units counts")
+    parser.add_argument("--time-units", choices=tuple(TIME_SCALE), default=None,
+                        help="time units of the log (default s)")
+    parser.add_argument("--temp-units", choices=TEMP_UNITS, type=str.upper, default=None,
+                        help="temperature units of the log (default C; K has 273.15 subtracted)")
+    parser.add_argument("--delimiter", default=None, help="field delimiter of an imported log (default: sniffed)")
+
+
+def read_any_log(path: str, args=None) -> DutLog:
+    """A station log (design 5.1), or with any import option (args from add_import_arguments) a
+    log read by import_log; a log without the station's columns is imported with the column names
+    recognised. Both are checked before any science (station.logfile.LogChecker)."""
+    from station.logfile import read_log
+
+    opts = {k: getattr(args, k, None) for k in IMPORT_OPTIONS}
+    kw = dict(columns=opts["columns"], accel_units=opts["accel_units"] or "g", time_units=opts["time_units"] or "s",
+              counts_per_g=opts["counts_per_g"], delimiter=opts["delimiter"], temp_units=opts["temp_units"] or "C")
+    if any(v is not None for v in opts.values()):
+        return import_log(path, **kw)
+    try:
+        return read_log(path)
+    except StationError as exc:
+        if "missing column" not in str(exc):
+            raise
+        try:
+            return import_log(path, **kw)
+        except StationError:
+            raise exc from None
+
+
+__all__ = ["import_log", "parse_import", "parse_columns", "sniff_delimiter", "add_import_arguments", "read_any_log",
+           "ACCEL_UNITS", "TIME_SCALE", "TEMP_UNITS"]

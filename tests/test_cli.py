@@ -71,3 +71,24 @@ class _Parser:
     def parse_args(self, argv):
         self.args._module = self.module
         return self.args
+
+
+def test_log_commands_share_the_import_and_units_options():
+    """Issue 22: an error names the option that converts a log's units; calibrate, sfem and diagnose
+    all have it (station/log_import.py add_import_arguments)."""
+    for cmd in ("calibrate", "sfem", "diagnose"):
+        out = _station(cmd, "--help")
+        assert out.returncode == 0, cmd
+        for opt in ("--accel-units", "--counts-per-g", "--temp-units", "--time-units", "--columns", "--delimiter"):
+            assert opt in out.stdout, (cmd, opt)
+        assert "m/s2" in out.stdout and "mg" in out.stdout, cmd
+
+
+def test_a_log_in_m_s2_is_one_line_for_every_log_command(tmp_path):
+    p = tmp_path / "ms2.csv"
+    p.write_text("# serial: X\ntime_s,ax_g,ay_g,az_g,temp_c\n" + "".join(f"{k},0,0,9.81,25\n" for k in range(50)))
+    for cmd in ("calibrate", "sfem", "diagnose"):
+        out = _station(cmd, str(p), *(["--norm-only"] if cmd == "sfem" else []))
+        assert out.returncode == 2 and "Traceback" not in out.stderr, (cmd, out.stderr)
+        assert out.stderr.splitlines() == [f"station {cmd}: error: {p}: ax_g/ay_g/az_g look like m/s2, not g "
+                                           "(median |a| = 9.81): give --accel-units m/s2"], cmd

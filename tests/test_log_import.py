@@ -80,3 +80,86 @@ def test_diagnose_cli_on_an_imported_log_matches_the_station_csv(sweep_log, tmp_
     assert db["serials"] == ["EXT42"]
     assert da["admitted"] == db["admitted"] == ["bias_t2"]
     assert db["baseline"]["heldout_rms_mg"] == pytest.approx(da["baseline"]["heldout_rms_mg"], rel=1e-3)
+
+
+# ---- issue 22: an imported log is looked at before any science, like a station log -----------------
+def test_other_units_are_named_with_the_option_that_converts_them(sweep_log, tmp_path, capsys):
+    """The TSV above is in m/s2: read as g (no --accel-units) it gave TDB x9.8; now one line, exit 2."""
+    from station import cli
+
+    p = _tsv(sweep_log, tmp_path / "ext.tsv")
+    with pytest.raises(StationError) as err:
+        import_log(p, time_units="ms")
+    med = np.median(np.linalg.norm(sweep_log.acc_g * G0_M_S2, axis=1))
+    assert str(err.value) == (f"{p}: acc_x/acc_y/acc_z look like m/s2, not g (median |a| = {med:.3g}): "
+                              "give --accel-units m/s2")
+    rc = cli.main(["diagnose", str(p), "--time-units", "ms"])
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert rc == 2 and lines == [f"station diagnose: error: {err.value}"]
+    # mg and kelvin, converted by the options the errors name
+    text = "# serial: MG1\nt;x;y;z;temp_c\n" + "".join(f"{k * 0.5};1;-2;1000.5;{298.15 + k * 0.01:.2f}\n" for k in range(20))
+    with pytest.raises(StationError, match=r"^<log>: x/y/z look like mg, not g \(median \|a\| = 1001\): give --accel-units mg$"):
+        parse_import(text)
+    with pytest.raises(StationError, match=r"^<log>: temp_c looks like kelvin, not C \(median 298.25\): give --temp-units K$"):
+        parse_import(text, accel_units="mg")
+    log = parse_import(text, accel_units="mg", temp_units="K")
+    assert log.acc_g[0].tolist() == pytest.approx([1e-3, -2e-3, 1.0005])
+    assert log.temp_c[0] == pytest.approx(25.0)
+
+
+def test_imucal_real_counts_are_recognised(tmp_path):
+    """Real third-party data (../shared/data/imucal, raw counts of a +-16 g part, ~2048 LSB per g)."""
+    from test_imucal_real_data import DATA_DIR, PARTS, load_session
+
+    if not (DATA_DIR / "annotated_session.csv").exists():
+        pytest.skip("imucal data not present")
+    acc = np.concatenate([load_session().samples[p] for p in PARTS])
+    rows = "".join(f"{k / 102.4:.6f};{a[0]:.0f};{a[1]:.0f};{a[2]:.0f};24.5\n" for k, a in enumerate(acc))
+    p = tmp_path / "imucal.csv"
+    p.write_text("time;acc_x;acc_y;acc_z;temp\n" + rows)
+    med = float(np.median(np.linalg.norm(acc, axis=1)))
+    assert 2000 < med < 2100
+    with pytest.raises(StationError) as err:
+        import_log(p)
+    assert str(err.value) == (f"{p}: acc_x/acc_y/acc_z look like raw counts, not g (median |a| = {med:.0f}): give "
+                              f"--accel-units counts --counts-per-g N (N = the sensor's LSB per g, about {med:.0f} here)")
+    log = import_log(p, accel_units="counts", counts_per_g=2048.0)
+    assert np.median(np.linalg.norm(log.acc_g, axis=1)) == pytest.approx(med / 2048.0)
+
+
+@pytest.mark.parametrize("rows,needle", [
+    ("0;0;0;1;25\n2;0;0;1;25\n1;0;0;1;25\n", "line 5: t = 1.0 goes back from 2.0 on line 4 (rows out of order?)"),
+    ("5;0;0;1;25\n5;0;0;1;25\n5;0;0;1;25\n", "t is 5.0 in every row"),
+    ("0;0;0;1;25\n1;0;0;1;25\n1;0;0;1;25\n", "line 5: t = 1.0 repeats line 4 (a duplicated row?)"),
+    ("0;0;0;1;25\n1;0;0;1;25\n2;0;0;1;999\n", "line 5: temp = 999.0 is outside -60..150 C"),
+])
+def test_time_and_temperature_of_an_import_name_the_line(rows, needle):
+    with pytest.raises(StationError) as err:
+        parse_import("# serial: X\nt;x;y;z;temp\n" + rows, "f.csv")
+    assert str(err.value).startswith("f.csv: ") and needle in str(err.value)
+
+
+@pytest.mark.parametrize("value,why", [("1e9", "out of range"), ("0", "out of range"), ("nan", "not a finite number"),
+                                       ("inf", "not a finite number"), ("-5", "out of range"), ("fast", "not a number")])
+def test_an_imports_header_numbers_are_checked(value, why):
+    with pytest.raises(StationError) as err:
+        parse_import(f"# odr_hz: {value}\nt;x;y;z;temp\n0;0;0;1;25\n1;0;0;1;25\n", "f.csv")
+    assert str(err.value) == f"f.csv: header '# odr_hz: {value}' is {why} (0 < odr_hz <= 100000 Hz)"
+
+
+def test_incomplete_rows_are_skipped_across_chunks(monkeypatch):
+    """Another sensor's lines in a shared log (other field count, empty fields) are skipped, in
+    whichever block of the file they fall."""
+    import station.logfile as lf
+
+    good = [f"{k * 0.01:.2f},0,0,1,25" for k in range(400)]
+    lines = list(good)
+    lines.insert(150, "1.505,gyro,,")
+    lines.insert(300, "2.995,,,,")
+    text = "time,ax,ay,az,temp\n" + "\n".join(lines) + "\n"
+    whole = parse_import(text)
+    monkeypatch.setattr(lf, "CHUNK_BYTES", 100)
+    small = parse_import(text)
+    assert len(whole) == len(small) == 400
+    np.testing.assert_array_equal(whole.time_s, small.time_s)
+    np.testing.assert_array_equal(whole.time_s, np.array([float(f"{k * 0.01:.2f}") for k in range(400)]))

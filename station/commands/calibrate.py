@@ -1,4 +1,8 @@
-"""`station calibrate LOG.csv [--json]`: thermal calibration of a recorded fast-thermal log."""
+"""`station calibrate LOG.csv [--json]`: thermal calibration of a recorded fast-thermal log.
+
+The log is checked before any science (units, temperatures, time order, header numbers:
+station/logfile.py); the import options (--accel-units, --temp-units, --columns, ...) read a log in
+other units or from another tool, as `station diagnose` does."""
 
 from __future__ import annotations
 
@@ -6,7 +10,7 @@ import argparse
 import json
 import sys
 
-from station.logfile import read_log
+from station.log_import import add_import_arguments, read_any_log
 from station.science.thermal_calibration import calibrate
 from station.types import AXES
 
@@ -14,6 +18,7 @@ from station.types import AXES
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="fast-thermal log file (CSV, design 5.1)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_import_arguments(parser)
 
 
 def _fmt_sigma(v: float | None, fmt: str) -> str:
@@ -55,7 +60,7 @@ def format_table(res: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    log = read_log(args.log)
+    log = read_any_log(args.log, args)
     res = calibrate(log)
     if args.json:
         json.dump(res, sys.stdout, indent=2)

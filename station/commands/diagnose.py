@@ -37,19 +37,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated effects to rank (default: every registered effect)")
     parser.add_argument("--basis", choices=("window", "sample"), default="window",
                         help="RMS of 1-minute residual means (default) or of every sample")
-    parser.add_argument("--columns", metavar="MAP",
-                        help="read a log from another tool: key=name pairs for time, ax, ay, az, temp "
-                             "(e.g. time=timestamp,ax=acc_x,ay=acc_y,az=acc_z,temp=temperature); "
-                             "comma, tab or semicolon delimited, header row required")
-    parser.add_argument("--accel-units", choices=("g", "m/s2", "counts"), default=None,
-                        help="acceleration units of an imported log (default g)")
-    parser.add_argument("--counts-per-g", type=float, default=None, help="LSB per g for --accel-units counts")
-    parser.add_argument("--time-units", choices=("s", "ms", "us", "ns"), default=None,
-                        help="time units of an imported log (default s)")
-    parser.add_argument("--delimiter", default=None, help="field delimiter of an imported log (default: sniffed)")
+    from station.log_import import add_import_arguments
+
+    add_import_arguments(parser)
     parser.add_argument("--save-model", metavar="PATH",
                         help="save the fitted model (baseline + added effects): a file for one log, "
-                             "a directory (one <serial>.model.json per DUT) for several")
+                             "a directory (one <serial>.model.json per DUT, the serial made a safe file "
+                             "name) for several")
 
 
 def _split(items: list[str]) -> list[str]:
@@ -143,7 +137,6 @@ def format_report(doc: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from station.diagnostics.effects import get_effect, load_effects_file
     from station.diagnostics.ranking import diagnose
-    from station.logfile import read_log
 
     for f in args.effects_file:
         load_effects_file(f)
@@ -182,28 +175,16 @@ def run(args: argparse.Namespace) -> int:
 
 def _read(path: str, args: argparse.Namespace):
     """A station log (design 5.1), or with any import option a delimited log from another tool;
-    a log without the station's columns is imported with the column names recognised."""
-    from station.log_import import import_log
-    from station.logfile import read_log
+    a log without the station's columns is imported with the column names recognised. Both are
+    checked before any science (station.log_import.read_any_log)."""
+    from station.log_import import read_any_log
 
-    kw = dict(columns=getattr(args, "columns", None), accel_units=getattr(args, "accel_units", None) or "g",
-              time_units=getattr(args, "time_units", None) or "s", counts_per_g=getattr(args, "counts_per_g", None),
-              delimiter=getattr(args, "delimiter", None))
-    explicit = any(getattr(args, k, None) for k in ("columns", "accel_units", "time_units", "delimiter", "counts_per_g"))
-    if explicit:
-        return import_log(path, **kw)
-    try:
-        return read_log(path)
-    except StationError as exc:
-        if "missing column" not in str(exc):
-            raise
-        try:
-            return import_log(path, **kw)
-        except StationError:
-            raise exc from None
+    return read_any_log(path, args)
 
 
 def _save_models(report, path: Path) -> list[Path]:
+    from station.filenames import safe_path
+
     models = report.models()
     try:
         if len(models) == 1 and not path.is_dir():
@@ -213,7 +194,7 @@ def _save_models(report, path: Path) -> list[Path]:
         path.mkdir(parents=True, exist_ok=True)
         out = []
         for m in models:
-            p = path / f"{m.serial}.model.json"
+            p = safe_path(path, m.serial, ".model.json")  # the serial is data: never a path
             m.save(p)
             out.append(p)
         return out

@@ -15,7 +15,7 @@ import sys
 
 import numpy as np
 
-from station.logfile import read_log
+from station.log_import import add_import_arguments, read_any_log
 from station.science.sfem import (
     DEFAULT_REF_SIGMA_DEG,
     MISALIGNMENT_NOTE,
@@ -41,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--temp-gap-c", type=float, default=3.0, help="temperature gap that starts a new step (C)")
     parser.add_argument("--window", type=int, default=StaticDetectConfig.window_samples, help="static detector window (samples)")
     parser.add_argument("--min-samples", type=int, default=StaticDetectConfig.min_samples, help="shortest static interval (samples)")
+    add_import_arguments(parser)
 
 
 def _fit_lines(f: SfemFit) -> list[str]:
@@ -99,7 +100,7 @@ def format_text(res: SfemRecordResult, serial: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    log = read_log(args.log)
+    log = read_any_log(args.log, args)
     if len(log) == 0:
         raise StationError(f"{args.log}: no data rows")
     if not args.norm_only and log.ref_dir is None:

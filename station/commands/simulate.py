@@ -76,8 +76,11 @@ def run(args: argparse.Namespace) -> int:
     finally:
         done()
     sim_s = time.perf_counter() - t0
+    from station.filenames import safe_path
+
+    files = {log.serial: safe_path(out, log.serial, ".csv") for log in logs}  # a serial is data, never a path
     for log in logs:
-        write_log(out / f"{log.serial}.csv", log)
+        write_log(files[log.serial], log)
     doc = population_to_json(
         truths,
         profile=args.profile,
@@ -88,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         odr_hz=world.odr_hz,
         env=env.to_json(),
         steps=step_table(args.profile),
-        logs={log.serial: f"{log.serial}.csv" for log in logs},
+        logs={serial: p.name for serial, p in files.items()},
     )
     (out / "truth.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     n = len(logs[0]) if logs else 0

@@ -214,7 +214,10 @@ def render_png(report, name: str, dut: int = 0) -> bytes:
 
 
 def write_plots(report, out_dir: str | Path) -> list[Path]:
-    """Every plot as PNG in out_dir: <serial>_<plot>.png per DUT, ranking.png, staircase.png."""
+    """Every plot as PNG in out_dir: <serial>_<plot>.png per DUT, ranking.png, staircase.png. The
+    serial is data (a log's header): station.filenames.safe_path makes it a safe name inside out_dir."""
+    from station.filenames import safe_path
+
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -223,11 +226,11 @@ def write_plots(report, out_dir: str | Path) -> list[Path]:
     paths = []
     for k, d in enumerate(report.data):
         for name in DUT_PLOTS:
-            p = out / f"{d.serial}_{name}.png"
+            p = safe_path(out, d.serial, f"_{name}.png")
             p.write_bytes(render_png(report, name, k))
             paths.append(p)
     for name in REPORT_PLOTS:
-        p = out / f"{name}.png"
+        p = safe_path(out, name, ".png")
         p.write_bytes(render_png(report, name))
         paths.append(p)
     return paths
