@@ -8,7 +8,6 @@ as integers at exactly the CSV's precision (db/codec.py).
 from __future__ import annotations
 
 import logging
-import re
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -22,6 +21,7 @@ from db.models import Batch, Dut, DutRun, SampleChunk, utcnow
 from station.logfile import DutLog, write_log
 from station.positions import GRAVITY_DIRECTIONS
 from station.types import StationError
+from station.filenames import safe_name
 
 log = logging.getLogger(__name__)
 
@@ -86,10 +86,6 @@ def export_run_csv(db: Database, run_id: int, path: str | Path) -> Path:
     return p
 
 
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "dut"
-
-
 @dataclass
 class PruneReport:
     cutoff: datetime
@@ -131,7 +127,7 @@ def prune(
     out_dir = Path(export_dir) if export_dir is not None else None
     for run_id, serial in candidates:
         if out_dir is not None:
-            path = out_dir / f"run{run_id:06d}_{_safe(serial)}.csv"
+            path = out_dir / f"run{run_id:06d}_{safe_name(serial, empty='dut')}.csv"
             try:
                 export_run_csv(db, run_id, path)
             except OSError as exc:

@@ -15,6 +15,7 @@ import argparse
 from pathlib import Path
 
 from station.types import StationError
+from station.filenames import safe_name
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
             raise StationError(str(exc)) from None
         if cert is None:
             raise StationError(f"no DUT with serial {args.serial!r} in {db}")
-        out = Path(args.out or f"certificate-{args.serial}.pdf")
+        out = Path(args.out) if args.out else Path(f"certificate-{safe_name(args.serial)}.pdf")
         out.write_bytes(render_pdf(cert))
     finally:
         db.dispose()

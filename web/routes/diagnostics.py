@@ -16,6 +16,7 @@ from web.auth import require_read
 from web.diag_plots import PLOTS, Busy, DiagnosisCache, check_effects, report_json
 from web.schemas import error_responses
 from web.views import not_found
+from station.filenames import safe_name
 
 router = APIRouter(prefix="/api/runs", tags=["diagnostics"], responses=error_responses(
     401, 403, 404, 409, 422, 429, 503,
@@ -66,7 +67,7 @@ async def run_diagnosis_model(request: Request, run_id: int = RunId, add: list[s
     model = rep.models()[0]
     return Response(
         _dumps(model.to_json()), media_type="application/json",
-        headers={"Content-Disposition": f'attachment; filename="{model.serial or "run"}-run{run_id}.model.json"'},
+        headers={"Content-Disposition": f'attachment; filename="{safe_name(model.serial or "run")}-run{run_id}.model.json"'},
     )
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -11,6 +10,7 @@ from fastapi.responses import Response
 from web.auth import require_read
 from web.schemas import DutOut, DutSummary, ErrorOut, RunOut, error_responses
 from web.views import clean, dut_view, not_found
+from station.filenames import safe_name
 
 router = APIRouter(prefix="/api/duts", tags=["duts"], responses=error_responses(401, 403, 404, 503))
 Serial = Path(min_length=1, max_length=64, pattern=r"^[\x21-\x7e]+$", description="DUT serial number")
@@ -55,4 +55,4 @@ async def dut_certificate(request: Request, serial: str = Serial):
     if pdf is None:
         raise not_found(f"DUT {serial}")
     return Response(pdf, media_type="application/pdf",
-                    headers={"Content-Disposition": f'inline; filename="certificate-{re.sub(r"[^A-Za-z0-9._-]", "_", serial)}.pdf"'})
+                    headers={"Content-Disposition": f'inline; filename="certificate-{safe_name(serial)}.pdf"'})

@@ -3,7 +3,6 @@ the repository reads, station/spc.py computes, station/replay compared."""
 
 from __future__ import annotations
 
-import re
 from dataclasses import asdict
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
@@ -13,6 +12,7 @@ from fastapi.responses import Response
 from web.auth import require_admin, require_read
 from web.schemas import AuditEntry, ReplayEntry, ReplayOut, SpcOut, error_responses
 from web.views import clean
+from station.filenames import safe_name
 
 router = APIRouter(prefix="/api", tags=["records"], responses=error_responses(401, 403, 404, 422, 503))
 
@@ -72,7 +72,7 @@ async def spc_csv(request: Request, parameter: str | None = PARAM, station: str 
     from station import spc
 
     _runs, _params, report = await _report(request, parameter, station, limit)
-    name = re.sub(r"[^A-Za-z0-9_.-]", "_", report.parameter or "none")
+    name = safe_name(report.parameter or "none")
     return Response(spc.csv_text(report), media_type="text/csv",
                              headers={"Content-Disposition": f'attachment; filename="spc-{name}.csv"'})
 

@@ -11,6 +11,7 @@ from web.diag_plots import BoundedCache, Busy
 from web.plots import render_run_png
 from web.schemas import RunOut, SegmentOut, error_responses
 from web.views import clean, dut_view, not_found
+from station.filenames import safe_name
 
 router = APIRouter(prefix="/api/runs", tags=["runs"], responses=error_responses(
     401, 403, 404, 422, 429, 503, what={429: "too many plots being rendered: retry after Retry-After seconds"}))
@@ -44,7 +45,7 @@ async def run_log_csv(request: Request, run_id: int = RunId):
     if log is None:
         raise not_found(f"run {run_id}")
     text = await run_in_threadpool(format_log, log)
-    name = f"{log.serial or 'run'}-run{run_id}.csv"
+    name = f"{safe_name(log.serial or 'run')}-run{run_id}.csv"
     return Response(text, media_type="text/csv", headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
 
