@@ -151,14 +151,12 @@ class ReplayWorld:
         self._hold_at[i] = int(index)
 
     def at_hold(self, i: int) -> bool:
+        """DUT i has sent its record up to its hold (or has no hold, or has sent it all)."""
         h = self._hold_at[i]
-        return h is None or int(self._next[i]) >= h or not self.started(i) or self.done(i)
+        return h is None or int(self._next[i]) >= h or self.done(i)
 
     def release(self) -> None:
         self._hold_at = [None] * len(self.duts)
-
-    def started(self, i: int) -> bool:
-        return self._start[i] is not None
 
     def done(self, i: int) -> bool:
         """DUT i has sent its whole record."""

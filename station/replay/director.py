@@ -73,7 +73,9 @@ class Director:
         wanted = prompt.get("position")
         holds = {}
         for i, d in enumerate(self.sim.ordered):
-            if wanted is None or not world.started(i) or world.done(i):
+            # a record not started yet (the first prompt can come before every board streams) is
+            # held from its beginning: its next index is 0
+            if wanted is None or world.done(i):
                 continue
             k = answer_index(d.position, world.next_index(i), int(wanted))
             if k is not None:
