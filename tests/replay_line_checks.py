@@ -5,9 +5,26 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from replay_recorder import all_fail_limits, station_cli
+from replay_recorder import Script, all_fail_limits, record, station_cli
 
 SPEED = "300"
+
+
+def recorded_batch(tmp_path_factory, name: str, script: Script, state: str = "finished"):
+    """(folder, url, recorded): a batch run by the daemon per `script` into a new SQLite file,
+    which must have ended `state`."""
+    folder = tmp_path_factory.mktemp(name)
+    url = f"sqlite:///{folder / 'line.db'}"
+    rec = record(url, script)
+    assert rec["state"] == state, rec
+    return folder, url, rec
+
+
+def sensors_of(url: str, batch: int) -> list[str]:
+    """The sensor of every DUT of a recorded batch, as the replay reads it."""
+    from station.replay.recording import from_database
+
+    return [d.identity.sensor for d in from_database(url, batch).duts]
 
 
 def replay(url: str, batch: int, out: Path, *extra: str):
@@ -30,10 +47,10 @@ def assert_unchanged(p, diff, recorded: dict) -> None:
     assert "Traceback" not in p.stderr
 
 
-def assert_tight_limits_name_the_changed_verdicts(url: str, batch: int, folder: Path, recorded: dict, sensors):
+def assert_tight_limits_name_the_changed_verdicts(url: str, batch: int, folder: Path, recorded: dict):
     """The same recording under a limits set no part meets: every part recorded pass/marginal is
     named as changed to fail, exit 1; a part recorded error stays error."""
-    cfg = all_fail_limits(folder / "tight.toml", sensors)
+    cfg = all_fail_limits(folder / "tight.toml", sensors_of(url, batch))
     p, diff = replay(url, batch, folder / "tight.json", "--config", cfg)
     judged = {s["serial"]: s["verdict"] for s in recorded["slots"].values()}
     expect = sorted(s for s, v in judged.items() if v in ("pass", "marginal"))

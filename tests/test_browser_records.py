@@ -4,7 +4,6 @@ history offers the certificate PDF. Screenshots go to artifacts/."""
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import httpx
@@ -16,9 +15,8 @@ from records_support import write_batches
 from web.app import create_app
 from web.auth import TokenStore
 from web.db_repo import DbRepository
-from web_support import IdleStation, serve_in_thread
+from web_support import CHROMIUM, IdleStation, chromium_page, serve_in_thread
 
-CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
 ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"
 ADMIN = "admin-token-records-01"
 
@@ -29,7 +27,7 @@ pytestmark = [
 
 
 def test_records_view_spc_yield_audit_and_certificate(tmp_path):
-    sync_api = pytest.importorskip("playwright.sync_api")
+    pytest.importorskip("playwright.sync_api")
     ARTIFACTS.mkdir(exist_ok=True)
     db = Database(f"sqlite:///{tmp_path / 'r.db'}", station="line-5")
     db.upgrade()
@@ -42,60 +40,51 @@ def test_records_view_spc_yield_audit_and_certificate(tmp_path):
     try:
         expected = httpx.get(f"{url}/api/spc", params={"parameter": "tdb_mg_per_c:x"},
                              headers={"Authorization": f"Bearer {ADMIN}"}, timeout=30).json()
-        with sync_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True,
-                                         args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+        with chromium_page(1400, 1500) as (page, errors):
+            page.goto(url + "/")
+            page.fill("#token", ADMIN)
+            page.click("#save-token")
+            page.wait_for_selector("#whoami >> text=lead (admin)")
+            page.click("#tab-records")
             try:
-                page = browser.new_page(viewport={"width": 1400, "height": 1500})
-                errors: list[str] = []
-                page.on("pageerror", lambda e: errors.append(str(e)))
-                page.set_default_timeout(20_000)
-                page.goto(url + "/")
-                page.fill("#token", ADMIN)
-                page.click("#save-token")
-                page.wait_for_selector("#whoami >> text=lead (admin)")
-                page.click("#tab-records")
-                try:
-                    page.wait_for_selector("#spc-charts svg.spc-chart >> nth=3")
-                except Exception:
-                    page.screenshot(path=str(ARTIFACTS / "records-spc-failed.png"), full_page=True)
-                    raise AssertionError(f"no charts: status {page.text_content('#spc-status')!r}, errors {errors}")
-                assert page.locator("#spc-charts svg.spc-chart").count() == 4
-                first = page.input_value("#spc-parameter")
-                assert first == "tdb_mg_per_c:x"
-                # the page shows the server's Cpk; the failing boards are out of spec on TDB x
-                cpk_text = page.text_content("[data-fig=cpk]")
-                assert cpk_text == f"Cpk {float(expected['capability']['cpk']):.3g}" or \
-                    cpk_text.replace("Cpk ", "") == str(float(f"{expected['capability']['cpk']:.3g}"))
-                n_points = page.locator("#spc-charts svg.spc-chart >> nth=0").locator("circle").count()
-                assert n_points == len(written) == 24
-                assert page.locator("#spc-charts svg.spc-chart >> nth=0").locator("circle.ooc").count() == \
-                    len(expected["chart"]["out_of_control"])
-                yield_rows = page.locator("#yield-table tr[data-by=batch]")
-                assert yield_rows.count() == 4
-                assert page.text_content("#yield-table tr[data-by=batch] >> nth=1").endswith("66.7 %")  # batch 2: 4 of 6 pass
-                audit = page.locator("#audit-table tr[data-action]")
-                assert audit.count() == 2 and "batch.abort" in audit.nth(0).text_content()
-                assert "line-5" in audit.nth(0).text_content()
-                page.screenshot(path=str(ARTIFACTS / "records-spc.png"), full_page=True)
-                # another parameter
-                page.select_option("#spc-parameter", "tdsf_ppm_per_c:z")
-                page.wait_for_selector("#spc-charts .spc-title >> text=Individuals: tdsf_ppm_per_c:z")
-                # certificate from the DUT history
-                page.click("#tab-history")
-                page.fill("#search", written[0]["serial"])
-                page.click("#search-go")
-                page.wait_for_selector("button.certificate")
-                with page.expect_download() as dl:
-                    page.click("button.certificate")
-                pdf = tmp_path / "c.pdf"
-                dl.value.save_as(str(pdf))
-                assert pdf.read_bytes().startswith(b"%PDF")
-                assert page.text_content(".cert-msg") == ""
-                page.screenshot(path=str(ARTIFACTS / "records-history-certificate.png"))
-                assert errors == []
-            finally:
-                browser.close()
+                page.wait_for_selector("#spc-charts svg.spc-chart >> nth=3")
+            except Exception:
+                page.screenshot(path=str(ARTIFACTS / "records-spc-failed.png"), full_page=True)
+                raise AssertionError(f"no charts: status {page.text_content('#spc-status')!r}, errors {errors}")
+            assert page.locator("#spc-charts svg.spc-chart").count() == 4
+            first = page.input_value("#spc-parameter")
+            assert first == "tdb_mg_per_c:x"
+            # the page shows the server's Cpk; the failing boards are out of spec on TDB x
+            cpk_text = page.text_content("[data-fig=cpk]")
+            assert cpk_text == f"Cpk {float(expected['capability']['cpk']):.3g}" or \
+                cpk_text.replace("Cpk ", "") == str(float(f"{expected['capability']['cpk']:.3g}"))
+            n_points = page.locator("#spc-charts svg.spc-chart >> nth=0").locator("circle").count()
+            assert n_points == len(written) == 24
+            assert page.locator("#spc-charts svg.spc-chart >> nth=0").locator("circle.ooc").count() == \
+                len(expected["chart"]["out_of_control"])
+            yield_rows = page.locator("#yield-table tr[data-by=batch]")
+            assert yield_rows.count() == 4
+            assert page.text_content("#yield-table tr[data-by=batch] >> nth=1").endswith("66.7 %")  # batch 2: 4 of 6 pass
+            audit = page.locator("#audit-table tr[data-action]")
+            assert audit.count() == 2 and "batch.abort" in audit.nth(0).text_content()
+            assert "line-5" in audit.nth(0).text_content()
+            page.screenshot(path=str(ARTIFACTS / "records-spc.png"), full_page=True)
+            # another parameter
+            page.select_option("#spc-parameter", "tdsf_ppm_per_c:z")
+            page.wait_for_selector("#spc-charts .spc-title >> text=Individuals: tdsf_ppm_per_c:z")
+            # certificate from the DUT history
+            page.click("#tab-history")
+            page.fill("#search", written[0]["serial"])
+            page.click("#search-go")
+            page.wait_for_selector("button.certificate")
+            with page.expect_download() as dl:
+                page.click("button.certificate")
+            pdf = tmp_path / "c.pdf"
+            dl.value.save_as(str(pdf))
+            assert pdf.read_bytes().startswith(b"%PDF")
+            assert page.text_content(".cert-msg") == ""
+            page.screenshot(path=str(ARTIFACTS / "records-history-certificate.png"))
+            assert errors == []
     finally:
         stop_server()
         db.dispose()

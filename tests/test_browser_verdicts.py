@@ -11,16 +11,14 @@ a fourth board that is unplugged mid-batch ERROR. Screenshots go to artifacts/.
 from __future__ import annotations
 
 import re
-import shutil
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 
-from web_support import LiveStation, TOKENS, auth, wait_for
+from web_support import CHROMIUM, LiveStation, TOKENS, auth, chromium_page, wait_for
 
-CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
 ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"
 SEED = 7
 UNPLUGGED = 3  # board index (slot s4)
@@ -163,7 +161,7 @@ def test_slot_card_flags_a_clamped_tdsf(tmp_path):
     """A stored batch whose z TDSF was clamped (a positive TDSF, not observable): the slot card on
     the operator page says so instead of a bare "0.0", as the API (tdsf_clamped) and the
     certificate do; an unclamped axis shows its number alone."""
-    sync_api = pytest.importorskip("playwright.sync_api")
+    pytest.importorskip("playwright.sync_api")
     from fastapi import HTTPException
 
     from db import Database, DbWriter
@@ -200,33 +198,24 @@ def test_slot_card_flags_a_clamped_tdsf(tmp_path):
     try:
         stored = httpx.get(f"{url}/api/runs/{run}", headers=auth("operator"), timeout=30).json()
         assert stored["thermal"]["z"]["tdsf_clamped"] is True and stored["thermal"]["x"]["tdsf_clamped"] is False
-        with sync_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True,
-                                         args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+        with chromium_page(1400, 1000) as (page, errors):
+            page.add_init_script(f"localStorage.setItem('station.token', {TOKENS['operator']!r});"
+                                 f"localStorage.setItem('station.batch', '{batch}');")
+            page.goto(url + "/")
+            card = '.slot-card[data-slot="s01"]'
             try:
-                page = browser.new_page(viewport={"width": 1400, "height": 1000})
-                errors: list[str] = []
-                page.on("pageerror", lambda e: errors.append(str(e)))
-                page.set_default_timeout(20_000)
-                page.add_init_script(f"localStorage.setItem('station.token', {TOKENS['operator']!r});"
-                                     f"localStorage.setItem('station.batch', '{batch}');")
-                page.goto(url + "/")
-                card = '.slot-card[data-slot="s01"]'
-                try:
-                    page.wait_for_selector(f'{card} tr[data-axis="z"] td.tdsf')
-                except Exception:
-                    page.screenshot(path=str(ARTIFACTS / "browser-clamped-failed.png"), full_page=True)
-                    raise
-                z = page.inner_text(f'{card} tr[data-axis="z"] td.tdsf')
-                assert " ".join(z.split()) == "0.0 (clamped: not observable)", z
-                assert page.get_attribute(f'{card} tr[data-axis="z"] td.tdsf', "class") == "tdsf clamped"
-                assert page.inner_text(f'{card} tr[data-axis="x"] td.tdsf') == "-143.2"
-                assert page.locator(f"{card} .clamped-flag").count() == 1
-                ARTIFACTS.mkdir(exist_ok=True)
-                page.locator(card).screenshot(path=str(ARTIFACTS / "browser-clamped-tdsf.png"))
-                assert errors == []
-            finally:
-                browser.close()
+                page.wait_for_selector(f'{card} tr[data-axis="z"] td.tdsf')
+            except Exception:
+                page.screenshot(path=str(ARTIFACTS / "browser-clamped-failed.png"), full_page=True)
+                raise
+            z = page.inner_text(f'{card} tr[data-axis="z"] td.tdsf')
+            assert " ".join(z.split()) == "0.0 (clamped: not observable)", z
+            assert page.get_attribute(f'{card} tr[data-axis="z"] td.tdsf', "class") == "tdsf clamped"
+            assert page.inner_text(f'{card} tr[data-axis="x"] td.tdsf') == "-143.2"
+            assert page.locator(f"{card} .clamped-flag").count() == 1
+            ARTIFACTS.mkdir(exist_ok=True)
+            page.locator(card).screenshot(path=str(ARTIFACTS / "browser-clamped-tdsf.png"))
+            assert errors == []
     finally:
         stop_server()
         db.dispose()

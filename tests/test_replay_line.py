@@ -10,31 +10,23 @@ no part meets it must exit 1 naming every changed verdict. Independent truth: th
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
-from replay_line_checks import assert_tight_limits_name_the_changed_verdicts, assert_unchanged, replay
-from replay_recorder import Script, record
+from replay_line_checks import (assert_tight_limits_name_the_changed_verdicts, assert_unchanged, recorded_batch,
+                                replay, sensors_of)
+from replay_recorder import Script, all_fail_limits
 
 
 @pytest.fixture(scope="module")
 def page_batch(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("page")
-    url = f"sqlite:///{folder / 'line.db'}"
-    rec = record(url, Script(profile="fast-thermal", fixture=False))
-    assert rec["state"] == "finished", rec
-    return folder, url, rec
-
-
-def _recording(url: str, batch: int):
-    from station.replay.recording import from_database
-
-    return from_database(url, batch)
+    return recorded_batch(tmp_path_factory, "page", Script(profile="fast-thermal", fixture=False))
 
 
 def test_a_page_batch_with_operator_prompts_and_no_fixture_replays_unchanged(page_batch):
     folder, url, rec = page_batch
-    r = _recording(url, rec["batch"])
+    from station.replay.recording import from_database
+
+    r = from_database(url, rec["batch"])
     assert r.config_snapshot.get("fixture") is None  # the recorded station had no fixture
     pos = r.duts[0].position
     assert (pos == -1).any() and (pos == 0).any() and (pos == 1).any()  # the operator turned P, then N
@@ -47,17 +39,13 @@ def test_a_page_batch_with_operator_prompts_and_no_fixture_replays_unchanged(pag
 
 def test_a_page_batch_under_another_limits_set_names_the_changed_verdicts(page_batch):
     folder, url, rec = page_batch
-    sensors = [d.identity.sensor for d in _recording(url, rec["batch"]).duts]
-    assert_tight_limits_name_the_changed_verdicts(url, rec["batch"], folder, rec, sensors)
+    assert_tight_limits_name_the_changed_verdicts(url, rec["batch"], folder, rec)
 
 
 @pytest.fixture(scope="module")
 def aborted_batch(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("aborted")
-    url = f"sqlite:///{folder / 'line.db'}"
-    rec = record(url, Script(profile="fast-thermal", abort_at_sample_s=2500.0))
-    assert rec["state"] == "aborted", rec
-    return folder, url, rec
+    return recorded_batch(tmp_path_factory, "aborted", Script(profile="fast-thermal", abort_at_sample_s=2500.0),
+                          state="aborted")
 
 
 def test_an_aborted_batch_replays_to_where_the_recording_ends_unchanged(aborted_batch):
@@ -77,12 +65,10 @@ def test_an_aborted_batch_replays_to_where_the_recording_ends_unchanged(aborted_
 def test_an_aborted_batch_has_no_verdict_a_limits_set_could_change(aborted_batch):
     """Every run of an aborted batch is error (design 8), whatever the limits: the replay under a
     limits set no part meets changes nothing and says so with exit 0."""
-    from replay_recorder import all_fail_limits
-
     folder, url, rec = aborted_batch
     assert {s["verdict"] for s in rec["slots"].values()} == {"error"}
-    sensors = [d.identity.sensor for d in _recording(url, rec["batch"]).duts]
-    p, diff = replay(url, rec["batch"], folder / "tight.json", "--config", all_fail_limits(folder / "t.toml", sensors))
+    cfg = all_fail_limits(folder / "t.toml", sensors_of(url, rec["batch"]))
+    p, diff = replay(url, rec["batch"], folder / "tight.json", "--config", cfg)
     assert p.returncode == 0, p.stdout + p.stderr
     assert diff["summary"]["verdicts_changed"] == []
-    assert np.all([d["changed"] is False for d in diff["duts"]])
+    assert all(d["changed"] is False for d in diff["duts"])

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from replay_line_checks import assert_tight_limits_name_the_changed_verdicts, assert_unchanged, replay
-from replay_recorder import Script, record, station_cli
+from replay_line_checks import assert_tight_limits_name_the_changed_verdicts, assert_unchanged, recorded_batch, replay
+from replay_recorder import Script, station_cli
 
 
 def _db(url: str):
@@ -41,19 +41,9 @@ def _program_rows(url: str, batch: int) -> dict[str, tuple]:
         db.dispose()
 
 
-def _sensors(url: str, batch: int) -> list[str]:
-    from station.replay.recording import from_database
-
-    return [d.identity.sensor for d in from_database(url, batch).duts]
-
-
 @pytest.fixture(scope="module")
 def verified_batch(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("verified")
-    url = f"sqlite:///{folder / 'line.db'}"
-    rec = record(url, Script(profile="fast-thermal-verified", refuse_write_slot=1))
-    assert rec["state"] == "finished", rec
-    return folder, url, rec
+    return recorded_batch(tmp_path_factory, "verified", Script(profile="fast-thermal-verified", refuse_write_slot=1))
 
 
 def test_a_verified_batch_with_a_refused_write_replays_unchanged(verified_batch):
@@ -79,16 +69,15 @@ def test_a_verified_batch_with_a_refused_write_replays_unchanged(verified_batch)
 
 def test_a_verified_batch_under_another_limits_set_names_the_changed_verdicts(verified_batch):
     folder, url, rec = verified_batch
-    diff = assert_tight_limits_name_the_changed_verdicts(url, rec["batch"], folder, rec, _sensors(url, rec["batch"]))
+    diff = assert_tight_limits_name_the_changed_verdicts(url, rec["batch"], folder, rec)
     s02 = next(d for d in diff["duts"] if d["slot"] == "s02")
     assert s02["changed"] is False  # error stays error
 
 
 @pytest.fixture(scope="module")
 def faulted_batch(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("faulted")
-    url = f"sqlite:///{folder / 'line.db'}"
-    rec = record(url, Script(profile="fast-thermal", mute_slot=2, mute_at_sample_s=300.0))
+    folder, url, rec = recorded_batch(tmp_path_factory, "faulted",
+                                      Script(profile="fast-thermal", mute_slot=2, mute_at_sample_s=300.0))
     assert rec["slots"]["s03"]["state"] == "faulted", rec
     return folder, url, rec
 
@@ -112,7 +101,7 @@ def test_a_batch_with_a_faulted_slot_replays_unchanged(faulted_batch):
 
 def test_a_batch_with_a_faulted_slot_under_another_limits_set_names_the_changed_verdicts(faulted_batch):
     folder, url, rec = faulted_batch
-    assert_tight_limits_name_the_changed_verdicts(url, rec["batch"], folder, rec, _sensors(url, rec["batch"]))
+    assert_tight_limits_name_the_changed_verdicts(url, rec["batch"], folder, rec)
 
 
 def _sha(path: Path) -> str:

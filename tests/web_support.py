@@ -7,10 +7,12 @@ Tests talk to it over real HTTP."""
 from __future__ import annotations
 
 import asyncio
+import shutil
 import socket
 import threading
 import time
 from concurrent.futures import Future
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -348,3 +350,25 @@ class IdleStation:
 
     def batch_ids(self):
         return []
+
+
+CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
+
+
+@contextmanager
+def chromium_page(width: int = 1400, height: int = 1000, timeout_ms: int = 20_000):
+    """(page, errors): a page of Debian's headless chromium driven by playwright, and the list its
+    uncaught JavaScript errors go to (a test asserts it is empty). The browser is closed after."""
+    from playwright import sync_api
+
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True,
+                                     args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
+        try:
+            page = browser.new_page(viewport={"width": width, "height": height})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.set_default_timeout(timeout_ms)
+            yield page, errors
+        finally:
+            browser.close()
