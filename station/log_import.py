@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from station.logfile import (
+from station.logfile import (  # G0_M_S2: part of this module's surface (m/s2 per g)
     G0_M_S2,
     DutLog,
     LogChecker,
@@ -40,6 +40,7 @@ from station.logfile import (
     _Header,
     _parse_rows,
     check_meta,
+    g_divisor,
 )
 from station.types import StationError
 
@@ -178,10 +179,9 @@ def _import(blocks, source: str, size: int, columns=None, accel_units: str = "g"
     t -= t0
     if (meta.get("t_power_on_s") or "").strip():  # on the log's clock (seconds): moved with it
         meta["t_power_on_s"] = repr(float(meta["t_power_on_s"]) - t0)
-    divisor = {"g": None, "mg": 1000.0, "m/s2": G0_M_S2, "counts": counts_per_g}[accel_units]
     acc = chk.acc
-    if divisor:
-        acc /= float(divisor)
+    if accel_units != "g":
+        acc /= g_divisor(accel_units, counts_per_g)
     meta.setdefault("serial", Path(source).stem)
     meta.setdefault("source", f"imported from {Path(source).name}")
     return DutLog(time_s=t, acc_g=acc, temp_c=chk.temp, meta=meta, lamp=chk.lamp, position=chk.position,

@@ -68,7 +68,12 @@ KELVIN_MEDIAN = (213.0, 433.0)  # a median temperature there, in a column meant 
 G_BAND = (0.2, 4.0)
 UNIT_BANDS = (("m/s2", 6.0, 16.0), ("mg", 800.0, 1250.0))
 COUNTS_MIN = 50.0
-ACCEL_FACTOR = {"g": 1.0, "mg": 1e-3, "m/s2": 1.0 / G0_M_S2}  # counts: 1 / counts_per_g
+G_DIVISOR = {"g": 1.0, "mg": 1000.0, "m/s2": G0_M_S2}  # a value in these units / divisor = g
+
+
+def g_divisor(units: str, counts_per_g: float | None = None) -> float:
+    """What a value in `units` is divided by to give g (counts: the sensor's LSB per g)."""
+    return float(counts_per_g) if units == "counts" else G_DIVISOR[units]
 ODR_MATCH = (0.5, 2.0)  # header odr_hz x median sample interval
 # Numeric header keys the station writes or reads: (test, rule shown in the error, integer?)
 META_NUMBERS = {
@@ -127,8 +132,7 @@ def accel_units_problem(median_norm: float, names: str, given: str = "g",
     """None when the acceleration columns read about 1 g once converted from `given`; else the
     one-line problem, naming the likely unit and the option that converts it. median_norm is the
     median |a| of the values as written in the file."""
-    factor = 1.0 / float(counts_per_g) if given == "counts" else ACCEL_FACTOR[given]
-    in_g = median_norm * factor
+    in_g = median_norm * (1.0 / g_divisor(given, counts_per_g))
     if G_BAND[0] <= in_g <= G_BAND[1]:
         return None
     m = _fmt_median(median_norm)
