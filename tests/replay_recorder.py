@@ -1,9 +1,9 @@
 """Record batches the way a line runs them, with the real daemon on a simulated station, for the
 replay tests: an operator at the page turning the plate (no fixture), a board refusing its
-calibration write, an operator abort, a board that goes silent mid-batch.
+calibration write, an operator abort, a board unplugged mid-batch.
 
 Everything goes through what a line has: the prompt's answer (Station.answer_prompt, as the page's
-route), the operator's abort, and the simulated boards' own fault switches (board_nvm, muted).
+route), the operator's abort, and the simulated boards' own fault switches (board_nvm, disconnect).
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ class Script:
     fixture: bool = True
     refuse_write_slot: int | None = None  # board index whose calibration writes are refused
     abort_at_sample_s: float | None = None  # operator aborts once the batch's sample clock passes this
-    mute_slot: int | None = None  # board index that goes silent ...
-    mute_at_sample_s: float = 300.0  # ... once the batch's sample clock passes this
+    unplug_slot: int | None = None  # board index whose cable is pulled (its pty closes) ...
+    unplug_at_sample_s: float = 300.0  # ... once the batch's sample clock passes this
     operator_delay_s: float = 1.0  # wall seconds the operator takes to turn the plate
     n_serial: int = 3
     n_can: int = 1
@@ -50,7 +50,7 @@ async def _record(url: str, sc: Script) -> dict:
             tasks.append(asyncio.create_task(operator_confirms(
                 lambda: station.prompt(bid), lambda pid: station.answer_prompt(bid, pid, "done", by="Ana"),
                 delay_s=sc.operator_delay_s)))
-            muted = aborted = False
+            unplugged = aborted = False
             while True:
                 try:
                     await station.wait_batch(bid, timeout_s=0.05)
@@ -61,9 +61,9 @@ async def _record(url: str, sc: Script) -> dict:
                 if sc.abort_at_sample_s is not None and not aborted and clock > sc.abort_at_sample_s:
                     station.abort(bid, "operator stop", by="Ana")
                     aborted = True
-                if sc.mute_slot is not None and not muted and clock > sc.mute_at_sample_s:
-                    sim.board(sc.mute_slot).muted = True
-                    muted = True
+                if sc.unplug_slot is not None and not unplugged and clock > sc.unplug_at_sample_s:
+                    sim.board(sc.unplug_slot).disconnect()
+                    unplugged = True
             await station.flush_db()
             st = station.batch_status(bid)
             return {"batch": bid, "state": st["state"],

@@ -1,5 +1,5 @@
 """Replay reproduces what the line did (issue 22), where something went wrong: a program-and-verify
-batch in which one board refused its calibration write, and a batch in which one board went silent.
+batch in which one board refused its calibration write, and a batch in which one board was unplugged.
 And the source of a replay is only ever read: never created, never migrated.
 
 Independent truth: the recorded and the replayed database rows (program records with their CRC,
@@ -77,7 +77,7 @@ def test_a_verified_batch_under_another_limits_set_names_the_changed_verdicts(ve
 @pytest.fixture(scope="module")
 def faulted_batch(tmp_path_factory):
     folder, url, rec = recorded_batch(tmp_path_factory, "faulted",
-                                      Script(profile="fast-thermal", mute_slot=2, mute_at_sample_s=300.0))
+                                      Script(profile="fast-thermal", unplug_slot=2, unplug_at_sample_s=300.0))
     assert rec["slots"]["s03"]["state"] == "faulted", rec
     return folder, url, rec
 
@@ -96,6 +96,7 @@ def test_a_batch_with_a_faulted_slot_replays_unchanged(faulted_batch):
     finally:
         db.dispose()
     assert runs["s03"]["state"] == "faulted" and runs["s03"]["verdict"] == "error", runs["s03"]
+    assert "link lost" in runs["s03"]["fault_reason"], runs["s03"]  # unplugged again, as recorded
     assert all(runs[s]["state"] == "done" for s in runs if s != "s03"), runs
 
 

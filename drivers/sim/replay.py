@@ -22,7 +22,8 @@ in the same state as the recorded one did:
 - `hold(i, index)` keeps DUT i at a recorded index until `release()` (station/replay/director.py:
   an operator prompt is answered at the sample where the recorded operator's answer took effect).
 A DUT released from a pause or a hold continues from where it stopped, at the current world time
-(its record is re-anchored), so no backlog bursts out.
+(its record is re-anchored), so no backlog bursts out. A board whose recorded link was lost
+(`unplugged_at_end`) is unplugged when its record has been sent.
 
 ReplayStation is the SimStation that plays a Recording: serial DUTs on ptys with a 64-bit board
 clock (so t_us goes over the wire exactly as recorded), CAN DUTs behind the slcan adapter.
@@ -132,8 +133,7 @@ class ReplayWorld:
     @property
     def exhausted(self) -> bool:
         """Every started DUT has sent its whole record (and every DUT has started)."""
-        return all(s is not None for s in self._start) and all(
-            int(self._next[i]) >= len(d) for i, d in enumerate(self.duts))
+        return all(s is not None for s in self._start) and all(self.done(i) for i in range(len(self.duts)))
 
     def start_dut(self, i: int) -> None:
         """DUT i's board was told to START: its record begins now, or later by its lamp alignment
@@ -283,6 +283,7 @@ class ReplayStation(SimStation):
         world = ReplayWorld(self.ordered)
         world.streaming_of = self._streams
         self._first_start: float | None = None
+        self._unplugged: set[int] = set()
         super().__init__(n_serial=len(serial), n_can=len(can), speed=speed, world=world,
                          can_interface=can_interface, tick_s=tick_s, move_time_s=move_time_s)
 
@@ -324,6 +325,10 @@ class ReplayStation(SimStation):
                 board.feed(part.time_s[a:b], part.acc_counts[a:b], part.temp_counts[a:b])
             board.streaming = was_streaming
             world.note_sent(i, part)
+        for i, d in enumerate(self.ordered):
+            if d.unplugged_at_end and world.done(i) and i not in self._unplugged:
+                self._unplugged.add(i)  # as recorded: the link was lost where the record ends
+                self.board(i).disconnect()
         for cb in self._listeners:
             cb(chunk)
 

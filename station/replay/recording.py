@@ -13,6 +13,7 @@ Two sources:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,11 @@ class RecordedDut:
     # How the recorded board answered the calibration write when it failed (CAL_ERROR_KINDS): the
     # replay board answers the same way (drivers/sim/replay.py).
     program_error_kind: str | None = None
+    # The recorded run was faulted because its link was lost (a board unplugged, a cable pulled):
+    # the replay board is unplugged where the record ends, so the replaying daemon faults it at the
+    # same point of the stream. (A board that only went silent is faulted by the wall-clock stall
+    # timeout, whose point in sample time depends on the speed and the load: not reproducible.)
+    unplugged_at_end: bool = False
 
     def __len__(self) -> int:
         return int(self.time_s.shape[0])
@@ -113,8 +119,7 @@ class Recording:
             raise StationError(f"--only: {', '.join(unknown)} not in the recording "
                                f"(it has {', '.join(d.serial for d in self.duts)})")
         keep = [d for d in self.duts if d.serial in serials or d.slot in serials]
-        return Recording(self.source, self.profile, keep, self.config_snapshot, self.skipped, self.before_label,
-                         self.batch_state, self.batch_error, self.source_note)
+        return dataclasses.replace(self, duts=keep)
 
 
 # ---- counts ---------------------------------------------------------------------------------
@@ -219,15 +224,14 @@ def from_database(db_url: str, batch_id: int, station: str = "replay") -> Record
                 acc_counts=acc, temp_counts=tc, lamp=smp.lamp.astype(np.int8), position=smp.position.astype(np.int64),
                 lost_samples=int(run.get("lost_samples") or 0), source_run_id=run["id"], outcome=outcome,
                 restart_after_t=program.get("comp_from_t") if program.get("programmed") else None,
-                program_error_kind=None if program.get("programmed") else program.get("error_kind")))
+                program_error_kind=None if program.get("programmed") else program.get("error_kind"),
+                unplugged_at_end=run["state"] == "faulted" and "link lost" in (run.get("fault_reason") or "")))
         if not duts:
             raise StationError(f"batch {batch_id}: nothing to replay ({'; '.join(skipped) or 'no runs'})")
         where = batch.get("station") or "?"
         kind = f"replay of {batch['replay_of']}" if batch.get("replay_of") else f"batch {batch_id} of {where}"
-        rec = Recording(f"{kind} ({_plain_url(db_url)})", batch["profile"], duts, snapshot, skipped,
-                        batch_state=batch["state"], batch_error=batch.get("reason") or "")
-        rec.source_note = source_note
-        return rec
+        return Recording(f"{kind} ({_plain_url(db_url)})", batch["profile"], duts, snapshot, skipped,
+                         batch_state=batch["state"], batch_error=batch.get("reason") or "", source_note=source_note)
     finally:
         db.dispose()
         if cleanup is not None:
