@@ -196,11 +196,12 @@ def _fill(directory) -> "object":
     if total_mb > 256:
         raise AssertionError(f"refusing to fill {directory}: a {total_mb:.0f} MB file system is not a test tmpfs")
     filler = directory / "filler.bin"
-    with open(filler, "wb") as f:
+    # unbuffered: every write reaches the file system inside the try, so closing the file has no
+    # buffered bytes left to flush into a full disk (a buffered close raised ENOSPC in CI)
+    with open(filler, "wb", buffering=0) as f:
         try:
             while True:
                 f.write(b"\0" * 65536)
-                f.flush()
         except OSError:
             pass
     return filler
