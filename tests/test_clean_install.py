@@ -91,6 +91,8 @@ def test_demo_serves_page_and_health_from_runtime_install(runtime_venv, tmp_path
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             out, _ = proc.communicate()
+    # A stop (SIGTERM) ends it cleanly: lamp off, web server stopped, exit 0, no traceback.
+    assert proc.returncode == 0 and "Traceback" not in out, out
     # A new user is told where the page is and how to sign in.
     assert f"http://127.0.0.1:{port}/" in out
     assert "demo-operator-token" in out

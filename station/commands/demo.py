@@ -360,9 +360,9 @@ async def _main(args: argparse.Namespace) -> int:
             else:
                 await stop.wait()
         finally:
-            for task in (hands, confirming):
-                if task is not None:
-                    task.cancel()
+            for helper in (hands, confirming):  # (not `task`: that name is the web server's)
+                if helper is not None:
+                    helper.cancel()
             await station.close("daemon shutdown")  # lamp off first, then the web server
             await stop_web(server, task)
             if hasattr(db, "dispose"):
