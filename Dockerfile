@@ -12,6 +12,7 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 WORKDIR /opt/station
 COPY pyproject.toml README.md ./
+COPY contracts ./contracts
 COPY station ./station
 COPY drivers ./drivers
 COPY db ./db

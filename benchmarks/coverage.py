@@ -35,12 +35,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from drivers.sim.physics import draw_population  # noqa: E402
 from drivers.sim.profiles import Step, run_profile, run_steps  # noqa: E402
 from drivers.sim.world import SimWorld  # noqa: E402
-from station.positions import GRAVITY_DIRECTIONS, POSITION_INDEX  # noqa: E402
+from contracts.positions import GRAVITY_DIRECTIONS, POSITION_INDEX  # noqa: E402
 from station.science.thermal_calibration import calibrate  # noqa: E402
 from station.science.thermal_model import compensate  # noqa: E402
 from station.science.verify import VerifyCriteria, verify_compensated  # noqa: E402
-from station.spec_limits import U_SYS_TDB_MG_PER_C, U_SYS_TDSF_PPM_PER_C  # noqa: E402
-from station.types import AXES, T_REF_C  # noqa: E402
+from station.decisions.limits import U_SYS_TDB_MG_PER_C, U_SYS_TDSF_PPM_PER_C  # noqa: E402
+from contracts.types import AXES, T_REF_C  # noqa: E402
 
 N_POS = POSITION_INDEX["N"]
 HEAT_C = 15.0

@@ -29,9 +29,9 @@ from db.repository import run_sample_bytes  # noqa: E402
 from drivers.sim.physics import draw_population  # noqa: E402
 from drivers.sim.profiles import run_profile  # noqa: E402
 from drivers.sim.world import SimWorld  # noqa: E402
-from station.events import SamplesReceived, SegmentLogged  # noqa: E402
+from contracts.events import SamplesReceived, SegmentLogged  # noqa: E402
 from station.science.streaming import StreamingCalibrator  # noqa: E402
-from station.types import SampleBlock  # noqa: E402
+from contracts.types import SampleBlock  # noqa: E402
 
 
 def bytes_per_run(url: str, n_duts: int = 4) -> None:

@@ -80,7 +80,7 @@ def speed() -> int:
     validation log with the realistic noise, 8 built-in candidates (issue 11 asks <= 2 s)."""
     import numpy as np
 
-    from station.logfile import DutLog
+    from contracts.logfile import DutLog
 
     logs, _ = H.validation_logs((), seed=1, noise="realistic")
     lg = logs[0]

@@ -24,7 +24,7 @@ from drivers.serial_board import SerialBoard  # noqa: E402
 from drivers.sim.serial_pty import SimSerialBoard  # noqa: E402
 from drivers.sim.slcan_pty import SimCanBoard, SimCanHub, SlcanPtyAdapter, VirtualCanBridge  # noqa: E402
 from drivers.sim.station_sim import SimStation  # noqa: E402
-from station.types import Identity  # noqa: E402
+from contracts.types import Identity  # noqa: E402
 
 IDENT = Identity("BENCH", "LIS3DSH", "1", 60.0, 1.0, 0.0, 3.125)
 

@@ -30,8 +30,8 @@ from drivers.sim.physics import draw_population  # noqa: E402
 from drivers.sim.station_sim import SimStation  # noqa: E402
 from station.commands.demo import sim_config  # noqa: E402
 from station.config import parse_config  # noqa: E402
-from station.supervisor import Station, open_database  # noqa: E402
-from station.types import AXES  # noqa: E402
+from station.daemon.supervisor import Station, open_database  # noqa: E402
+from contracts.types import AXES  # noqa: E402
 
 
 async def run(n_serial: int, n_can: int, n_curved: int, speed: float, seed: int) -> None:

@@ -1,6 +1,6 @@
 """Compressed sample blocks for the sample_chunk table.
 
-Every column is quantized to integers at the log file's stored precision (station/logfile.py:
+Every column is quantized to integers at the log file's stored precision (contracts/logfile.py:
 1e-6 s, 1e-7 g, 1e-4 C), delta coded, byte-shuffled and zlib compressed. Integers make the round
 trip exact: decoding gives q / 10**d, the double nearest to the decimal the CSV would print, so a
 run exported from the database is the same CSV as the samples written straight to a log.
@@ -14,13 +14,15 @@ that the bytes of equal significance sit together.
 
 from __future__ import annotations
 
+import math
 import struct
 import zlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from station.logfile import ACC_DECIMALS, TEMP_DECIMALS, TIME_DECIMALS
+from contracts.logfile import ACC_DECIMALS, TEMP_DECIMALS, TIME_DECIMALS
 
 MAGIC = b"SC1"
 _HEADER = struct.Struct("<3sBI")
@@ -177,3 +179,18 @@ def decode(data: bytes) -> Quantized:
 
 
 __all__ = ["Samples", "Quantized", "quantize", "encode", "decode"]
+
+
+def plain_json(value: Any) -> Any:
+    """JSON-safe copy: numpy to Python, tuples to lists, NaN/inf to None (PostgreSQL rejects NaN)."""
+    if isinstance(value, dict):
+        return {str(k): plain_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_json(v) for v in value]
+    if hasattr(value, "tolist"):
+        return plain_json(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if hasattr(value, "__dataclass_fields__"):
+        return plain_json({k: getattr(value, k) for k in value.__dataclass_fields__})
+    return value

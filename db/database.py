@@ -28,7 +28,7 @@ from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from db.models import SCHEMA_REVISION, Batch, Dut, DutRun, SampleChunk, SegmentRow, utcnow
-from station.types import StationError
+from contracts.types import StationError
 
 log = logging.getLogger(__name__)
 

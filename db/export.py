@@ -1,7 +1,7 @@
 """A stored run's sample stream back as a DutLog / design 5.1 CSV, and retention (prune).
 
 The CSV of a run exported from the database is byte-identical to the CSV the station would have
-written from the samples directly (station.logfile.format_log), because chunks hold the samples
+written from the samples directly (contracts.logfile.format_log), because chunks hold the samples
 as integers at exactly the CSV's precision (db/codec.py).
 """
 
@@ -18,10 +18,10 @@ from sqlalchemy import delete, exists, func, or_, select, update
 from db import codec
 from db.database import RUN_ACTIVE_STATES, Database
 from db.models import Batch, Dut, DutRun, SampleChunk, utcnow
-from station.logfile import DutLog, write_log
-from station.positions import GRAVITY_DIRECTIONS
-from station.types import StationError
-from station.filenames import safe_name
+from contracts.logfile import DutLog, write_log
+from contracts.positions import GRAVITY_DIRECTIONS
+from contracts.types import StationError
+from contracts.filenames import safe_name
 
 log = logging.getLogger(__name__)
 

@@ -138,7 +138,7 @@ class DutRun(Base):
     result_seq: Mapped[int | None] = mapped_column(BigInteger, unique=True)
     started_at: Mapped[datetime] = mapped_column(default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column(index=True)
-    # the serial's attempt number (retests: 2, 3, ...) and the station's decision (station/verdicts.py)
+    # the serial's attempt number (retests: 2, 3, ...) and the station's decision (station/decisions/verdicts.py)
     attempt: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
     verdict: Mapped[str | None] = mapped_column(String(16), index=True)  # pass, marginal, fail, error
     grade: Mapped[str | None] = mapped_column(String(16))
@@ -154,7 +154,7 @@ class DutRun(Base):
 
 
 class SegmentRow(Base):
-    """One averaged stable segment (station.types.Segment) plus the step it was logged in."""
+    """One averaged stable segment (contracts.types.Segment) plus the step it was logged in."""
 
     __tablename__ = "segment"
 

@@ -25,7 +25,7 @@ from db.models import (
     ThermalResultRow,
     utcnow,
 )
-from station.types import AXES
+from contracts.types import AXES
 
 PREFERRED_THERMAL = ("offline", "streaming")  # the offline fit is the better estimate when both exist
 
@@ -479,7 +479,7 @@ def run_sample_bytes(db: Database, run_id: int) -> int:
 # ---- yield and SPC ----------------------------------------------------------------------------
 def judged_runs(db: Database, limit: int = 5000, station: str | None = None) -> list[dict]:
     """The newest `limit` judged runs, oldest first, with their verdict checks (each judged
-    measurement with its value and the limits it was judged by): the input of station/spc.py."""
+    measurement with its value and the limits it was judged by): the input of station/records/spc.py."""
     with db.session() as s:
         q = (select(DutRun, Dut.serial).join(Dut, Dut.id == DutRun.dut_id).where(DutRun.verdict.is_not(None))
              .where(DutRun.batch_id.in_(_real_batches())).order_by(DutRun.judged_at.desc(), DutRun.id.desc()).limit(max(1, min(int(limit), 100_000))))
@@ -501,7 +501,7 @@ def audit_append(db: Database, actor: str, action: str, target: str = "", detail
     into that connection's transaction (the db writer's: it is stored with what it records, and a
     second transaction would wait on SQLite's write lock the writer holds)."""
     from db.models import AuditRow
-    from db.writer import plain_json
+    from db.codec import plain_json
 
     values = {"at": utcnow(), "station": (station if station is not None else getattr(db, "station", "")) or "",
               "actor": actor[:128], "action": action[:64], "target": target[:128], "detail": plain_json(detail or {})}
@@ -550,7 +550,7 @@ def outbox_enqueue(db: Database, idempotency_key: str, payload: dict, topic: str
 def outbox_enqueue_new(db: Database, idempotency_key: str, payload: dict, topic: str = "result") -> tuple[int, bool]:
     """(message id, True when this call queued it; False when the key was queued already)."""
     from db.database import insert_ignore
-    from db.writer import plain_json
+    from db.codec import plain_json
 
     now = utcnow()
     with db.session() as s:

@@ -55,6 +55,7 @@ from sqlalchemy.engine import Connection
 from sqlalchemy.exc import OperationalError
 
 from db import codec
+from db.codec import plain_json
 from db.database import BATCH_END_STATES, RUN_END_STATES, Database
 from db.models import (
     Batch,
@@ -69,7 +70,7 @@ from db.models import (
     VerdictHistoryRow,
     utcnow,
 )
-from station.events import (
+from contracts.events import (
     BatchStateChanged,
     DutProgrammed,
     DutResult,
@@ -82,27 +83,12 @@ from station.events import (
     StepCompleted,
     StepStarted,
 )
-from station.types import AXES
+from contracts.types import AXES
 
 log = logging.getLogger(__name__)
 
 STALL_ALARM_S = 5.0  # a commit in progress longer than this raises the storage alarm (DbWriter(stall_s=))
 AUDIT_VERDICT_SUPERSEDED = "verdict superseded"  # the audit action of a verdict record replaced by a newer one
-
-
-def plain_json(value: Any) -> Any:
-    """JSON-safe copy: numpy to Python, tuples to lists, NaN/inf to None (PostgreSQL rejects NaN)."""
-    if isinstance(value, dict):
-        return {str(k): plain_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain_json(v) for v in value]
-    if hasattr(value, "tolist"):
-        return plain_json(value.tolist())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if hasattr(value, "__dataclass_fields__"):
-        return plain_json({k: getattr(value, k) for k in value.__dataclass_fields__})
-    return value
 
 
 def _num(v: Any) -> float | None:
@@ -195,7 +181,7 @@ VERDICT_FIELDS = ("verdict", "grade", "tray", "reason", "attempt", "limits_name"
 
 
 def verdict_columns(verdict: dict) -> dict:
-    """dut_run columns of a verdict dict (station/judging.py)."""
+    """dut_run columns of a verdict dict (station/decisions/moment.py)."""
     return {
         "verdict": str(verdict.get("verdict") or "")[:16] or None,
         "grade": None if verdict.get("grade") is None else str(verdict["grade"])[:16],

@@ -12,7 +12,7 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass, field
 
-from station.types import Identity, SampleBlock
+from contracts.types import Identity, SampleBlock
 
 
 class DriverError(Exception):
@@ -167,7 +167,7 @@ class BoardDriver(abc.ABC):
         confirm it. Up to `cal_retries` write attempts; a CRC mismatch, a refused write, a
         missing reply or a read-back that differs is retried, and raised as CalibrationError
         (the last kind) when the attempts are used up."""
-        from drivers.protocol.serial_frames import crc32_f32, to_f32
+        from drivers.protocol.cal_record import crc32_f32, to_f32
 
         want = to_f32([*tdb_mg_per_c, *tdsf_ppm_per_c])
         want_crc = crc32_f32(want)

@@ -21,7 +21,7 @@ import numpy as np
 from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats
 from drivers.protocol import can_frames as cf
 from drivers.protocol.serial_frames import SeqTracker
-from station.types import Identity, SampleBlock
+from contracts.types import Identity, SampleBlock
 
 MAX_PENDING_SAMPLES = 2_000_000
 MAX_UNREADABLE_IN_A_ROW = 1000  # then it is not noise but a broken adapter: fail the bus
@@ -458,7 +458,7 @@ class CanBoard(BoardDriver):
             self._cal_fut = None
 
     async def write_thermal(self, tdb_mg_per_c, tdsf_ppm_per_c) -> int:
-        from drivers.protocol.serial_frames import crc32_f32, to_f32
+        from drivers.protocol.cal_record import crc32_f32, to_f32
 
         vals = to_f32([*tdb_mg_per_c, *tdsf_ppm_per_c])
         frames = [cf.encode_cal_field(k, v) for k, v in enumerate(vals)] + [cf.encode_cal_commit(crc32_f32(vals))]

@@ -20,7 +20,7 @@ import serial
 
 from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats
 from drivers.protocol import serial_frames as sf
-from station.types import Identity, SampleBlock
+from contracts.types import Identity, SampleBlock
 
 MAX_PENDING_SAMPLES = 2_000_000  # if nobody reads, the oldest samples are dropped (counted lost)
 

@@ -11,7 +11,7 @@ import argparse
 import importlib
 import sys
 
-from station.types import StationError
+from contracts.types import StationError
 
 COMMANDS: dict[str, str] = {
     "demo": "a whole simulated station on this machine, serving the operator page",

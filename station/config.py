@@ -12,9 +12,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from station.positions import POSITION_INDEX, POSITION_NAMES
-from station.spec_limits import ProductSpec, product_for, resolve_products
-from station.types import StationError
+from contracts.positions import POSITION_INDEX, POSITION_NAMES
+from station.decisions.limits import ProductSpec, product_for, resolve_products
+from contracts.types import StationError
 
 
 class _Model(BaseModel):
@@ -170,7 +170,7 @@ class ProfileConfig(_Model):
 
 
 class CertificateConfig(_Model):
-    """`[certificate]`: who issues the station's calibration certificates (station/certificate.py,
+    """`[certificate]`: who issues the station's calibration certificates (station/records/certificate.py,
     ISO/IEC 17025:2017 7.8.2.1). Stored with every batch (the config snapshot), so a certificate
     reprinted later names the issuer of its run. A key left empty prints "not configured": the
     station never makes up an organisation or a signatory."""
@@ -206,7 +206,7 @@ class StationConfig(_Model):
     chamber: ModbusDevice | None = None
     tokens: list[Token] = []
     profiles: dict[str, ProfileConfig] = {}
-    # Spec limits per product (station/spec_limits.py): built-ins for LIS3DSH and ADXL355, which a
+    # Spec limits per product (station/decisions/limits.py): built-ins for LIS3DSH and ADXL355, which a
     # site's [products.NAME] with the same key replaces.
     products: dict[str, ProductSpec] = {}
     # set by `station replay` (station/replay): every batch of this daemon re-runs recorded data
@@ -245,7 +245,7 @@ class StationConfig(_Model):
         return None
 
     def product_specs(self) -> dict[str, ProductSpec]:
-        """Built-in products overlaid with the site's (station/spec_limits.py)."""
+        """Built-in products overlaid with the site's (station/decisions/limits.py)."""
         return resolve_products(self.products)
 
     def product_for(self, sensor: str | None, part_number: str | None = None) -> ProductSpec | None:

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from station.positions import POSITION_INDEX, POSITION_NAMES, SFEM24, SIX_POSITION
+from contracts.positions import POSITION_INDEX, POSITION_NAMES, SFEM24, SIX_POSITION
 from station.science.verify import VerifyCriteria
 
 REQUIREMENTS = ("segment", "static", "none", "program", "heat")
@@ -278,7 +278,7 @@ def all_profiles(config=None) -> dict[str, Profile]:
 def check_profile_name(name: str, config=None) -> None:
     """A command line's profile that does not exist: one line (StationError) naming the known
     ones, before any hardware is opened (a newcomer's typo must not end in a traceback)."""
-    from station.types import StationError
+    from contracts.types import StationError
 
     known = all_profiles(config)
     if name not in known:

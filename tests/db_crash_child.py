@@ -9,8 +9,8 @@ import time
 import numpy as np
 
 from db import Database, DbWriter
-from station.events import SamplesReceived, SegmentLogged
-from station.types import SampleBlock, Segment
+from contracts.events import SamplesReceived, SegmentLogged
+from contracts.types import SampleBlock, Segment
 
 url, batch, run = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 db = Database(url)

@@ -9,7 +9,7 @@ from typing import Iterator
 import numpy as np
 
 from db import Database
-from station.types import Segment
+from contracts.types import Segment
 
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 

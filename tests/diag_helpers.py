@@ -15,8 +15,8 @@ from drivers.sim.physics import DutTruth, draw_population
 from drivers.sim.world import EnvConfig, SimWorld
 from station.diagnostics.model import DiagnosticModel, prepare, window_rms
 from station.diagnostics.ranking import diagnose
-from station.logfile import DutLog
-from station.positions import GRAVITY_DIRECTIONS
+from contracts.logfile import DutLog
+from contracts.positions import GRAVITY_DIRECTIONS
 
 # (position, lamp_on, chamber_setpoint or None, chamber ramp C/min, seconds)
 Step = tuple[int, bool, float | None, float, float]

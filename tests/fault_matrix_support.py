@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any, Awaitable, Callable
 
 from drivers.sim.station_sim import SimStation
-from station.types import AXES
+from contracts.types import AXES
 from tests.test_daemon_e2e import coil, daemon, wait_for  # noqa: F401 (coil: re-exported for the test)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -661,7 +661,7 @@ async def _run_kill_plan(plan: Plan, tmp: Path) -> None:
     does what `station serve --resume` does (mark interrupted, judge the killed runs, resume)."""
     from station.commands.demo import sim_config
     from station.config import parse_config
-    from station.supervisor import Station, open_database
+    from station.daemon.supervisor import Station, open_database
     from tests.test_daemon_e2e import _to_toml
 
     db_path = tmp / "station.db"

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from db import Database, DbWriter  # noqa: E402
 from db_helpers import THERMAL_JSON  # noqa: E402
-from station.events import DutResult, DutVerdict, SlotStateChanged  # noqa: E402
+from contracts.events import DutResult, DutVerdict, SlotStateChanged  # noqa: E402
 
 
 def main() -> None:

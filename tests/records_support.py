@@ -7,8 +7,8 @@ from __future__ import annotations
 import random
 
 from db import Database, DbWriter
-from station.events import DutResult, DutVerdict, SegmentLogged, SlotStateChanged
-from station.types import Segment
+from contracts.events import DutResult, DutVerdict, SegmentLogged, SlotStateChanged
+from contracts.types import Segment
 
 LIMITS = {"tdb_mg_per_c": 1.5, "tdsf_ppm_per_c": 500.0}
 

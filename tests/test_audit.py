@@ -29,7 +29,7 @@ class _FakeStation:
         self.calls.append(("start", profile, slots, operator))
         return 41
 
-    def abort(self, batch_id, reason="", by="operator"):  # the facade's signatures (station/supervisor.py)
+    def abort(self, batch_id, reason="", by="operator"):  # the facade's signatures (station/daemon/supervisor.py)
         self.calls.append(("abort", batch_id, by))
 
     def answer_prompt(self, batch_id, prompt_id, answer="done", by=None):
@@ -94,8 +94,8 @@ def test_limit_set_changes_are_audited_at_start(tmp_path):
     """The limits live in the config: each start compares them with the last recorded ones."""
     from db import repository as repo
     from station.config import parse_config
-    from station.limits_audit import record_limit_changes
-    from station.spec_limits import default_products
+    from station.decisions.limits_audit import record_limit_changes
+    from station.decisions.limits import default_products
 
     db = Database(f"sqlite:///{tmp_path / 'l.db'}", station="line-3")
     db.upgrade()

@@ -31,7 +31,7 @@ pytestmark = [
 
 def straddling_limits():
     from drivers.sim.physics import draw_population
-    from station.spec_limits import default_products
+    from station.decisions.limits import default_products
 
     truths = draw_population(4, SEED)
     min_tdsf = [float(np.min(t.tdsf_ppm_per_c)) for t in truths[:3]]
@@ -165,7 +165,7 @@ def test_slot_card_flags_a_clamped_tdsf(tmp_path):
     from fastapi import HTTPException
 
     from db import Database, DbWriter
-    from station.events import DutResult, DutVerdict, SlotStateChanged
+    from contracts.events import DutResult, DutVerdict, SlotStateChanged
     from web.app import create_app
     from web.auth import TokenStore
     from web.db_repo import DbRepository

@@ -17,7 +17,7 @@ import pytest
 from db import Database
 from db import repository as repo
 from records_support import write_batches, write_unjudged
-from station.certificate import (BODY_BOTTOM_IN, BODY_TOP_IN, CHECK_COLUMNS_IN, ROW_HEIGHT_IN, Row, build_certificate,
+from station.records.certificate import (BODY_BOTTOM_IN, BODY_TOP_IN, CHECK_COLUMNS_IN, ROW_HEIGHT_IN, Row, build_certificate,
                                  certificate_for, certificate_id, layout, ordered_checks, paginate, render_pdf)
 from web.app import create_app
 from web.auth import TokenStore
@@ -189,7 +189,7 @@ def test_certificate_for_matches_stored_run(store):
 
 def test_certificate_config_section_optional_and_checked():
     from station.config import parse_config
-    from station.types import StationError
+    from contracts.types import StationError
 
     base = {"slots": [{"name": "s01", "serial": "/dev/ttyACM0"}], "lamp": {"tcp": {"host": "127.0.0.1"}, "unit": 1}}
     assert parse_config(base).snapshot()["certificate"] == {"issuer": "", "address": "", "authorised_by": "",

@@ -23,10 +23,10 @@ import pytest
 
 from db import Database, DbWriter
 from records_support import segments_for
-from station.certificate import certificate_for, layout, render_pdf
+from station.records.certificate import certificate_for, layout, render_pdf
 from station.config import parse_config
-from station.events import DutProgrammed, DutResult, DutVerdict, DutVerified, SegmentLogged, SlotStateChanged
-from station.verdicts import RunRecord, final_verdict
+from contracts.events import DutProgrammed, DutResult, DutVerdict, DutVerified, SegmentLogged, SlotStateChanged
+from station.decisions.verdicts import RunRecord, final_verdict
 
 ROOT = Path(__file__).resolve().parent.parent
 ARTIFACTS = ROOT / "artifacts"

@@ -6,7 +6,7 @@ import pytest
 
 from station.config import load_config, parse_config
 from station.profiles import BUILTIN_PROFILES, all_profiles
-from station.types import StationError
+from contracts.types import StationError
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -18,8 +18,8 @@ from drivers.modbus_devices import ModbusLampRelay, ModbusLink
 from drivers.sim.station_sim import SimStation
 from station.commands.demo import sim_config, truth_by_slot
 from station.config import parse_config
-from station.supervisor import Station, open_database
-from station.types import AXES
+from station.daemon.supervisor import Station, open_database
+from contracts.types import AXES
 
 TDB_TOL_MG_PER_C = 0.03
 TDSF_TOL_PPM_PER_C = 40.0
@@ -316,7 +316,7 @@ async def test_demo_station_runs_sfem_24_with_its_simulated_chamber(tmp_path):
             # Every step: the SFEM removes the frame errors down to the noise (~0.03 mg here). (The
             # 65 C step once left 5-13 mg: samples of the previous position, 45 deg away, that
             # arrived after the fixture reported the move; static steps now start at the first
-            # sample facing their position, station.positions.first_facing.)
+            # sample facing their position, contracts.positions.first_facing.)
             for t in temps:
                 assert t["fit"]["rmse_after_mg"] < 0.01 * t["fit"]["rmse_before_mg"], t["setpoint_c"]
             await st.flush_db()

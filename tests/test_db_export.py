@@ -15,9 +15,9 @@ from db import DbWriter, codec
 from db import repository as repo
 from db.export import export_run_csv, prune, run_log
 from db.models import SampleChunk, SegmentRow, ThermalResultRow, utcnow
-from station.events import DutResult, SamplesReceived, SegmentLogged, SlotStateChanged
-from station.logfile import ACC_DECIMALS, TEMP_DECIMALS, DutLog, format_log, read_log
-from station.types import SampleBlock, StationError
+from contracts.events import DutResult, SamplesReceived, SegmentLogged, SlotStateChanged
+from contracts.logfile import ACC_DECIMALS, TEMP_DECIMALS, DutLog, format_log, read_log
+from contracts.types import SampleBlock, StationError
 from db_helpers import THERMAL_JSON, adxl355_stream, lis3dsh_stream, segment, sqlite_db
 
 

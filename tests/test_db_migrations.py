@@ -16,9 +16,9 @@ from db import Database, DbWriter
 from db import repository as repo
 from db.export import run_log
 from db.models import SCHEMA_REVISION, Base
-from station.events import DutResult, DutVerdict, SamplesReceived, SegmentLogged, SlotStateChanged
-from station.logfile import ACC_DECIMALS, TEMP_DECIMALS
-from station.types import SampleBlock, StationError
+from contracts.events import DutResult, DutVerdict, SamplesReceived, SegmentLogged, SlotStateChanged
+from contracts.logfile import ACC_DECIMALS, TEMP_DECIMALS
+from contracts.types import SampleBlock, StationError
 from db_helpers import SFEM_JSON, THERMAL_JSON, lis3dsh_stream, pg_database, pg_reachable, segment
 
 TABLES = {"dut", "batch", "dut_run", "segment", "thermal_result", "sfem_result", "sample_chunk", "outbox", "alembic_version",

@@ -15,12 +15,12 @@ from db import DbWriter
 from db import repository as repo
 from db.export import run_log
 from db.models import Batch, DutRun, Outbox, SampleChunk, SegmentRow, utcnow
-from station.events import (
+from contracts.events import (
     BatchStateChanged, DutResult, DutVerdict, LampChanged, SamplesReceived, SegmentLogged, SlotStateChanged,
     StepStarted,
 )
-from station.logfile import ACC_DECIMALS
-from station.types import SampleBlock
+from contracts.logfile import ACC_DECIMALS
+from contracts.types import SampleBlock
 from db_helpers import SFEM_JSON, THERMAL_JSON, lis3dsh_stream, segment, sqlite_db
 
 

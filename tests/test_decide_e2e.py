@@ -23,8 +23,8 @@ from drivers.sim.physics import draw_population
 from drivers.sim.station_sim import SimStation
 from station.commands.demo import sim_config
 from station.config import parse_config
-from station.spec_limits import default_products
-from station.supervisor import Station, open_database
+from station.decisions.limits import default_products
+from station.daemon.supervisor import Station, open_database
 
 SPEED = 400.0
 SEED = 3

@@ -26,7 +26,7 @@ from station.diagnostics.effects import REGISTRY, load_effects_file
 from station.diagnostics.model import DiagnosticModel, prepare, window_rms
 from station.diagnostics.plots import PLOTS, render_png
 from station.diagnostics.ranking import diagnose
-from station.positions import GRAVITY_DIRECTIONS
+from contracts.positions import GRAVITY_DIRECTIONS
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "station" / "diagnostics" / "examples" / "my_effect.py"
@@ -176,7 +176,7 @@ def test_user_effect_registered_from_a_python_file(user_effect):
 
 
 def test_unknown_effects_file_and_effect_are_clear_errors(tmp_path):
-    from station.types import StationError
+    from contracts.types import StationError
 
     with pytest.raises(StationError, match="no such effects file"):
         load_effects_file(tmp_path / "nope.py")
@@ -269,7 +269,7 @@ def test_cli_user_mistakes_are_one_clear_line(tmp_path, capsys):
 
 def test_cli_plugin_effect_in_subprocess(tmp_path):
     logs, _ = H.sim_logs(("thermal_lag",), profile=H.MULTI[:4], seed=6)
-    from station.logfile import write_log
+    from contracts.logfile import write_log
 
     path = tmp_path / "lag.csv"
     write_log(path, logs[0])

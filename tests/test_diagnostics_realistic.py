@@ -26,7 +26,7 @@ import diag_helpers as H
 from drivers.sim.physics import NOISE_MODELS, draw_population, noise_model
 from drivers.sim.world import SimWorld
 from station.diagnostics.ranking import diagnose
-from station.types import StationError
+from contracts.types import StationError
 
 ROOT = Path(__file__).resolve().parents[1]
 ODR = 1.0

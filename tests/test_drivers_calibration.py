@@ -16,7 +16,7 @@ from drivers.serial_board import SerialBoard
 from drivers.sim.serial_pty import SimSerialBoard
 from drivers.sim.slcan_pty import SimCanBoard, SimCanHub, SlcanPtyAdapter
 from station.science.thermal_model import compensate
-from station.types import Identity, SampleBlock
+from contracts.types import Identity, SampleBlock
 
 LIS = Identity("SN0001", "LIS3DSH", "1.2", 60.0, 1.0, 0.0, 3.125)
 ADXL = Identity("AX0001", "ADXL355", "1.0", 3.9, -9.05, 1885.0, 3.125)

@@ -10,7 +10,7 @@ import pytest
 from drivers.base import DriverError
 from drivers.can_board import CanBoard, CanBus
 from drivers.sim.slcan_pty import SimCanBoard, SimCanHub, SlcanPtyAdapter, VirtualCanBridge, can_scale
-from station.types import Identity, SampleBlock
+from contracts.types import Identity, SampleBlock
 
 NODES = (1, 5, 42, 127)
 

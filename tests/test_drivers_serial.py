@@ -9,7 +9,7 @@ from drivers.base import DriverError
 from drivers.protocol import serial_frames as sf
 from drivers.serial_board import SerialBoard
 from drivers.sim.serial_pty import SimSerialBoard
-from station.types import Identity
+from contracts.types import Identity
 
 LIS = Identity("SN0001", "LIS3DSH", "1.2", 60.0, 1.0, 0.0, 3.125)
 ADXL = Identity("AX0001", "ADXL355", "1.0", 3.9, -9.05, 1885.0, 3.125)
@@ -32,7 +32,7 @@ async def _collect(drv, n, timeout_s=10.0):
         b = await drv.read_block(0.5)
         blocks.append(b)
         got += len(b)
-    from station.types import SampleBlock
+    from contracts.types import SampleBlock
 
     return SampleBlock.concat(blocks)
 

@@ -27,7 +27,7 @@ from drivers.protocol import can_frames as cf
 from drivers.protocol import serial_frames as sf
 from drivers.serial_board import SerialBoard
 from drivers.sim.slcan_pty import SimCanBoard, SimCanHub, SlcanPtyAdapter
-from station.types import Identity
+from contracts.types import Identity
 
 pytestmark = pytest.mark.timeout(180)
 

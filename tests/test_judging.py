@@ -1,4 +1,4 @@
-"""station/judging.py: the hooks between the daemon and the verdicts, on a Station-shaped object with
+"""station/decisions/moment.py: the hooks between the daemon and the verdicts, on a Station-shaped object with
 the in-memory database stand-in and a real EventBus (no hardware needed: the hooks read only the
 DUT runs, the config and the database)."""
 
@@ -7,12 +7,12 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 from station.config import parse_config
-from station.events import EventBus
+from contracts.events import EventBus
 from station.profiles import all_profiles
-from station.sequencer import DutRun
-from station.supervisor import MemoryDb
-from station.judging import judge_final, time_left
-from station.types import Identity
+from station.daemon.sequencer import DutRun
+from station.daemon.supervisor import MemoryDb
+from station.decisions.moment import judge_final, time_left
+from contracts.types import Identity
 
 CFG = parse_config({"slots": [{"name": "s1", "serial": "/dev/null"}], "lamp": {"tcp": {"host": "127.0.0.1"}, "unit": 1},
                     "products": {"LIS3DSH": {"sensor": "LIS3DSH", "version": "4", "limits": [

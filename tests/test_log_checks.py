@@ -4,7 +4,7 @@ Measured on main before: `station calibrate` on a log with m/s2 in the g columns
 exit 0; Kelvin temperatures, an all-zero clock, reversed or duplicated rows all gave a result;
 `# odr_hz: 1e9` made `station replay --logs` spin forever, 0/nan/inf/-5 a traceback; a 200 MB log
 took 1.9 GB. Now each is one line on stderr and exit 2, from the reader every command shares
-(station/logfile.py read_log -> LogChecker; station/log_import.py for other tools' logs).
+(contracts/logfile.py read_log -> LogChecker; station/commands/log_import.py for other tools' logs).
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 from station import cli
-from station import logfile as lf
-from station.logfile import DutLog, format_log, parse_log, read_log, write_log
+from contracts import logfile as lf
+from contracts.logfile import DutLog, format_log, parse_log, read_log, write_log
 from station.science.thermal_calibration import calibrate
-from station.types import StationError
+from contracts.types import StationError
 from thermal_synth import fast_thermal
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -249,7 +249,7 @@ def test_memory_stays_about_the_arrays(tmp_path):
             for ln in open("/proc/self/status"):
                 if ln.startswith("VmHWM"):
                     return int(ln.split()[1]) / 1024
-        from station.logfile import read_log
+        from contracts.logfile import read_log
         before = hwm()
         log = read_log({str(p)!r})
         print(len(log), hwm() - before)

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import diag_helpers as H
-from station.log_import import G0_M_S2, import_log, parse_import
-from station.logfile import write_log
-from station.types import StationError
+from station.commands.log_import import G0_M_S2, import_log, parse_import
+from contracts.logfile import write_log
+from contracts.types import StationError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -150,7 +150,7 @@ def test_an_imports_header_numbers_are_checked(value, why):
 def test_incomplete_rows_are_skipped_across_chunks(monkeypatch):
     """Another sensor's lines in a shared log (other field count, empty fields) are skipped, in
     whichever block of the file they fall."""
-    import station.logfile as lf
+    import contracts.logfile as lf
 
     good = [f"{k * 0.01:.2f},0,0,1,25" for k in range(400)]
     lines = list(good)

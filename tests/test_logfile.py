@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from station.logfile import DutLog, format_log, parse_log, read_log, write_log
-from station.types import StationError
+from contracts.logfile import DutLog, format_log, parse_log, read_log, write_log
+from contracts.types import StationError
 
 
 def _log(n: int = 50) -> DutLog:

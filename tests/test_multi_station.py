@@ -22,7 +22,7 @@ from db import Database, DbWriter
 from db import repository as repo
 from db.models import DutRun
 from db.writer import take_result_seq
-from station.events import DutVerdict
+from contracts.events import DutVerdict
 from db_helpers import pg_database, pg_reachable
 from web.app import create_app, make_server
 from web.auth import TokenStore

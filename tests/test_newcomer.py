@@ -144,7 +144,7 @@ def test_run_plots_use_time_since_the_runs_first_sample():
     """Board clocks count from power-up (here 73000 s): the plot's axis starts at the run's first sample."""
     import numpy as np
 
-    from station.logfile import DutLog
+    from contracts.logfile import DutLog
     from web.plots import render_run_png, run_figure
 
     t = 73000.0 + np.arange(300) / 3.125

@@ -1,8 +1,8 @@
-"""station.positions.first_facing: a static step starts at the first sample that shows its position."""
+"""contracts.positions.first_facing: a static step starts at the first sample that shows its position."""
 
 import numpy as np
 
-from station.positions import SFEM24, direction, first_facing
+from contracts.positions import SFEM24, direction, first_facing
 
 
 def test_first_facing_skips_the_previous_position_and_motion():

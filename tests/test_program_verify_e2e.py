@@ -14,10 +14,10 @@ import asyncio
 import numpy as np
 import pytest
 
-from drivers.protocol.serial_frames import crc32_f32, to_f32
+from drivers.protocol.cal_record import crc32_f32, to_f32
 from drivers.sim.physics import draw_population
 from drivers.sim.station_sim import SimStation
-from station.types import AXES
+from contracts.types import AXES
 from tests.test_daemon_e2e import coil, daemon
 
 SPEED = 250.0
@@ -166,8 +166,7 @@ class TruthAnalysisStation:
     def make(base, truths):
         class _S(base):
             async def analyse(self, seq):
-                from station import program_verify
-
+                from station.daemon import program_verify
                 if program_verify.after_programming(seq):
                     return await super().analyse(seq)
                 for d in seq.duts:
@@ -180,7 +179,7 @@ class TruthAnalysisStation:
 async def _short_daemon(sim, tmp_path):
     from station.commands.demo import sim_config, truth_by_slot
     from station.config import parse_config
-    from station.supervisor import Station, open_database
+    from station.daemon.supervisor import Station, open_database
 
     cfg = parse_config(sim_config(sim, speed=SPEED, db_url=f"sqlite:///{tmp_path / 'pv.db'}", profiles=SHORT_PV), "<t>")
     db = open_database(cfg.database_url)

@@ -22,7 +22,7 @@ def live(tmp_path_factory):
 
 def _store_program_verify(db, truth):
     from db.writer import DbWriter
-    from station.events import DutProgrammed, DutVerified
+    from contracts.events import DutProgrammed, DutVerified
 
     (serial, t), (serial2, t2) = list(truth.items())[:2]
     w = DbWriter(db, interval_s=0.05)
@@ -79,8 +79,8 @@ def test_writer_outbox_carries_program_verify(tmp_path):
     from db.models import Outbox
     from db.repository import results_since
     from db.writer import DbWriter
-    from station.events import DutProgrammed, DutVerdict, DutVerified
-    from station.supervisor import open_database
+    from contracts.events import DutProgrammed, DutVerdict, DutVerified
+    from station.daemon.supervisor import open_database
 
     db = open_database(f"sqlite:///{tmp_path / 'o.db'}")
     try:

@@ -8,6 +8,7 @@ import pytest
 
 from drivers.protocol import can_frames as cf
 from drivers.protocol import serial_frames as sf
+from drivers.protocol.cal_record import crc32_f32, to_f32
 
 
 def crc32_bitwise(data: bytes) -> int:
@@ -37,11 +38,11 @@ SFEM = (1.0, 0.0078125, -0.001953125, 0.0, 0.984375, 0.0, 0.0, 0.0, 1.015625, 0.
 def test_crc_helper_over_float32_le():
     raw = struct.pack("<6f", *THERMAL)
     assert raw[:4] == bytes([0x00, 0x00, 0x00, 0x3F])  # 0.5f little-endian
-    assert sf.crc32_f32(THERMAL) == crc32_bitwise(raw)
+    assert crc32_f32(THERMAL) == crc32_bitwise(raw)
     # a value that float32 rounds: the CRC is over the float32, not the double
-    assert sf.crc32_f32([0.1]) == crc32_bitwise(struct.pack("<f", 0.1)) != crc32_bitwise(struct.pack("<d", 0.1))
-    assert sf.crc32_f32([0.1]) == crc32_bitwise(bytes.fromhex("cdcccc3d"))
-    assert sf.crc32_f32([-0.0]) == sf.crc32_f32([0.0])  # -0 written as 0
+    assert crc32_f32([0.1]) == crc32_bitwise(struct.pack("<f", 0.1)) != crc32_bitwise(struct.pack("<d", 0.1))
+    assert crc32_f32([0.1]) == crc32_bitwise(bytes.fromhex("cdcccc3d"))
+    assert crc32_f32([-0.0]) == crc32_f32([0.0])  # -0 written as 0
 
 
 def test_calw_exact_bytes():
@@ -82,7 +83,7 @@ def test_board_replies_exact_bytes_and_parse():
     p = sf.FrameParser()
     frames = p.feed(ack + c + s + sf.AckFrame("COMP").encode() + sf.ErrorFrame("CALW", "flash write failed").encode())
     assert frames == [sf.AckFrame("CALW", (crc_hex.decode(),)), sf.CalReadFrame(THERMAL, crc, True),
-                      sf.SfemReadFrame(sf.to_f32(SFEM), scrc), sf.AckFrame("COMP"), sf.ErrorFrame("CALW", "flash write failed")]
+                      sf.SfemReadFrame(to_f32(SFEM), scrc), sf.AckFrame("COMP"), sf.ErrorFrame("CALW", "flash write failed")]
     # malformed replies are counted, not fatal
     bad = sf.encode("C,1,2,3,4,5,6,ZZZZZZZZ,1") + sf.encode("C,1,2,3,4,5,6,00000000,2") + sf.encode("S,1,2,3")
     assert p.feed(bad) == [] and p.stats.frames_malformed == 3

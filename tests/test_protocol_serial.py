@@ -2,7 +2,7 @@
 
 from drivers.base import LinkStats
 from drivers.protocol import serial_frames as sf
-from station.types import Identity
+from contracts.types import Identity
 
 
 def test_station_commands_exact_bytes():

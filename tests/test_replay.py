@@ -37,7 +37,7 @@ def recorded(tmp_path_factory):
 
 
 def _db(url: str):
-    from station.supervisor import open_database
+    from station.daemon.supervisor import open_database
 
     return open_database(url, station="test")
 
@@ -80,7 +80,8 @@ def replays(recorded):
 def test_a_recorded_12_dut_demo_batch_replays_identically(recorded, replays):
     from db import repository as R
     from db.export import run_samples
-    from station.replay.recording import from_database, to_counts
+    from contracts.recording import to_counts
+    from station.replay.recording import from_database
 
     folder, url = recorded
     out = replays[0]["same"]

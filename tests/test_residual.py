@@ -15,7 +15,7 @@ from drivers.sim.physics import draw_population
 from drivers.sim.profiles import run_profile
 from drivers.sim.world import SimWorld
 from station.science.thermal_calibration import calibrate
-from station.types import AXES
+from contracts.types import AXES
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Retests and yields over real HTTP: runs judged by station/verdicts.py are written through the real
+"""Retests and yields over real HTTP: runs judged by station/decisions/verdicts.py are written through the real
 DbWriter into the SQLite file of a live station (Station + web app on 127.0.0.1), then read back
 through GET /api/yield, /api/results, /api/duts/{serial} and /api/duts/{serial}/runs.
 
@@ -14,9 +14,9 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from station.events import DutResult, DutVerdict, SlotStateChanged
-from station.spec_limits import Limit, ProductSpec
-from station.verdicts import Measurement, decide
+from contracts.events import DutResult, DutVerdict, SlotStateChanged
+from station.decisions.limits import Limit, ProductSpec
+from station.decisions.verdicts import Measurement, decide
 from web_support import LiveStation, auth
 
 SPEC = ProductSpec(name="yield-limits", version="9", sensor="LIS3DSH",
@@ -47,7 +47,7 @@ def seed(db) -> dict[str, list[int]]:
                 run_id = db.create_run(batch, slot, serial, "LIS3DSH", {"serial": serial})
                 writer.bind_run(batch, slot, run_id)
                 v = verdict(kinds[attempt])
-                v.update(attempt=db.run_attempt(run_id), run_id=run_id)  # as station/judging.py does
+                v.update(attempt=db.run_attempt(run_id), run_id=run_id)  # as station/decisions/moment.py does
                 if kinds[attempt] == "error":
                     writer.submit(SlotStateChanged(batch, slot=slot, serial=serial, state="faulted", fault_reason="link lost"))
                     writer.submit(DutVerdict(batch, slot=slot, serial=serial, verdict=v))

@@ -2,7 +2,7 @@
 
 Seen on main: a log whose `# serial:` was `../../../../escape`, run through
 `station diagnose ... --save-model models`, wrote `escape.model.json` four folders above `models/`;
-`--plots` built `<serial>_<plot>.png` the same way. station/filenames.py is the one helper.
+`--plots` built `<serial>_<plot>.png` the same way. contracts/filenames.py is the one helper.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from station.filenames import _WINDOWS_DEVICES, HASH_LEN, MAX_LEN, check_inside, safe_name, safe_path
-from station.types import StationError
+from contracts.filenames import _WINDOWS_DEVICES, HASH_LEN, MAX_LEN, check_inside, safe_name, safe_path
+from contracts.types import StationError
 
 ROOT = Path(__file__).resolve().parents[1]
 SAFE = re.compile(r"[A-Za-z0-9._+\-]+")

@@ -29,13 +29,13 @@ import pytest
 from drivers.sim.physics import DutTruth, draw_population
 from drivers.sim.profiles import CHAMBER_STEPS_C, Step, fast_thermal_steps, run_profile, run_steps, step_table
 from drivers.sim.world import SimWorld
-from station.logfile import DutLog
-from station.positions import GRAVITY_DIRECTIONS, POSITION_INDEX, SIX_POSITION
+from contracts.logfile import DutLog
+from contracts.positions import GRAVITY_DIRECTIONS, POSITION_INDEX, SIX_POSITION
 from station.science.sfem import decompose_a, fit_sfem_record
 from station.science.streaming import StreamingCalibrator
 from station.science.thermal_calibration import calibrate
 from station.science.thermal_model import compensate, drift_error_fs_pct, drift_error_mg
-from station.types import AXES, StationError
+from contracts.types import AXES, StationError
 
 N_DUTS = 32
 SEED = 2022

@@ -11,11 +11,11 @@ import math
 import pytest
 
 from drivers.base import Fixture, LampRelay
-from station.events import Alarm, EventBus, LampChanged, PromptRaised
+from contracts.events import Alarm, EventBus, LampChanged, PromptRaised
 from station.profiles import BUILTIN_PROFILES, Profile, Step
-from station.safety import LampGuard, LampTripped
-from station.sequencer import TRANSITIONS, DutRun, Sequencer
-from station.types import Segment
+from station.daemon.safety import LampGuard, LampTripped
+from station.daemon.sequencer import TRANSITIONS, DutRun, Sequencer
+from contracts.types import Segment
 
 
 class MemRelay(LampRelay):

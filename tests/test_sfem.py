@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from station.positions import SFEM24, direction
+from contracts.positions import SFEM24, direction
 from station.science.sfem import (
     SfemInsufficientData,
     SfemThermalModel,

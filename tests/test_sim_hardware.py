@@ -11,7 +11,7 @@ from drivers.can_board import CanBoard, CanBus
 from drivers.modbus_devices import ModbusFixture, ModbusLampRelay, ModbusLink, ModbusThermometer
 from drivers.serial_board import SerialBoard
 from drivers.sim.station_sim import SimStation
-from station.types import SampleBlock
+from contracts.types import SampleBlock
 
 
 async def _open_all(sim):

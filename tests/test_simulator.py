@@ -13,9 +13,9 @@ import pytest
 from drivers.sim.physics import HIDDEN_EFFECTS, SENSORS, DutTruth, draw_population, population_from_json
 from drivers.sim.profiles import VALIDATION_CYCLES, fast_thermal_steps, run_profile, run_steps, step_table
 from drivers.sim.world import EnvConfig, SimWorld
-from station.logfile import read_log
-from station.positions import POSITION_INDEX
-from station.types import StationError
+from contracts.logfile import read_log
+from contracts.positions import POSITION_INDEX
+from contracts.types import StationError
 
 
 def _world(n=3, seed=11, effects=(), sensor="LIS3DSH"):

@@ -14,7 +14,7 @@ import pytest
 
 from db import Database
 from records_support import LIMITS, write_batches
-from station import spc
+from station.records import spc
 from web.app import create_app
 from web.auth import TokenStore
 from web.db_repo import DbRepository

@@ -19,9 +19,9 @@ from sqlalchemy import func, select
 from db import DbWriter
 from db.models import DutRun, SampleChunk, SegmentRow
 from db_helpers import lis3dsh_stream, segment, sqlite_db
-from station.events import DutVerdict, SamplesReceived, SegmentLogged
-from station.supervisor import Station
-from station.types import SampleBlock
+from contracts.events import DutVerdict, SamplesReceived, SegmentLogged
+from station.daemon.supervisor import Station
+from contracts.types import SampleBlock
 
 HOLD_S = 30.0
 STALL_S = 5.0
@@ -39,7 +39,7 @@ print("RELEASED", time.time(), flush=True)
 
 
 def _storage_status(writer: DbWriter, db) -> str:
-    """The supervisor's own health logic on this writer (station/supervisor.py, not a copy)."""
+    """The supervisor's own health logic on this writer (station/daemon/supervisor.py, not a copy)."""
     return Station.storage_status(SimpleNamespace(writer=writer, db=db))
 
 

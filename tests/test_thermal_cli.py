@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from station import cli
-from station.logfile import DutLog, write_log
+from contracts.logfile import DutLog, write_log
 from station.science.thermal_calibration import calibrate
 from thermal_synth import fast_thermal
 
@@ -60,7 +60,7 @@ def test_human_table(good_log, capsys):
 
 
 def test_calibrate_function_equals_cli(good_log, capsys):
-    from station.logfile import read_log
+    from contracts.logfile import read_log
 
     res = calibrate(read_log(good_log))
     assert cli.main(["calibrate", str(good_log), "--json"]) == 0

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from station.science.streaming import InsufficientData, StreamingCalibrator, StreamingConfig
-from station.types import StationError
+from contracts.types import StationError
 from thermal_synth import fast_thermal
 
 TABLE6 = [  # martinez2022 Table 6, proposed technique: (TDB mg/C, TDSF ppm/C) per axis

@@ -1,4 +1,4 @@
-"""Property-based test of the pure verdict core (station/verdicts.py, design 8): over random run
+"""Property-based test of the pure verdict core (station/decisions/verdicts.py, design 8): over random run
 histories (measurements present, missing, NaN, numpy scalars; every end state; limits of every
 shape: low only, high only, both, marginal bands, systematic terms, axis subsets, required or not;
 grades with their own limits; with and without program-and-verify), a PASS implies
@@ -22,8 +22,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from station.spec_limits import Grade, Limit, ProductSpec
-from station.verdicts import (
+from station.decisions.limits import Grade, Limit, ProductSpec
+from station.decisions.verdicts import (
     PER_AXIS,
     RunRecord,
     Measurement,

@@ -1,13 +1,13 @@
-"""Verdicts, grades and guard bands against hand-computed cases (station/verdicts.py is pure)."""
+"""Verdicts, grades and guard bands against hand-computed cases (station/decisions/verdicts.py is pure)."""
 
 from __future__ import annotations
 
 import pytest
 
 from station.config import parse_config
-from station.spec_limits import Grade, Limit, ProductSpec, default_products
-from station.types import AXES, StationError
-from station.verdicts import Measurement, decide, judge, link_measurements, summarize, thermal_measurements
+from station.decisions.limits import Grade, Limit, ProductSpec, default_products
+from contracts.types import AXES, StationError
+from station.decisions.verdicts import Measurement, decide, judge, link_measurements, summarize, thermal_measurements
 
 TDSF = Limit(measurement="tdsf_ppm_per_c", low=-500.0, marginal=10.0, unit="ppm/C", label="TDSF")
 
@@ -205,7 +205,7 @@ def test_systematic_uncertainty_widens_the_guard_band():
 
 
 def test_sfem_measurements_and_limits():
-    from station.verdicts import sfem_measurements
+    from station.decisions.verdicts import sfem_measurements
 
     fit = {"bias": [0.012, -0.130, 0.0], "bias_sigma": [1e-4, 1e-4, 1e-4], "scale": [1.02, 0.97, 1.001],
            "scale_sigma": [1e-4, 1e-4, 1e-4]}

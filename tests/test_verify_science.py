@@ -80,7 +80,7 @@ def test_too_small_a_rise_is_not_a_pass():
 def test_the_verification_window_is_defined_by_the_samples_not_the_read_timing():
     """rise_window: after t_from until the DUT's own temperature has risen heat_c (median of 8
     against the first 8), whatever blocks the samples arrived in (program_verify._verify_one)."""
-    from station.program_verify import rise_window
+    from station.daemon.program_verify import rise_window
 
     t = np.arange(0.0, 1000.0, 0.5)
     temp = 25.0 + np.clip(t - 200.0, 0.0, None) * 0.05  # flat until 200 s, then +0.05 C/s

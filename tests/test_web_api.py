@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import pytest
 
-from station.logfile import parse_log
+from contracts.logfile import parse_log
 from web_support import TOKENS, LiveStation, auth, seed_results, wait_for
 
 TERMINAL = {"finished", "aborted", "failed", "interrupted"}
@@ -100,7 +100,7 @@ def batch(live, client):
         seen_states.add(st["state"])
         if st["state"] == "running":
             running_snapshots.append(st)
-        # the batch reports its end a moment before its DUTs do (station/sequencer.py: "finished"
+        # the batch reports its end a moment before its DUTs do (station/daemon/sequencer.py: "finished"
         # is set before release_duts marks them done): wait for both
         return st if st["state"] in TERMINAL and all(s["state"] in ("done", "faulted") for s in st["slots"]) else None
 

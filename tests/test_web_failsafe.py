@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import httpx
 import pytest
 
-from station.events import EventBus
+from contracts.events import EventBus
 from web.app import create_app
 from web.auth import TokenStore
 from web.diag_plots import BoundedCache, Busy

@@ -89,7 +89,7 @@ class LiveStation:
         self.access_log = access_log
         self.operator_hands = operator_hands
         self.sim_process = sim_process
-        self.products = products  # spec limits per product (station/spec_limits.py), None = built-ins
+        self.products = products  # spec limits per product (station/decisions/limits.py), None = built-ins
         self.profiles = profiles  # site profiles added to the config (beside "hold")
         self._child = None
         self.prompts_answered: list[int] = []
@@ -123,7 +123,7 @@ class LiveStation:
 
     async def _amain(self) -> None:
         from drivers.sim.station_sim import SimStation
-        from station.supervisor import Station, open_database
+        from station.daemon.supervisor import Station, open_database
         from web.app import create_app, make_server
 
         self.loop = asyncio.get_running_loop()
@@ -251,8 +251,8 @@ def seed_results(db, n_duts: int = 5, *, batch_profile: str = "fast-thermal", se
 
     Returns {serial: {"run_id", "tdb", "tdsf"}} (the truth the API must give back)."""
     from db.writer import DbWriter
-    from station.events import DutResult, DutVerdict, SamplesReceived, SegmentLogged, SlotStateChanged
-    from station.types import SampleBlock, Segment
+    from contracts.events import DutResult, DutVerdict, SamplesReceived, SegmentLogged, SlotStateChanged
+    from contracts.types import SampleBlock, Segment
 
     rng = np.random.default_rng(seed)
     batch_id = db.create_batch(batch_profile, "tester", {})
@@ -337,7 +337,7 @@ class IdleStation:
     config = None
 
     def __init__(self, db):
-        from station.events import EventBus
+        from contracts.events import EventBus
 
         self.db = db
         self.bus = EventBus()  # the page's live stream: nothing happens on an idle station

@@ -18,7 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 
-from station.types import StationError
+from contracts.types import StationError
 from web import __version__
 from web.auth import TokenStore, install_log_redaction
 from web.guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
@@ -100,7 +100,7 @@ def create_app(
     max_body_bytes: int | None = None,
     max_event_streams: int | None = None,
 ) -> FastAPI:
-    """station: the daemon's facade (station.supervisor.Station or anything with its methods).
+    """station: the daemon's facade (station.daemon.supervisor.Station or anything with its methods).
 
     repo: storage for history/MES (default: built from station.db); tokens: default from
     station.config; outbox: True = from config ([mes] webhook_url), an OutboxConfig, or False/None.

@@ -18,8 +18,8 @@ from db import repository as R
 from db.database import Database
 from db.writer import record_key
 from db.models import Dut, DutRun, Outbox
-from station.logfile import DutLog
-from station.types import StationError
+from contracts.logfile import DutLog
+from contracts.types import StationError
 from web.repo import WebRepository
 
 
@@ -106,7 +106,7 @@ class DbRepository(WebRepository):
         ]
         b["sorting"] = [{k: sl.get(k) for k in ("slot", "serial", "verdict", "grade", "tray", "reason", "attempt")}
                         for sl in b["slots"] if sl.get("verdict")]
-        from station.verdicts import summarize
+        from station.decisions.verdicts import summarize
 
         b["decision"] = summarize(sl if sl.get("verdict") else None for sl in b["slots"])
         counts = {"running": 0, "done": 0, "faulted": 0, "interrupted": 0}  # as the live status counts
@@ -196,7 +196,7 @@ class DbRepository(WebRepository):
         return R.replay_diff(self.db, batch_id)
 
     def certificate_pdf(self, serial: str) -> bytes | None:
-        from station.certificate import certificate_for, render_pdf
+        from station.records.certificate import certificate_for, render_pdf
 
         cert = certificate_for(self.db, serial)
         return None if cert is None else render_pdf(cert)

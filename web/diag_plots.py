@@ -23,7 +23,7 @@ from typing import Callable, Generic, Hashable, TypeVar
 from station.diagnostics.effects import REGISTRY, get_effect
 from station.diagnostics.plots import PLOTS, render_png
 from station.diagnostics.ranking import DiagnosisReport, diagnose
-from station.logfile import DutLog
+from contracts.logfile import DutLog
 
 CACHE_SIZE = 8  # reports (each holds its log's fitted arrays: a few MB for a long run)
 PNG_CACHE_SIZE = 48  # plots, ~50-150 KB each

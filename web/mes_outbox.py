@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import httpx
 
 from station.aio import cancel_and_wait
-from station.events import DutVerdict
+from contracts.events import DutVerdict
 from web.repo import WebRepository
 from web.views import clean
 

@@ -9,7 +9,7 @@ import threading
 
 import numpy as np
 
-from station.types import AXES, T_REF_C
+from contracts.types import AXES, T_REF_C
 
 _LOCK = threading.Lock()  # matplotlib's font cache and text layout are not fully thread safe
 MAX_POINTS = 4000
@@ -47,7 +47,7 @@ def since_first_sample(time_s: np.ndarray, segments: list[dict] | None) -> tuple
 
 
 def render_run_png(log, segments: list[dict], thermal_axes: dict | None, title: str = "") -> bytes:
-    """log: station.logfile.DutLog; segments: dicts with t_start_s/t_end_s; thermal_axes: x/y/z
+    """log: contracts.logfile.DutLog; segments: dicts with t_start_s/t_end_s; thermal_axes: x/y/z
     -> {tdb_mg_per_c, tdsf_ppm_per_c} or None (then only raw is drawn)."""
     with _LOCK:
         fig = run_figure(log, segments, thermal_axes, title)

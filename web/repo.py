@@ -10,7 +10,7 @@ from __future__ import annotations
 import abc
 from typing import Any
 
-from station.logfile import DutLog
+from contracts.logfile import DutLog
 
 
 class WebRepository(abc.ABC):
@@ -108,7 +108,7 @@ class WebRepository(abc.ABC):
         return None
 
     def certificate_pdf(self, serial: str) -> bytes | None:
-        """The calibration certificate (PDF) of a serial (station/certificate.py); None for an
+        """The calibration certificate (PDF) of a serial (station/records/certificate.py); None for an
         unknown serial; LookupError for a serial without a stored result."""
         from fastapi import HTTPException
 

@@ -22,7 +22,7 @@ VerdictName = Literal["pass", "marginal", "fail", "error"]
 
 
 class DecisionFields(_Out):
-    """The station's decision on a DUT run (station/verdicts.py); null while it is not judged."""
+    """The station's decision on a DUT run (station/decisions/verdicts.py); null while it is not judged."""
 
     verdict: VerdictName | None = Field(
         default=None, description="pass | marginal (an uncertainty interval crosses a limit, or a value is in a "
@@ -373,7 +373,7 @@ class ReplayOut(_Out):
 
 
 class SpcOut(_Out):
-    """station/spc.py SpcReport plus the parameters available and the yield tables."""
+    """station/records/spc.py SpcReport plus the parameters available and the yield tables."""
 
     parameter: str
     unit: str = ""

@@ -15,7 +15,7 @@ from typing import Any, AsyncIterator
 
 from starlette.responses import StreamingResponse
 
-from station.events import SamplesReceived
+from contracts.events import SamplesReceived
 from web.views import call, clean
 
 DEFAULT_MAX_EVENT_STREAMS = 32  # a station has a few pages and an MES; each stream costs a bus queue

@@ -85,7 +85,7 @@ def slot_view(raw: dict | Any, name: str | None = None, *, cleaned: bool = True)
         segs = len(segs)
     out = dict(d)
     decision = d.get("decision")
-    if isinstance(decision, dict):  # the station's verdict (station/judging.py), flat for clients
+    if isinstance(decision, dict):  # the station's verdict (station/decisions/moment.py), flat for clients
         for k in DECISION_FIELDS:
             out.setdefault(k, decision.get(k))
     out.update(

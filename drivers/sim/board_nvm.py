@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.protocol.serial_frames import N_SFEM, N_THERMAL, crc32_f32, to_f32
-from station.types import T_REF_C
+from drivers.protocol.cal_record import N_SFEM, N_THERMAL, crc32_f32, to_f32
+from contracts.types import T_REF_C
 
 ZERO_THERMAL = (0.0,) * N_THERMAL
 

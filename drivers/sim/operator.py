@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable
 
-from station.events import EventBus, PromptAnswered, PromptRaised
+from contracts.events import EventBus, PromptAnswered, PromptRaised
 
 
 async def operator_hands(bus: EventBus, world, answered: list[int] | None = None) -> None:

@@ -2,7 +2,7 @@
 
 Forward model, per DUT and sample (what world.py evaluates, vectorized):
 
-    g_s   nominal gravity of the fixture position (station/positions.py), in g
+    g_s   nominal gravity of the fixture position (contracts/positions.py), in g
     Acc0  = b + inv(A) g_s                 raw reading at 25 C; A = M C S (sensors2023 eq. 1)
     dT    = T_mems - 25
     Acc   = Acc0 + dT (TDB + TDSF Acc0)    martinez2022 eq. 1, per axis
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from station.types import T_REF_C, StationError
+from contracts.types import T_REF_C, StationError
 
 
 @dataclass(frozen=True)

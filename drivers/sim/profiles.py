@@ -13,7 +13,7 @@ Profiles:
   through -10, 7.5, 25, 42.5, 60 C (alternately up and down), ramp 2 C/min, hold 15 min per step
   (martinez2022 4.4 reference test, time-compressed).
 - sfem-24: chamber steps -10, 7.5, 25, 42.5, 60 C; at each, 20 min settling then the 24 positions of
-  sensors2023 Table 1 (station.positions.SFEM24) held 90 s each.
+  sensors2023 Table 1 (contracts.positions.SFEM24) held 90 s each.
 - validation: power-up at 25 C in P held 20 min (self-heating), then one full thermal cycle per
   orientation 25 -> 60 -> -10 -> 25 C with 10 min holds at the extremes and 5 min at 25 C, at
   different chamber ramp rates: P 2, N 1, +x 0.5, -y 2, +z 1, -z 2 C/min. Each cycle has its own
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.sim.world import SimWorld
-from station.logfile import DutLog
-from station.positions import GRAVITY_DIRECTIONS, POSITION_INDEX, POSITION_NAMES, SFEM24, SIX_POSITION
-from station.types import StationError
+from contracts.logfile import DutLog
+from contracts.positions import GRAVITY_DIRECTIONS, POSITION_INDEX, POSITION_NAMES, SFEM24, SIX_POSITION
+from contracts.types import StationError
 
 
 @dataclass(frozen=True)

@@ -42,8 +42,8 @@ import numpy as np
 from drivers.sim.serial_pty import SimSerialBoard
 from drivers.sim.slcan_pty import SimCanBoard
 from drivers.sim.station_sim import SimStation
-from station.replay.recording import RecordedDut, Recording
-from station.types import Identity
+from contracts.recording import RecordedDut, Recording
+from contracts.types import Identity
 
 START_GRACE_S = 3.0
 # A board stopped at most this many sample seconds before its recorded program stop sends the

@@ -19,7 +19,7 @@ import numpy as np
 
 from drivers.protocol import serial_frames as sf
 from drivers.sim.board_nvm import CalFirmware
-from station.types import Identity
+from contracts.types import Identity
 
 OUT_BUFFER_MAX_BYTES = 1 << 20  # a board's USB buffer: beyond this, frames are dropped (seq gap)
 

@@ -16,10 +16,10 @@ import can
 import numpy as np
 
 from drivers.protocol import can_frames as cf
-from drivers.protocol.serial_frames import crc32_f32
+from drivers.protocol.cal_record import crc32_f32
 from drivers.sim.board_nvm import CalFirmware, flip_bit
 from drivers.sim.serial_pty import PtyEndpoint, _ratio
-from station.types import Identity
+from contracts.types import Identity
 
 SendFn = Callable[[int, bytes], None]
 

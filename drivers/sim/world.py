@@ -29,8 +29,8 @@ import numpy as np
 from scipy.signal import lfilter
 
 from drivers.sim.physics import DEFAULT_NOISE, SENSORS, DutTruth, NoiseModel, noise_model
-from station.positions import GRAVITY_DIRECTIONS
-from station.types import T_REF_C, Identity
+from contracts.positions import GRAVITY_DIRECTIONS
+from contracts.types import T_REF_C, Identity
 
 SIM_FIRMWARE = "sim-1.0"
 

@@ -1,7 +1,7 @@
 """`station calibrate LOG.csv [--json]`: thermal calibration of a recorded fast-thermal log.
 
 The log is checked before any science (units, temperatures, time order, header numbers:
-station/logfile.py); the import options (--accel-units, --temp-units, --columns, ...) read a log in
+contracts/logfile.py); the import options (--accel-units, --temp-units, --columns, ...) read a log in
 other units or from another tool, as `station diagnose` does."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import argparse
 import json
 import sys
 
-from station.log_import import add_import_arguments, read_any_log
+from station.commands.log_import import add_import_arguments, read_any_log
 from station.science.thermal_calibration import calibrate
-from station.types import AXES
+from contracts.types import AXES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

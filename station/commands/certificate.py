@@ -1,5 +1,5 @@
 """`station certificate SERIAL [--db PATH|URL] [--config FILE] [--out FILE]`: the calibration
-certificate (PDF) of a DUT's result run (station/certificate.py): identity, station, operator,
+certificate (PDF) of a DUT's result run (station/records/certificate.py): identity, station, operator,
 firmware, profile and limits version, coefficients with their expanded uncertainty, every check of
 the verdict, program and verify, the ISO/IEC 17025 statements, and the fit plot.
 
@@ -14,8 +14,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from station.types import StationError
-from station.filenames import safe_name
+from contracts.types import StationError
+from contracts.filenames import safe_name
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,7 +42,7 @@ def db_url(value: str | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from db.database import Database
-    from station.certificate import certificate_for, render_pdf
+    from station.records.certificate import certificate_for, render_pdf
 
     section = None
     if getattr(args, "config", None):

@@ -11,7 +11,7 @@ import os
 import tomllib
 from pathlib import Path
 
-from station.types import StationError
+from contracts.types import StationError
 
 DEFAULT_URL = "sqlite:///var/station.db"
 

@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from station.types import AXES, StationError
+from contracts.types import AXES, StationError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -124,7 +124,7 @@ def results_table(status: dict, truths: dict | None = None) -> tuple[str, dict]:
         elif s["fault_reason"]:
             row += s["fault_reason"]
         v = s.get("decision")
-        if v:  # the station's decision (station/verdicts.py)
+        if v:  # the station's decision (station/decisions/verdicts.py)
             row += f"  {v['verdict'].upper()} {v.get('grade') or ''} ({v.get('reason') or ''})"
             entry.update(verdict=v["verdict"], grade=v.get("grade"), tray=v.get("tray"), reason=v.get("reason"),
                          attempt=v.get("attempt"))
@@ -278,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
 async def _main(args: argparse.Namespace) -> int:
     from drivers.sim.station_sim import SimStation
     from station.config import parse_config
-    from station.supervisor import Station, open_database
+    from station.daemon.supervisor import Station, open_database
 
     db_url = args.db or f"sqlite:///{Path('var').resolve() / 'demo.db'}"
     stop = asyncio.Event()
@@ -289,7 +289,7 @@ async def _main(args: argparse.Namespace) -> int:
                                       http_host=args.host, http_port=args.port), "<demo>")
         db = open_database(cfg.database_url, station=cfg.name)
         interrupted = db.mark_interrupted("station restarted") if hasattr(db, "mark_interrupted") else []
-        from station.limits_audit import record_limit_changes
+        from station.decisions.limits_audit import record_limit_changes
 
         record_limit_changes(db, cfg)  # a limit set edited in the config since the last start: audited
         station = Station(cfg, db=db)

@@ -22,7 +22,7 @@ import math
 import sys
 from pathlib import Path
 
-from station.types import StationError
+from contracts.types import StationError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated effects to rank (default: every registered effect)")
     parser.add_argument("--basis", choices=("window", "sample"), default="window",
                         help="RMS of 1-minute residual means (default) or of every sample")
-    from station.log_import import add_import_arguments
+    from station.commands.log_import import add_import_arguments
 
     add_import_arguments(parser)
     parser.add_argument("--save-model", metavar="PATH",
@@ -176,14 +176,14 @@ def run(args: argparse.Namespace) -> int:
 def _read(path: str, args: argparse.Namespace):
     """A station log (design 5.1), or with any import option a delimited log from another tool;
     a log without the station's columns is imported with the column names recognised. Both are
-    checked before any science (station.log_import.read_any_log)."""
-    from station.log_import import read_any_log
+    checked before any science (station.commands.log_import.read_any_log)."""
+    from station.commands.log_import import read_any_log
 
     return read_any_log(path, args)
 
 
 def _save_models(report, path: Path) -> list[Path]:
-    from station.filenames import safe_path
+    from contracts.filenames import safe_path
 
     models = report.models()
     try:

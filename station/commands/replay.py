@@ -21,7 +21,7 @@ import tomllib
 from pathlib import Path
 
 from station.replay.compare import DEFAULT_ATOL, DEFAULT_RTOL, ReplayDiff
-from station.types import StationError
+from contracts.types import StationError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

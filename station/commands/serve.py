@@ -14,7 +14,7 @@ import asyncio
 import sys
 
 from station.commands.demo import install_stop_signals, results_table, serve_web, setup_logging, stop_web
-from station.types import StationError
+from contracts.types import StationError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
     if args.check and not args.verbose:
         # --check prints each faulted slot itself, one line each; no second copy from the log.
-        logging.getLogger("station.supervisor").setLevel(logging.ERROR)
+        logging.getLogger("station.daemon.supervisor").setLevel(logging.ERROR)
     from station.config import load_config
 
     cfg = load_config(args.config)
@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace, cfg) -> int:
-    from station.supervisor import Station, open_database
+    from station.daemon.supervisor import Station, open_database
 
     stop = asyncio.Event()
     install_stop_signals(stop)
@@ -62,7 +62,7 @@ async def _main(args: argparse.Namespace, cfg) -> int:
     except Exception as exc:  # SQLAlchemy: bad URL, unwritable file, server down
         raise StationError(f"database {cfg.database_url}: {exc}") from None
     interrupted = db.mark_interrupted("station restarted") if hasattr(db, "mark_interrupted") else []
-    from station.limits_audit import record_limit_changes
+    from station.decisions.limits_audit import record_limit_changes
 
     record_limit_changes(db, cfg)  # a limit set edited in the config since the last start: audited
     station = Station(cfg, db=db)

@@ -15,7 +15,7 @@ import sys
 
 import numpy as np
 
-from station.log_import import add_import_arguments, read_any_log
+from station.commands.log_import import add_import_arguments, read_any_log
 from station.science.sfem import (
     DEFAULT_REF_SIGMA_DEG,
     MISALIGNMENT_NOTE,
@@ -24,7 +24,7 @@ from station.science.sfem import (
     fit_sfem_record,
 )
 from station.science.static_detect import StaticDetectConfig
-from station.types import StationError
+from contracts.types import StationError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -12,7 +12,7 @@ import sys
 import time
 from pathlib import Path
 
-from station.types import StationError
+from contracts.types import StationError
 
 DEFAULT_DUTS = 4
 
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from drivers.sim.physics import SENSORS, check_effects, draw_population, noise_model, population_to_json
     from drivers.sim.profiles import PROFILES, run_profile, step_table
     from drivers.sim.world import EnvConfig, SimWorld
-    from station.logfile import write_log
+    from contracts.logfile import write_log
 
     if args.profile not in PROFILES:
         raise StationError(f"unknown profile {args.profile!r} (known: {', '.join(PROFILES)})")
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         done()
     sim_s = time.perf_counter() - t0
-    from station.filenames import safe_path
+    from contracts.filenames import safe_path
 
     files = {log.serial: safe_path(out, log.serial, ".csv") for log in logs}  # a serial is data, never a path
     for log in logs:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import lfilter
 
-from station.types import StationError, T_REF_C
+from contracts.types import StationError, T_REF_C
 
 PPM_G_TO_MG = 1e-3  # ppm (1e-6) of an acceleration in g (1000 mg): 1e-6 * 1000 mg
 

@@ -23,8 +23,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from station.diagnostics.effects import Context, Effect, get_effect, smooth_temperature
-from station.logfile import DutLog
-from station.types import AXES, StationError, T_REF_C
+from contracts.logfile import DutLog
+from contracts.types import AXES, StationError, T_REF_C
 
 MODEL_FORMAT = "station-diagnostic-model"
 MODEL_VERSION = 1

@@ -18,7 +18,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from station.types import AXES, StationError
+from contracts.types import AXES, StationError
 
 DUT_PLOTS = ("measured_vs_model", "residual_vs_temperature", "residual_vs_time", "residual_vs_rate",
              "residual_vs_acceleration")
@@ -215,8 +215,8 @@ def render_png(report, name: str, dut: int = 0) -> bytes:
 
 def write_plots(report, out_dir: str | Path) -> list[Path]:
     """Every plot as PNG in out_dir: <serial>_<plot>.png per DUT, ranking.png, staircase.png. The
-    serial is data (a log's header): station.filenames.safe_path makes it a safe name inside out_dir."""
-    from station.filenames import safe_path
+    serial is data (a log's header): contracts.filenames.safe_path makes it a safe name inside out_dir."""
+    from contracts.filenames import safe_path
 
     out = Path(out_dir)
     try:

@@ -47,8 +47,8 @@ from station.diagnostics.model import (
     DiagnosticModel, DutData, DutFit, Segmentation, _tau_int, fit_dut, heldout_residual, predict_dut, prepare,
     tdsf_identifiable, window_rms,
 )
-from station.logfile import DutLog, read_log
-from station.types import AXES, StationError
+from contracts.logfile import DutLog, read_log
+from contracts.types import AXES, StationError
 
 BIC_GATE = -30.0  # "very strong" is -10 for an exact likelihood; a margin for the approximate noise model
 HELDOUT_GAIN_GATE = 0.03

@@ -23,7 +23,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from station.types import AXES
+from contracts.types import AXES
 
 WORDS = ("state", "verdict", "grade")
 SKIP_KEYS = {"id", "created_at", "updated_at", "judged_at", "n_segments", "method", "attempts", "crc",

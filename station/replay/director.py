@@ -11,7 +11,7 @@ the operator's abort, and the boards' streams.
 
 - A prompt "turn the plate to P" is answered where the recorded operator's answer took effect:
   each DUT's record is held at its first sample the station stored at P after the current point
-  (recording.answer_index); once every DUT is there and the daemon has taken in every sample sent,
+  (contracts/recording.py answer_index); once every DUT is there and the daemon has taken in every sample sent,
   the prompt is answered and the records go on. A prompt the recording never answered (the
   recorded batch was aborted there, or the recording ends) stays open: the recording runs out.
 - A DUT whose record waits at its recorded program stop longer than HOLD_TIMEOUT_S without the
@@ -29,7 +29,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from station.replay.recording import Recording, answer_index
+from contracts.recording import Recording, answer_index
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +41,7 @@ RECORDING_END = "the recording ends here"
 @dataclass
 class Director:
     recording: Recording
-    station: Any  # station.supervisor.Station
+    station: Any  # station.daemon.supervisor.Station
     sim: Any  # drivers.sim.replay.ReplayStation
     batch_id: int
     notes: list[str] = field(default_factory=list)

@@ -18,8 +18,9 @@ from typing import Any
 from station.aio import cancel_and_wait
 from station.replay.compare import DEFAULT_ATOL, DEFAULT_RTOL, ReplayDiff, compare_outcomes
 from station.replay.director import Director
-from station.replay.recording import Recording, run_outcome
-from station.types import StationError
+from contracts.recording import Recording
+from station.replay.recording import run_outcome
+from contracts.types import StationError
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +92,7 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
     from db import repository as R
     from drivers.sim.replay import ReplayStation, recorded_digest
     from station.config import parse_config
-    from station.supervisor import Station, open_database
+    from station.daemon.supervisor import Station, open_database
 
     async with ReplayStation(recording, speed=opts.speed, can_interface=opts.can_interface) as sim:
         cfg = parse_config(replay_config(recording, sim, opts), "<replay>")

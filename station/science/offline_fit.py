@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from station.science.streaming import GateTrace, InsufficientData, StreamingConfig, build_result, trace_gate
-from station.types import ThermalResult
+from contracts.types import ThermalResult
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

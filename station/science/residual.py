@@ -37,7 +37,7 @@ from station.science.offline_fit import (LAG_SIGMA_S, BiasWander, _runs, block_f
                                          combination_budget, usable_mask)
 from station.science.streaming import GateTrace, StreamingConfig, trace_gate
 from station.science.thermal_model import FULL_SCALE_MG, compensate
-from station.types import AXES, T_REF_C
+from contracts.types import AXES, T_REF_C
 
 DEFAULT_OPERATING_RANGE_C = 70.0  # martinez2022 4.5: -10..60 C
 

@@ -50,7 +50,7 @@ from station.science.static_detect import (
     detect_static_intervals,
     robust_noise_g,
 )
-from station.types import StationError, T_REF_C
+from contracts.types import StationError, T_REF_C
 
 MIN_POSITIONS_REFERENCE = 6
 MIN_POSITIONS_NORM_ONLY = 9

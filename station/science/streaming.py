@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
-from station.types import AXES, AxisThermal, OrientationDrift, Segment, StationError, ThermalResult
+from contracts.types import AXES, AxisThermal, OrientationDrift, Segment, StationError, ThermalResult
 
 
 class InsufficientData(StationError):

@@ -19,11 +19,11 @@ from dataclasses import asdict, replace
 import numpy as np
 from scipy.signal import lfilter
 
-from station.logfile import DutLog
+from contracts.logfile import DutLog
 from station.science.offline_fit import offline_fit
 from station.science.residual import DEFAULT_OPERATING_RANGE_C, residual_report
 from station.science.streaming import InsufficientData, StreamingConfig, result_from_segments, trace_gate
-from station.types import AXES, SampleBlock, Segment, StationError
+from contracts.types import AXES, SampleBlock, Segment, StationError
 
 AXES_METHOD = "offline"
 

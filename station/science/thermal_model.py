@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from station.types import T_REF_C
+from contracts.types import T_REF_C
 
 FULL_SCALE_MG = 2000.0  # martinez2022 eq. 12: error relative to the +-1 g working span (2000 mg)
 

@@ -41,7 +41,7 @@ import numpy as np
 
 from station.science.offline_fit import NO_WANDER, BiasWander, wander_for
 from station.science.thermal_model import drift_error_fs_pct, drift_error_mg
-from station.types import AXES, T_REF_C
+from contracts.types import AXES, T_REF_C
 
 
 @dataclass(frozen=True)

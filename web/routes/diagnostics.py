@@ -11,12 +11,12 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Res
 from fastapi.concurrency import run_in_threadpool
 
 from station.diagnostics.effects import REGISTRY
-from station.types import StationError
+from contracts.types import StationError
 from web.auth import require_read
 from web.diag_plots import PLOTS, Busy, DiagnosisCache, check_effects, report_json
 from web.schemas import error_responses
 from web.views import not_found
-from station.filenames import safe_name
+from contracts.filenames import safe_name
 
 router = APIRouter(prefix="/api/runs", tags=["diagnostics"], responses=error_responses(
     401, 403, 404, 409, 422, 429, 503,

@@ -10,7 +10,7 @@ from fastapi.responses import Response
 from web.auth import require_read
 from web.schemas import DutOut, DutSummary, ErrorOut, RunOut, error_responses
 from web.views import clean, dut_view, not_found
-from station.filenames import safe_name
+from contracts.filenames import safe_name
 
 router = APIRouter(prefix="/api/duts", tags=["duts"], responses=error_responses(401, 403, 404, 503))
 Serial = Path(min_length=1, max_length=64, pattern=r"^[\x21-\x7e]+$", description="DUT serial number")
@@ -47,7 +47,7 @@ async def dut_runs(request: Request, serial: str = Serial):
 async def dut_certificate(request: Request, serial: str = Serial):
     """Calibration certificate of the DUT's result run (its latest valid attempt): identity,
     station, operator, firmware, profile and limits version, coefficients with uncertainties,
-    verdict and grade, fit plot (station/certificate.py)."""
+    verdict and grade, fit plot (station/records/certificate.py)."""
     try:
         pdf = await run_in_threadpool(request.app.state.repo.certificate_pdf, serial)
     except LookupError as exc:

@@ -1,5 +1,5 @@
 """Records of the station (issues 13, 16): the audit trail (admin), yield and SPC, replays. Thin:
-the repository reads, station/spc.py computes, station/replay compared."""
+the repository reads, station/records/spc.py computes, station/replay compared."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from fastapi.responses import Response
 from web.auth import require_admin, require_read
 from web.schemas import AuditEntry, ReplayEntry, ReplayOut, SpcOut, error_responses
 from web.views import clean
-from station.filenames import safe_name
+from contracts.filenames import safe_name
 
 router = APIRouter(prefix="/api", tags=["records"], responses=error_responses(401, 403, 404, 422, 503))
 
@@ -28,13 +28,12 @@ async def audit_trail(
     return clean(await run_in_threadpool(request.app.state.repo.audit_list, limit, before_id, station))
 
 
-# ---- yield and SPC (station/spc.py) -----------------------------------------------------------------
+# ---- yield and SPC (station/records/spc.py) -----------------------------------------------------------------
 SPC_LIMIT = 5000  # the newest judged runs an SPC answer covers
 
 
 async def _report(request: Request, parameter: str | None, station: str | None, limit: int):
-    from station import spc
-
+    from station.records import spc
     runs = await run_in_threadpool(request.app.state.repo.judged_runs, limit, station)
     params = spc.parameters(runs)
     if parameter is None:
@@ -57,8 +56,7 @@ async def spc_chart(request: Request, parameter: str | None = PARAM, station: st
                     limit: int = LIMIT):
     """Individuals/moving-range chart, Cpk/Ppk against the spec limits the runs were judged by,
     histogram, per-slot trend of one parameter; yield per batch, day, product and station."""
-    from station import spc
-
+    from station.records import spc
     runs, params, report = await _report(request, parameter, station, limit)
     out = report.to_json()
     out["parameters"] = params
@@ -69,8 +67,7 @@ async def spc_chart(request: Request, parameter: str | None = PARAM, station: st
 @router.get("/spc.csv", dependencies=[Depends(require_read)], response_class=Response,
             responses={200: {"content": {"text/csv": {}}, "description": "one row per judged run"}})
 async def spc_csv(request: Request, parameter: str | None = PARAM, station: str | None = STATION, limit: int = LIMIT):
-    from station import spc
-
+    from station.records import spc
     _runs, _params, report = await _report(request, parameter, station, limit)
     name = safe_name(report.parameter or "none")
     return Response(spc.csv_text(report), media_type="text/csv",

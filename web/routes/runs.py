@@ -5,13 +5,13 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Path, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
-from station.logfile import format_log
+from contracts.logfile import format_log
 from web.auth import require_read
 from web.diag_plots import BoundedCache, Busy
 from web.plots import render_run_png
 from web.schemas import RunOut, SegmentOut, error_responses
 from web.views import clean, dut_view, not_found
-from station.filenames import safe_name
+from contracts.filenames import safe_name
 
 router = APIRouter(prefix="/api/runs", tags=["runs"], responses=error_responses(
     401, 403, 404, 422, 429, 503, what={429: "too many plots being rendered: retry after Retry-After seconds"}))
@@ -58,7 +58,7 @@ def _plot(repo, run_id: int) -> bytes | None:
     axes = dut_view({"serial": run.get("serial") or "", "thermal": run.get("thermal")}).get("thermal")
     title = f"{run.get('serial') or ''}  run {run_id}  ({run.get('state') or ''})"
     if log is None:
-        from station.logfile import DutLog
+        from contracts.logfile import DutLog
         import numpy as np
 
         log = DutLog(np.empty(0), np.empty((0, 3)), np.empty(0))

@@ -588,7 +588,7 @@ async function showDut(serial) {
     if (seq !== showDutSeq) return;
     box.replaceChildren(el("h2", {}, serial));
     if (runs.some((r) => r.result_seq != null || r.verdict)) {
-      // the calibration certificate of the serial's result run (PDF, station/certificate.py)
+      // the calibration certificate of the serial's result run (PDF, station/records/certificate.py)
       const msg = el("span", { class: "muted cert-msg" });
       box.append(el("div", { class: "actions" },
         el("button", { type: "button", class: "btn certificate", "data-serial": serial, onclick: async () => {

@@ -1,4 +1,4 @@
-"""Hooks between the daemon and the decision (station/verdicts.py, which stays pure).
+"""Hooks between the daemon and the decision (station/decisions/verdicts.py, which stays pure).
 
 The verdict's moment (design 8): a run is judged ONCE, when it ends, from everything it stored
 (`verdicts.final_verdict` of a `RunRecord`), never earlier. The supervisor calls:
@@ -22,12 +22,12 @@ import math
 import time
 from typing import Any
 
-from station.events import DutVerdict
-from station.program_verify import uses_program_verify
+from contracts.events import DutVerdict
+from station.daemon.program_verify import uses_program_verify
 from station.science.residual import DEFAULT_OPERATING_RANGE_C
-from station.verdicts import RunRecord, final_verdict, summarize
+from station.decisions.verdicts import RunRecord, final_verdict, summarize
 
-log = logging.getLogger("station.judging")
+log = logging.getLogger("station.decisions.moment")
 
 
 def _spec(station: Any, identity: Any):
@@ -187,7 +187,7 @@ def time_left(station: Any, seq: Any) -> dict:
     segment steps the mean duration of this batch's completed segment steps of the same kind
     (changing the plate temperature or not; else half the timeout), capped by their timeouts.
     Wall = sample time / the configured speed."""
-    from station.sequencer import TERMINAL
+    from station.daemon.sequencer import TERMINAL
 
     steps = seq.profile.steps
     speed = float(station.config.timing.speed) or 1.0

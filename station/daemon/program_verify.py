@@ -15,7 +15,7 @@ The supervisor only calls the two entry points (it stays a facade):
                               station.science.verify.verify_compensated, with the uncompensated E of
                               the same orientation from the first pass as "before".
 Both publish events (DutProgrammed, DutVerified) that the writer stores and the web shows; neither
-judges: the run's verdict is decided once at its end (station/judging.py), from these records.
+judges: the run's verdict is decided once at its end (station/decisions/moment.py), from these records.
 """
 
 from __future__ import annotations
@@ -28,11 +28,11 @@ from typing import Any
 import numpy as np
 
 from drivers.base import CalibrationError, DriverError
-from station.events import DutProgrammed, DutVerified
+from contracts.events import DutProgrammed, DutVerified
 from station.science.verify import drift_before_mg, verify_compensated
-from station.types import AXES, SampleBlock
+from contracts.types import AXES, SampleBlock
 
-log = logging.getLogger("station.program_verify")
+log = logging.getLogger("station.daemon.program_verify")
 
 
 def uses_program_verify(profile: Any) -> bool:
@@ -89,7 +89,7 @@ async def program_duts(station: Any, seq: Any) -> None:
     async def one(d: Any) -> None:
         # Every DUT with a result is written and verified, whatever its first-pass verdict: the
         # verification is measured evidence (a part the fit already rejects for curvature shows
-        # its residual drift), and the final verdict takes both (station/judging.py judge_final).
+        # its residual drift), and the final verdict takes both (station/decisions/moment.py judge_final).
         coeffs = coefficients(d.result)
         if coeffs is None:
             d.program = {"programmed": False, "error_kind": "no_result", "error": "no thermal result to write"}

@@ -25,7 +25,7 @@ import hashlib
 import re
 from pathlib import Path
 
-from station.types import StationError
+from contracts.types import StationError
 
 MAX_LEN = 80
 HASH_LEN = 10

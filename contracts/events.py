@@ -12,7 +12,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from station.types import SampleBlock, Segment
+from contracts.types import SampleBlock, Segment
 
 
 def _jsonable(value: Any) -> Any:
@@ -108,7 +108,7 @@ class DutResult(Event):
 
 @dataclass(frozen=True)
 class DutVerdict(Event):
-    """THE decision on a DUT run, final: published once when the run ends (station/judging.py);
+    """THE decision on a DUT run, final: published once when the run ends (station/decisions/moment.py);
     the database numbers it for the MES (result_seq) and the webhook sends it. A later one for the
     same run (a resumed batch, a re-judge) is a new record that supersedes the earlier."""
 

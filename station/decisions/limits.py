@@ -6,7 +6,7 @@ run, so a verdict can always be traced to the numbers it was judged against. A s
 adds products under `[products.NAME]` in the station TOML; a site product with a built-in's name
 replaces it (bump `version` when you change a number).
 
-Measurement names (units in the names, per axis x/y/z unless said otherwise), see station/verdicts.py:
+Measurement names (units in the names, per axis x/y/z unless said otherwise), see station/decisions/verdicts.py:
     tdb_mg_per_c, tdsf_ppm_per_c            thermal coefficients (offline fit, with 1-sigma)
     drift_error_fs_pct, drift_error_mg      residual drift after compensation over the operating
                                             range, eqs. 10-12, predicted from the fit (with 1-sigma)
@@ -19,7 +19,7 @@ Measurement names (units in the names, per axis x/y/z unless said otherwise), se
     verified_drift_error_fs_pct             E of the compensated output measured by program-and-verify
     verify_failed_axes                      axes whose compensated output fails the verification rules
     program_crc_match, compensation_on      1/0: readback CRC equal to the written one; compensation on
-                                            (fixed contract checks of a verified profile, station/verdicts.py)
+                                            (fixed contract checks of a verified profile, station/decisions/verdicts.py)
 
 Version 2 of the built-in sets (this change): grades are judged with the spec's systematic term and
 a part meeting no grade is its own outcome (no_grade_tray), not the last grade.

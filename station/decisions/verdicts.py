@@ -35,8 +35,8 @@ import numbers
 from dataclasses import asdict, dataclass, field
 from typing import Any, Iterable
 
-from station.spec_limits import Limit, ProductSpec
-from station.types import AXES
+from station.decisions.limits import Limit, ProductSpec
+from contracts.types import AXES
 
 VERDICTS = ("pass", "marginal", "fail", "error")
 _RANK = {"pass": 0, "marginal": 1, "fail": 2, "error": 3}

@@ -24,9 +24,9 @@ from collections.abc import Callable
 
 from drivers.base import LampRelay, Thermometer
 from station.aio import cancel_and_wait
-from station.events import Alarm, EventBus, LampChanged
+from contracts.events import Alarm, EventBus, LampChanged
 
-log = logging.getLogger("station.safety")
+log = logging.getLogger("station.daemon.safety")
 
 DEFAULT_RETRY_DELAYS_S = (0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
 

@@ -2,7 +2,7 @@
 (the runs as db.repository.judged_runs gives them), typed dataclasses out; numpy only.
 
 A parameter is one judged measurement, `measurement` or `measurement:axis` (e.g.
-`tdb_mg_per_c:z`), taken from each run's verdict checks (station/verdicts.py). The checks also carry
+`tdb_mg_per_c:z`), taken from each run's verdict checks (station/decisions/verdicts.py). The checks also carry
 the spec limits the run was judged by, so Cpk is always against the limits in force for that run's
 product and version, never against a guess.
 

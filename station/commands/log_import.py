@@ -17,7 +17,7 @@ separated, with their own column names and units. This reader maps them onto the
 
 Rows with another field count, or a required field that is not a number, are skipped (another
 sensor's line in a shared log). What is left is checked like a design-5.1 log before any science
-(station.logfile.LogChecker): units by the static magnitude (the median |a| must be about 1 g
+(contracts.logfile.LogChecker): units by the static magnitude (the median |a| must be about 1 g
 once converted; m/s2, mg or raw counts are named with the option that converts them), plausible
 temperatures (kelvin named), strictly increasing time, finite header numbers in range.
 
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from station.logfile import (  # G0_M_S2: part of this module's surface (m/s2 per g)
+from contracts.logfile import (  # G0_M_S2: part of this module's surface (m/s2 per g)
     G0_M_S2,
     DutLog,
     LogChecker,
@@ -42,7 +42,7 @@ from station.logfile import (  # G0_M_S2: part of this module's surface (m/s2 pe
     check_meta,
     g_divisor,
 )
-from station.types import StationError
+from contracts.types import StationError
 
 TIME_SCALE = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 ACCEL_UNITS = ("g", "mg", "m/s2", "counts")
@@ -225,8 +225,8 @@ def add_import_arguments(parser) -> None:
 def read_any_log(path: str, args=None) -> DutLog:
     """A station log (design 5.1), or with any import option (args from add_import_arguments) a
     log read by import_log; a log without the station's columns is imported with the column names
-    recognised. Both are checked before any science (station.logfile.LogChecker)."""
-    from station.logfile import read_log
+    recognised. Both are checked before any science (contracts.logfile.LogChecker)."""
+    from contracts.logfile import read_log
 
     opts = {k: getattr(args, k, None) for k in IMPORT_OPTIONS}
     kw = dict(columns=opts["columns"], accel_units=opts["accel_units"] or "g", time_units=opts["time_units"] or "s",

@@ -38,7 +38,7 @@ from datetime import datetime, timezone
 from typing import Any, Iterable
 
 from station.science.thermal_model import FULL_SCALE_MG
-from station.types import AXES, T_REF_C
+from contracts.types import AXES, T_REF_C
 
 _LOCK = threading.Lock()  # matplotlib's text layout is not fully thread safe (as web/plots.py)
 
@@ -47,7 +47,7 @@ DEFAULT_GUARD_SIGMA = 2.0  # spec_limits.ProductSpec.guard_sigma's default, when
 NOT_CONFIGURED = "not configured"
 # martinez2022 eq. 1 as the station implements it (station/science/thermal_model.py: apply_drift)
 MODEL_EQUATION = "Acc(T) = Acc0 · (1 + TDSF · (T - Tref)) + TDB · (T - Tref)"
-# worst first: a reader of page 1 sees what failed (the rank of station/verdicts.py)
+# worst first: a reader of page 1 sees what failed (the rank of station/decisions/verdicts.py)
 OUTCOME_ORDER = ("error", "fail", "marginal", "pass")
 FLAG_CHECKS = frozenset({"program_crc_match", "compensation_on"})  # 1 = yes, 0 = no
 
@@ -399,7 +399,7 @@ def decision_rule_statement(cert: Certificate) -> list[str]:
     src = ("the limits set's guard_sigma" if cert.guard_sigma_stored
            else "the station default; this limits set is not in the batch's stored config")
     return [
-        f"Guarded acceptance (station/verdicts.py; docs/verdicts.md): each measurement is judged with its interval "
+        f"Guarded acceptance (station/decisions/verdicts.py; docs/verdicts.md): each measurement is judged with its interval "
         f"value ± k·σ, k = {k} ({src}), σ = sqrt(σ_measured² + u_sys²) (the 1σ column). "
         "PASS: the run ended done, every measurement the profile and the limits set require is present, and every "
         "interval lies inside its limits and outside any marginal band. MARGINAL: an interval crosses a limit, or "

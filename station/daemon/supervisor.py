@@ -28,15 +28,15 @@ import numpy as np
 
 from drivers.base import BoardDriver, Chamber, DriverError, Fixture, LampRelay, Thermometer
 from station.config import ModbusDevice, SlotConfig, StationConfig
-from station import judging
-from station.events import Alarm, DutResult, EventBus, SamplesReceived, SegmentLogged, SlotStateChanged
-from station.positions import GRAVITY_DIRECTIONS
+from station.decisions import moment as judging
+from contracts.events import Alarm, DutResult, EventBus, SamplesReceived, SegmentLogged, SlotStateChanged
+from contracts.positions import GRAVITY_DIRECTIONS
 from station.profiles import Profile, all_profiles
-from station.safety import LampGuard
-from station.sequencer import TERMINAL, DutRun, Sequencer, annotate_segment, wall_text
-from station.types import SampleBlock, StationError
+from station.daemon.safety import LampGuard
+from station.daemon.sequencer import TERMINAL, DutRun, Sequencer, annotate_segment, wall_text
+from contracts.types import SampleBlock, StationError
 
-log = logging.getLogger("station.supervisor")
+log = logging.getLogger("station.daemon.supervisor")
 
 
 # ------------------------------------------------------------------------------------- database
@@ -848,14 +848,12 @@ class Station:
 
     # ================================================================== results
     async def program_duts(self, seq: Sequencer) -> None:
-        """Program and verify, part 1 (station/program_verify.py)."""
-        from station import program_verify
-
+        """Program and verify, part 1 (station/daemon/program_verify.py)."""
+        from station.daemon import program_verify
         await program_verify.program_duts(self, seq)
 
     async def analyse(self, seq: Sequencer) -> None:
-        from station import program_verify
-
+        from station.daemon import program_verify
         if program_verify.after_programming(seq):  # the first pass was analysed in the program step
             await program_verify.verify_duts(self, seq)
             return

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from station.types import SampleBlock, StationError
+from contracts.types import SampleBlock, StationError
 
 REQUIRED_COLUMNS = ("time_s", "ax_g", "ay_g", "az_g", "temp_c")
 OPTIONAL_COLUMNS = ("lamp", "position", "ref_x", "ref_y", "ref_z")
@@ -330,7 +330,7 @@ class LogChecker:
             if bad.any():
                 fail("lamp", lamp, bad, "must be 0 or 1")
         if position is not None:
-            from station.positions import POSITION_NAMES
+            from contracts.positions import POSITION_NAMES
 
             p = position
             bad = ~(np.isfinite(p) & (p == np.round(p)) & (p >= -1) & (p < len(POSITION_NAMES)))

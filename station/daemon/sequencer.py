@@ -30,7 +30,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from drivers.base import Chamber, DriverError, Fixture
-from station.events import (
+from contracts.events import (
     BatchStateChanged,
     EventBus,
     PromptAnswered,
@@ -39,12 +39,12 @@ from station.events import (
     StepCompleted,
     StepStarted,
 )
-from station.positions import FACING_MAX_ANGLE_DEG, POSITION_NAMES, first_facing
+from contracts.positions import FACING_MAX_ANGLE_DEG, POSITION_NAMES, first_facing
 from station.profiles import Profile, Step
-from station.safety import LampGuard, LampTripped
-from station.types import Identity, SampleBlock, Segment
+from station.daemon.safety import LampGuard, LampTripped
+from contracts.types import Identity, SampleBlock, Segment
 
-log = logging.getLogger("station.sequencer")
+log = logging.getLogger("station.daemon.sequencer")
 
 # state -> states it may go to. Terminal states go nowhere.
 TRANSITIONS: dict[str, tuple[str, ...]] = {
@@ -104,7 +104,7 @@ class DutRun:
     last_wall: float = field(default_factory=time.monotonic)
     n_samples: int = 0
     step_t_start: float = -math.inf  # board time when the current step began logging
-    step_facing: bool = True  # a static step's samples show its position (station.positions.first_facing)
+    step_facing: bool = True  # a static step's samples show its position (contracts.positions.first_facing)
     facing_scan: int = 0  # blocks already searched for the first facing sample
     step_windows: dict[int, tuple[float, float]] = field(default_factory=dict)  # step -> board time span
     result: dict | None = None
@@ -116,8 +116,8 @@ class DutRun:
     time_offset_s: float = 0.0
     hold_calibrator: bool = False  # resumed: samples are stored but not calibrated until logging
     unstored_segments: list[tuple[Segment, int]] = field(default_factory=list)
-    verdict: dict | None = None  # the station's decision (station/judging.py)
-    extra_measurements: list = field(default_factory=list)  # more station.verdicts.Measurement to judge
+    verdict: dict | None = None  # the station's decision (station/decisions/moment.py)
+    extra_measurements: list = field(default_factory=list)  # more station.decisions.verdicts.Measurement to judge
     program: dict | None = None  # program and verify: what was written and read back (CRC, comp)
     verification: dict | None = None  # program and verify: verified drift error E (science.verify)
     steps_done: int = 0  # steps this DUT completed while live (the page's progress dots, issue 9)
