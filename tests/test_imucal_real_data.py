@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from station.science.sfem import SfemFit, SfemInsufficientData, fit_sfem
+from station.science.sfem import fit_sfem
+from station.science.sfem_model import SfemFit, SfemInsufficientData
 
 DATA_DIR = Path(os.environ.get("STATION_IMUCAL_DIR", Path(__file__).resolve().parents[2] / "shared" / "data" / "imucal"))
 PARTS = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")

@@ -31,7 +31,8 @@ from drivers.sim.profiles import CHAMBER_STEPS_C, Step, fast_thermal_steps, run_
 from drivers.sim.world import SimWorld
 from contracts.logfile import DutLog
 from contracts.positions import GRAVITY_DIRECTIONS, POSITION_INDEX, SIX_POSITION
-from station.science.sfem import decompose_a, fit_sfem_record
+from station.science.sfem_model import decompose_a
+from station.science.sfem_record import fit_sfem_record
 from station.science.streaming import StreamingCalibrator
 from station.science.thermal_calibration import calibrate
 from station.science.thermal_model import compensate, drift_error_fs_pct, drift_error_mg

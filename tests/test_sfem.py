@@ -13,14 +13,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from contracts.positions import SFEM24, direction
-from station.science.sfem import (
-    SfemInsufficientData,
-    SfemThermalModel,
-    c_matrix,
-    compose_a,
-    decompose_a,
-    fit_sfem,
-)
+from station.science.sfem import fit_sfem
+from station.science.sfem_model import SfemInsufficientData, c_matrix, compose_a, decompose_a
+from station.science.sfem_thermal import SfemThermalModel
 
 NOISE_G = 0.5e-3  # per sample
 N_AVG = 200  # samples averaged per position (sensors2023 4.2)

@@ -18,7 +18,7 @@ import numpy as np
 from drivers.sim.physics import draw_population
 from drivers.sim.profiles import run_profile
 from drivers.sim.world import SimWorld
-from station.science.sfem import fit_sfem_record
+from station.science.sfem_record import fit_sfem_record
 
 ROOT = Path(__file__).resolve().parents[1]
 

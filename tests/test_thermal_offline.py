@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from station.science.offline_fit import offline_fit
-from station.science.streaming import InsufficientData, StreamingCalibrator
+from station.science.drift_coefficients import InsufficientData
+from station.science.streaming import StreamingCalibrator
 from thermal_synth import fast_thermal
 
 

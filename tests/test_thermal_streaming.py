@@ -4,7 +4,9 @@ bit-identity of the one-sample and batch paths wherever the batches are cut."""
 import numpy as np
 import pytest
 
-from station.science.streaming import InsufficientData, StreamingCalibrator, StreamingConfig
+from station.science.drift_coefficients import InsufficientData
+from station.science.streaming import StreamingCalibrator
+from station.science.streaming_config import StreamingConfig
 from contracts.types import StationError
 from thermal_synth import fast_thermal
 

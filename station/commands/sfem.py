@@ -16,13 +16,9 @@ import sys
 import numpy as np
 
 from station.commands.log_import import add_import_arguments, read_any_log
-from station.science.sfem import (
-    DEFAULT_REF_SIGMA_DEG,
-    MISALIGNMENT_NOTE,
-    SfemFit,
-    SfemRecordResult,
-    fit_sfem_record,
-)
+from station.science.sfem import DEFAULT_REF_SIGMA_DEG
+from station.science.sfem_model import MISALIGNMENT_NOTE, SfemFit
+from station.science.sfem_record import SfemRecordResult, fit_sfem_record
 from station.science.static_detect import StaticDetectConfig
 from contracts.types import StationError
 

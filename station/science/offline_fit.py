@@ -45,7 +45,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from station.science.streaming import GateTrace, InsufficientData, StreamingConfig, build_result, trace_gate
+from station.science.drift_coefficients import InsufficientData, build_result
+from station.science.gate_trace import GateTrace, trace_gate
+from station.science.streaming_config import StreamingConfig
 from contracts.types import ThermalResult
 
 

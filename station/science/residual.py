@@ -35,7 +35,8 @@ import numpy as np
 
 from station.science.offline_fit import (LAG_SIGMA_S, BiasWander, _runs, block_features, budget_inputs,
                                          combination_budget, usable_mask)
-from station.science.streaming import GateTrace, StreamingConfig, trace_gate
+from station.science.gate_trace import GateTrace, trace_gate
+from station.science.streaming_config import StreamingConfig
 from station.science.thermal_model import FULL_SCALE_MG, compensate
 from contracts.types import AXES, T_REF_C
 

@@ -1,5 +1,10 @@
 """The streaming thermal calibrator of martinez2022 section 3.3 (the MCU algorithm).
 
+This module holds only the sample-by-sample segment detector, the part an MCU would run. Its
+constants are in streaming_config, the end-of-test computation (TD_i, Acc0_i -> TDB, TDSF) in
+drift_coefficients (the offline fit uses it too), and the per-sample record of the gate's
+decisions that the offline analyses replay in gate_trace.
+
 Per sample: exponential filter (alpha 0.05) on the three axes and the temperature; thermal gradient
 of the filtered temperature in C/min from the sample times, filtered again (alpha 0.01). Logging
 is allowed only while |gradient| < 1 C/min: the first 500 stable samples are discarded (the count
@@ -29,7 +34,7 @@ Choices the paper leaves open, made here:
   not mix two orientations in one average. Temperature changes are only looked for while waiting,
   as in the paper.
 - A non-increasing sample time contributes a zero gradient (duplicated or reset timestamps).
-- TD_i pairs closer than min_pair_delta_c (default segment_delta_c / 2) are skipped.
+- TD_i pairs too close in temperature are skipped (drift_coefficients).
 
 Two entry points, `update` (one sample) and `update_batch` (numpy arrays), give identical
 results to the last bit wherever the batches are cut: both run the same recursions with the same
@@ -47,56 +52,18 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
-from contracts.types import AXES, AxisThermal, OrientationDrift, Segment, StationError, ThermalResult
-
-
-class InsufficientData(StationError):
-    """The log or stream does not hold what the method needs (segments, orientations, swing)."""
-
-
-@dataclass
-class StreamingConfig:
-    """Every constant of martinez2022 section 3.3, configurable."""
-
-    alpha_acc: float = 0.05  # exponential filter on all measurements (3 axes and temperature)
-    alpha_gradient: float = 0.01  # exponential filter on the thermal gradient
-    gradient_limit_c_per_min: float = 1.0  # logging allowed while |gradient| < this
-    discard_samples: int = 500  # stable samples discarded before averaging
-    average_samples: int = 1000  # samples averaged into one segment
-    segment_delta_c: float = 20.0  # temperature change from the last saved segment = new segment
-    orientation_delta_g: float = 0.8  # every axis moving more than this = new orientation
-    gradient_reset_c_per_min: float = 10.0  # "high value" the gradient is reset to (and starts at)
-    gradient_reset_signed: bool = True  # reset toward the change's direction (see module docstring)
-    t_ref_c: float = 25.0  # reference temperature of eq. 1
-    clamp_positive_tdsf: bool = True  # TDSF is physically negative: positive -> 0 (flagged)
-    detect_orientation_while_logging: bool = True  # see module docstring
-    min_pair_delta_c: float | None = None  # TD_i pairs need this temperature gap (None: delta / 2)
-
-    def pair_delta_c(self) -> float:
-        return self.segment_delta_c / 2.0 if self.min_pair_delta_c is None else self.min_pair_delta_c
-
+from station.science.drift_coefficients import result_from_segments
+from station.science.streaming_config import StreamingConfig
+from contracts.types import Segment, ThermalResult
 
 _WAITING = "waiting"
 _CHUNK = 8192  # samples per internal step of update_batch
 
 
 @dataclass
-class GateTrace:
-    """Per-sample view of the calibrator's decisions, for the offline fit and for plots."""
-
-    gradient_c_per_min: np.ndarray  # (n,) filtered gradient after resets
-    orientation: np.ndarray  # (n,) orientation counter after this sample
-    acc_filt_g: np.ndarray  # (n, 3)
-    temp_filt_c: np.ndarray  # (n,)
-    limit_c_per_min: float
-
-    @property
-    def stable(self) -> np.ndarray:
-        return np.abs(self.gradient_c_per_min) < self.limit_c_per_min
-
-
-@dataclass
 class _Recorder:
+    """Per-chunk decisions of the batch path, kept when gate_trace.trace_gate replays a record."""
+
     grad: list = field(default_factory=list)
     orient: list = field(default_factory=list)
     acc: list = field(default_factory=list)
@@ -467,139 +434,6 @@ class StreamingCalibrator:
         return result_from_segments(self.segments, self.config)
 
 
-def trace_gate(time_s, acc_g, temp_c, config: StreamingConfig | None = None) -> tuple[GateTrace, list[Segment]]:
-    """Run the calibrator over a whole record and return its per-sample gate view and segments."""
-    cal = StreamingCalibrator(config)
-    rec = _Recorder()
-    cal._run(time_s, acc_g, temp_c, rec)
-    if not rec.grad:
-        empty = np.empty(0)
-        return GateTrace(empty, np.empty(0, dtype=np.int64), np.empty((0, 3)), empty,
-                         cal.config.gradient_limit_c_per_min), []
-    trace = GateTrace(
-        np.concatenate(rec.grad),
-        np.concatenate(rec.orient),
-        np.concatenate(rec.acc),
-        np.concatenate(rec.temp),
-        cal.config.gradient_limit_c_per_min,
-    )
-    return trace, cal.segments
-
-
-def orientation_drifts(segments: list[Segment], config: StreamingConfig) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Per orientation: TD_i (g/C, (3,)) and Acc0_i (g, (3,)), eqs. 3 and 4 averaged over the
-    consecutive segment pairs of that orientation."""
-    by_o: dict[int, list[Segment]] = {}
-    for s in segments:
-        by_o.setdefault(s.orientation, []).append(s)
-    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    min_dt = config.pair_delta_c()
-    for o, segs in sorted(by_o.items()):
-        tds, acc0s = [], []
-        for s1, s2 in zip(segs[:-1], segs[1:]):
-            d_t = s2.temp_mean_c - s1.temp_mean_c
-            if abs(d_t) < min_dt:
-                continue
-            a1, a2 = np.asarray(s1.acc_mean_g), np.asarray(s2.acc_mean_g)
-            td = (a2 - a1) / d_t  # eq. 3
-            # eq. 4 gives the same Acc0 from either end of the pair; use the pair's mean point
-            acc0 = (a1 + a2) / 2.0 - td * ((s1.temp_mean_c + s2.temp_mean_c) / 2.0 - config.t_ref_c)
-            tds.append(td)
-            acc0s.append(acc0)
-        if tds:
-            out[o] = (np.mean(tds, axis=0), np.mean(acc0s, axis=0))
-    return out
-
-
-def combine_orientations(
-    td: np.ndarray, acc0: np.ndarray, td_sigma: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """TDSF (1/C) and TDB (g/C) per axis from TD_i (g/C) and Acc0_i (g), both (m, 3).
-
-    Two orientations: eqs. 8 and 9 exactly. More: the straight line TD = TDB + TDSF Acc0 by
-    (weighted, if td_sigma is given) least squares, like the paper's six-test reference (Fig. 12).
-    Returns tdsf, tdb and, with td_sigma, their 1-sigma (scaled by the reduced chi-square when
-    there are spare degrees of freedom and it exceeds 1).
-    """
-    m = td.shape[0]
-    tdsf = np.empty(3)
-    tdb = np.empty(3)
-    s_tdsf = np.empty(3) if td_sigma is not None else None
-    s_tdb = np.empty(3) if td_sigma is not None else None
-    for k in range(3):
-        x, y = acc0[:, k], td[:, k]
-        if m == 2 and td_sigma is None:
-            tdsf[k] = (y[0] - y[1]) / (x[0] - x[1])  # eq. 8
-            tdb[k] = y[0] - tdsf[k] * x[0]  # eq. 9
-            continue
-        w = np.ones(m) if td_sigma is None else 1.0 / np.maximum(td_sigma[:, k], 1e-300) ** 2
-        design = np.column_stack([np.ones(m), x])
-        xtwx = design.T @ (design * w[:, None])
-        cov = np.linalg.inv(xtwx)
-        beta = cov @ (design.T @ (w * y))
-        tdb[k], tdsf[k] = beta
-        if td_sigma is not None:
-            if m > 2:
-                chi2 = float(np.sum(w * (y - design @ beta) ** 2) / (m - 2))
-                cov = cov * max(chi2, 1.0)
-            s_tdb[k] = math.sqrt(cov[0, 0])
-            s_tdsf[k] = math.sqrt(cov[1, 1])
-    return tdsf, tdb, s_tdsf, s_tdb
-
-
-def build_result(
-    method: str,
-    drifts: dict[int, tuple[np.ndarray, np.ndarray]],
-    config: StreamingConfig,
-    n_segments: int,
-    td_sigma: dict[int, np.ndarray] | None = None,
-) -> ThermalResult:
-    """ThermalResult from per-orientation TD_i/Acc0_i; clamps positive TDSF if configured."""
-    if len(drifts) < 2:
-        raise InsufficientData(
-            f"{method}: need two orientations with two temperature segments each "
-            f"(>= {config.pair_delta_c():g} C apart), found {len(drifts)} usable orientation(s)"
-        )
-    keys = sorted(drifts)
-    td = np.array([drifts[o][0] for o in keys])
-    acc0 = np.array([drifts[o][1] for o in keys])
-    if np.any(np.ptp(acc0, axis=0) < config.orientation_delta_g / 2.0):
-        raise InsufficientData(f"{method}: the orientations do not differ enough on every axis to separate TDB from TDSF")
-    sig = np.array([td_sigma[o] for o in keys]) if td_sigma is not None else None
-    tdsf, tdb, s_tdsf, s_tdb = combine_orientations(td, acc0, sig)
-    axes: dict[str, AxisThermal] = {}
-    orientations: dict[str, list[OrientationDrift]] = {}
-    for k, name in enumerate(AXES):
-        tdsf_ppm = float(tdsf[k] * 1e6)
-        clamped = bool(config.clamp_positive_tdsf and tdsf_ppm > 0.0)
-        axes[name] = AxisThermal(
-            tdb_mg_per_c=float(tdb[k] * 1e3),  # eq. 9 with the fitted (unclamped) TDSF, as the paper
-            tdsf_ppm_per_c=0.0 if clamped else tdsf_ppm,
-            tdb_sigma_mg_per_c=None if s_tdb is None else float(s_tdb[k] * 1e3),
-            tdsf_sigma_ppm_per_c=None if s_tdsf is None else float(s_tdsf[k] * 1e6),
-            tdsf_clamped=clamped,
-        )
-        orientations[name] = [
-            OrientationDrift(orientation=int(o), td_mg_per_c=float(td[i, k] * 1e3), acc0_g=float(acc0[i, k]))
-            for i, o in enumerate(keys)
-        ]
-    return ThermalResult(method=method, axes=axes, orientations=orientations, n_segments=n_segments)
-
-
-def result_from_segments(segments: list[Segment], config: StreamingConfig | None = None) -> ThermalResult:
-    """The end-of-test computation of martinez2022 3.3 (Tables 1-2, eqs. 3, 4, 8, 9)."""
-    cfg = config or StreamingConfig()
-    return build_result("streaming", orientation_drifts(segments, cfg), cfg, len(segments))
-
-
 __all__ = [
-    "StreamingConfig",
     "StreamingCalibrator",
-    "InsufficientData",
-    "GateTrace",
-    "trace_gate",
-    "orientation_drifts",
-    "combine_orientations",
-    "build_result",
-    "result_from_segments",
 ]

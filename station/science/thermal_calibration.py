@@ -22,7 +22,9 @@ from scipy.signal import lfilter
 from contracts.logfile import DutLog
 from station.science.offline_fit import offline_fit
 from station.science.residual import DEFAULT_OPERATING_RANGE_C, residual_report
-from station.science.streaming import InsufficientData, StreamingConfig, result_from_segments, trace_gate
+from station.science.drift_coefficients import InsufficientData, result_from_segments
+from station.science.gate_trace import trace_gate
+from station.science.streaming_config import StreamingConfig
 from contracts.types import AXES, SampleBlock, Segment, StationError
 
 AXES_METHOD = "offline"
