@@ -13,8 +13,10 @@ import numpy as np
 
 from drivers.sim.physics import DutTruth, draw_population
 from drivers.sim.world import EnvConfig, SimWorld
-from station.diagnostics.model import DiagnosticModel, prepare, window_rms
+from station.diagnostics.fit import window_rms
+from station.diagnostics.model import DiagnosticModel
 from station.diagnostics.ranking import diagnose
+from station.diagnostics.segmentation import prepare
 from contracts.logfile import DutLog
 from contracts.positions import GRAVITY_DIRECTIONS
 

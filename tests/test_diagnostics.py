@@ -23,9 +23,11 @@ import pytest
 import diag_helpers as H
 from drivers.sim.physics import HIDDEN_EFFECTS
 from station.diagnostics.effects import REGISTRY, load_effects_file
-from station.diagnostics.model import DiagnosticModel, prepare, window_rms
+from station.diagnostics.fit import window_rms
+from station.diagnostics.model import DiagnosticModel
 from station.diagnostics.plots import PLOTS, render_png
 from station.diagnostics.ranking import diagnose
+from station.diagnostics.segmentation import prepare
 from contracts.positions import GRAVITY_DIRECTIONS
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -77,7 +77,7 @@ class Effect:
     # What to run to tell this effect apart when the data cannot (shown for unidentifiable ones).
     identify_hint: str = ""
     # Effects this one cannot be told apart from unless the data has a feature: {other: feature}.
-    # Features (station.diagnostics.ranking.data_features): "ramp_rates" = >= 2 distinct ramp rates.
+    # Features (station.diagnostics.identifiability.data_features): "ramp_rates" = >= 2 distinct ramp rates.
     confusable_with: dict = {}
 
     def columns(self, ctx: Context, nl: dict[str, float]) -> np.ndarray:

@@ -1,0 +1,124 @@
+"""The design matrix of the thermal model (baseline + effects) for one DUT, and whether TDSF has a
+lever arm on this data.
+
+Why a module of its own: the fit (fit.py), the GLS comparison (noise_gls.py) and the
+identifiability checks (identifiability.py) must all see exactly the same columns, with the same
+rule for leaving out a TDSF the orientations cannot identify; building them in one place keeps a
+candidate from being judged on a different regressor than the one it is fitted with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from station.diagnostics.effects import Context, Effect
+from station.diagnostics.segmentation import DutData
+from contracts.types import T_REF_C
+
+
+TDSF_MIN_SPREAD_G = 0.25  # TDSF needs orientations whose Acc0 on the axis differ by at least this
+
+
+def tdsf_identifiable(acc0_g: np.ndarray) -> np.ndarray:
+    """(3,) bool: per axis, do the orientations seen give TDSF a lever arm (Acc0 spread)?
+
+    TDSF multiplies Acc0 (martinez2022 eq. 1): with one orientation, or orientations with the same
+    Acc0 on an axis, dT TDSF Acc0 is a multiple of dT and only the total drift TDB + TDSF Acc0 is
+    measurable. The column is then left out (TDSF = 0, TDB = the total drift), never fitted to noise.
+    """
+    a = np.asarray(acc0_g, float)
+    ok = ~np.isnan(a).any(axis=1)
+    if ok.sum() < 2:
+        return np.zeros(3, bool)
+    return (a[ok].max(axis=0) - a[ok].min(axis=0)) >= TDSF_MIN_SPREAD_G
+
+
+class _Design:
+    """Builds the per-sample design matrix for a DUT, an effect list and nonlinear values."""
+
+    def __init__(self, d: DutData, effects: list[Effect]):
+        self.d = d
+        self.effects = effects
+        self.lag = [e for e in effects if type(e).temperature is not Effect.temperature]
+
+    def temp_seen(self, nl: dict[str, dict[str, float]]) -> np.ndarray:
+        t = self.d.temp_c
+        for e in self.lag:
+            t2 = e.temperature(t, self.d.time_s, nl.get(e.name, {}))
+            if t2 is not None:
+                t = t2
+        return t
+
+    def context(self, nl, acc0_sample_g: np.ndarray) -> Context:
+        d = self.d
+        return Context(time_s=d.time_s, temp_c=d.temp_c, temp_smooth_c=d.temp_smooth_c,
+                       dt_c=self.temp_seen(nl) - T_REF_C, acc0_g=acc0_sample_g,
+                       t_power_on_s=d.t_power_on_s, cache=d.cache)
+
+    def names(self) -> list[list[str]]:
+        d = self.d
+        out = []
+        for _ in range(3):
+            nm = [f"acc0_g[{lab}]" for lab in d.pos_labels] + ["tdb_mg_per_c", "tdsf_ppm_per_c"]
+            for e in self.effects:
+                nm += [f"{e.name}.{ln}" for ln in e.linear]
+            out.append(nm)
+        return out
+
+    def block_matrices(self, nl, acc0_g: np.ndarray) -> tuple[list[np.ndarray], list[list[str]]]:
+        """Per axis: the block means of the design (n_blocks, k); same columns as matrices().
+
+        Every fit block lies inside one constant-orientation run, so Acc0 is constant over a
+        block and the orientation indicators and the TDSF column (dT * Acc0) are formed from
+        block means directly; only the dT and effect columns are averaged sample by sample.
+        """
+        d = self.d
+        P = len(d.pos_labels)
+        a0 = np.nan_to_num(acc0_g)
+        if self.effects:
+            ctx = self.context(nl, a0[d.pos])
+            dt_c = ctx.dt_c
+            extra = [e.columns(ctx, nl.get(e.name, {})) for e in self.effects]
+        else:
+            dt_c = d.cache.get("_dt_c")
+            if dt_c is None:
+                dt_c = d.cache["_dt_c"] = self.temp_seen(nl) - T_REF_C
+            extra = []
+        ind = d.cache.get("_block_indicator")
+        if ind is None or ind.shape[1] != P:
+            ind = np.zeros((d.block_starts.shape[0], P))
+            ind[np.arange(ind.shape[0]), d.block_pos] = 1000.0
+            d.cache["_block_indicator"] = ind
+        dtb = d.block_mean(dt_c)
+        a0b = a0[d.block_pos] * tdsf_identifiable(acc0_g)[None, :]
+        eff_blocks = [d.block_mean(c.reshape(d.n, -1)).reshape(-1, 3, c.shape[2]) for c in extra if c.shape[2]]
+        mats = []
+        for i in range(3):
+            cols = [ind, dtb[:, None], (dtb * a0b[:, i] * 1e-3)[:, None]] + [eb[:, i, :] for eb in eff_blocks]
+            mats.append(np.hstack(cols))
+        return mats, self.names()
+
+    def matrices(self, nl, acc0_g: np.ndarray) -> tuple[list[np.ndarray], list[list[str]]]:
+        """Per axis: (n, k) design in mg per unit of parameter, and the parameter names."""
+        d = self.d
+        P = len(d.pos_labels)
+        a0 = np.nan_to_num(acc0_g)[d.pos]  # (n, 3)
+        ctx = self.context(nl, a0)
+        tdsf_on = tdsf_identifiable(acc0_g)
+        ind = np.zeros((d.n, P))
+        ind[np.arange(d.n), d.pos] = 1000.0  # Acc0 in g -> mg
+        extra = [e.columns(ctx, nl.get(e.name, {})) for e in self.effects]
+        mats, names = [], []
+        for i in range(3):
+            cols = [ind, ctx.dt_c[:, None], (ctx.dt_c * a0[:, i] * 1e-3 * tdsf_on[i])[:, None]]
+            nm = [f"acc0_g[{lab}]" for lab in d.pos_labels] + ["tdb_mg_per_c", "tdsf_ppm_per_c"]
+            for e, c in zip(self.effects, extra):
+                if c.shape[2]:
+                    cols.append(c[:, i, :])
+                    nm += [f"{e.name}.{ln}" for ln in e.linear]
+            mats.append(np.hstack(cols))
+            names.append(nm)
+        return mats, names
+
+
+__all__ = ["tdsf_identifiable", "TDSF_MIN_SPREAD_G"]

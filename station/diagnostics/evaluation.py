@@ -1,0 +1,83 @@
+"""Evaluate one model structure (the baseline plus a list of effects) on every DUT: fits, in-sample
+and held-out residuals, pooled RMS.
+
+Why a module of its own: the ranking, the gate and the staircase compare model structures, never
+single fits. A ModelEval is that unit of comparison, computed once per effect list (the ranking
+caches it), and _spec turns it into the (effects, nonlinear values, Acc0) per DUT that the GLS
+comparison (noise_gls.compare) refits under its noise model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from station.diagnostics.fit import DutFit, fit_dut, heldout_residual, predict_dut, window_rms
+from station.diagnostics.noise_gls import gls_sigma
+from station.diagnostics.segmentation import DutData
+
+
+@dataclass
+class ModelEval:
+    """A fitted model structure over all DUTs, with its in-sample and held-out residuals."""
+
+    effects: list[str]
+    fits: list[DutFit]
+    resid: list[np.ndarray]  # per DUT (n, 3) mg, in-sample
+    heldout: list[np.ndarray]  # per DUT (n, 3) mg, held-out
+    rms_mg: float = 0.0
+    heldout_rms_mg: float = 0.0
+    rms_sample_mg: float = 0.0
+    heldout_rms_sample_mg: float = 0.0
+    n_params: int = 0
+
+
+
+def _pooled_rms(data: list[DutData], res: list[np.ndarray], basis: str) -> float:
+    """RMS over every DUT's samples (each DUT weighted by its sample count)."""
+    num = den = 0.0
+    for d, r in zip(data, res):
+        ok = ~np.isnan(r).any(axis=1)
+        if not ok.any():
+            continue
+        v = window_rms(d, r, basis=basis)
+        num += v * v * ok.sum()
+        den += ok.sum()
+    return math.sqrt(num / den) if den else float("nan")
+
+
+def evaluate(data: list[DutData], effects: list[str], basis: str, n_folds: int,
+             nl_start: list[dict] | None = None) -> ModelEval:
+    fits, res, held = [], [], []
+    for k, d in enumerate(data):
+        f = fit_dut(d, effects, nl_start=nl_start[k] if nl_start else None)
+        f.beta_sigma = gls_sigma(d, f)  # the residual's AR noise model, not white noise
+        fits.append(f)
+        res.append(d.acc_mg - predict_dut(d, f))
+        held.append(heldout_residual(d, effects, f, n_folds))
+    m = ModelEval(effects=list(effects), fits=fits, resid=res, heldout=held)
+    m.rms_mg = _pooled_rms(data, res, basis)
+    m.heldout_rms_mg = _pooled_rms(data, held, basis)
+    m.rms_sample_mg = _pooled_rms(data, res, "sample")
+    m.heldout_rms_sample_mg = _pooled_rms(data, held, "sample")
+    m.n_params = sum(int(sum(np.count_nonzero(b) for b in f.beta) + sum(len(v) for v in f.nl.values())) for f in fits)
+    return m
+
+
+
+def _spec(m: ModelEval) -> list[tuple]:
+    return [(list(m.effects), f.nl, f.acc0_g) for f in m.fits]
+
+
+def _spec_plus(m: ModelEval, cand: ModelEval, name: str) -> list[tuple]:
+    """The model m plus candidate `name` at the candidate's own nonlinear values (cheap screen)."""
+    out = []
+    for f, cf in zip(m.fits, cand.fits):
+        nl = {**f.nl, name: cf.nl.get(name, {})}
+        out.append((list(m.effects) + [name], nl, f.acc0_g))
+    return out
+
+
+__all__ = ["ModelEval", "evaluate"]
