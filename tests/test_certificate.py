@@ -17,8 +17,10 @@ import pytest
 from db import Database
 from db import repository as repo
 from records_support import write_batches, write_unjudged
-from station.records.certificate import (BODY_BOTTOM_IN, BODY_TOP_IN, CHECK_COLUMNS_IN, ROW_HEIGHT_IN, Row, build_certificate,
-                                 certificate_for, certificate_id, layout, ordered_checks, paginate, render_pdf)
+from station.records.certificate import build_certificate, certificate_for, certificate_id, ordered_checks
+from station.records.certificate_layout import (BODY_BOTTOM_IN, BODY_TOP_IN, CHECK_COLUMNS_IN, ROW_HEIGHT_IN, Row, layout,
+                                                paginate)
+from station.records.certificate_pdf import render_pdf
 from web.app import create_app
 from web.auth import TokenStore
 from web.db_repo import DbRepository

@@ -1,6 +1,6 @@
 """The calibration certificate of a verified run lists EVERY check of its verdict (issue 22).
 
-A program-and-verify run is judged by the real judging code (station/verdicts.final_verdict against
+A program-and-verify run is judged by the real judging code (station/decisions/verdicts.final_verdict against
 the built-in LIS3DSH limits from a real station config) and stored through the real DbWriter in a
 SQLite file. Its verdict has ~30 checks and fails on the verified drift error E_FS of axis z, a
 check the old certificate (the first 14 checks only) never showed. The PDF is read back with
@@ -23,7 +23,9 @@ import pytest
 
 from db import Database, DbWriter
 from records_support import segments_for
-from station.records.certificate import certificate_for, layout, render_pdf
+from station.records.certificate import certificate_for
+from station.records.certificate_layout import layout
+from station.records.certificate_pdf import render_pdf
 from station.config import parse_config
 from contracts.events import DutProgrammed, DutResult, DutVerdict, DutVerified, SegmentLogged, SlotStateChanged
 from station.decisions.verdicts import RunRecord, final_verdict

@@ -196,7 +196,8 @@ class DbRepository(WebRepository):
         return R.replay_diff(self.db, batch_id)
 
     def certificate_pdf(self, serial: str) -> bytes | None:
-        from station.records.certificate import certificate_for, render_pdf
+        from station.records.certificate import certificate_for
+        from station.records.certificate_pdf import render_pdf
 
         cert = certificate_for(self.db, serial)
         return None if cert is None else render_pdf(cert)

@@ -42,7 +42,8 @@ def db_url(value: str | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from db.database import Database
-    from station.records.certificate import certificate_for, render_pdf
+    from station.records.certificate import certificate_for
+    from station.records.certificate_pdf import render_pdf
 
     section = None
     if getattr(args, "config", None):

@@ -17,7 +17,7 @@ separated, with their own column names and units. This reader maps them onto the
 
 Rows with another field count, or a required field that is not a number, are skipped (another
 sensor's line in a shared log). What is left is checked like a design-5.1 log before any science
-(contracts.logfile.LogChecker): units by the static magnitude (the median |a| must be about 1 g
+(contracts.log_checks.LogChecker): units by the static magnitude (the median |a| must be about 1 g
 once converted; m/s2, mg or raw counts are named with the option that converts them), plausible
 temperatures (kelvin named), strictly increasing time, finite header numbers in range.
 
@@ -31,17 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from contracts.logfile import (  # G0_M_S2: part of this module's surface (m/s2 per g)
+from contracts.log_checks import (  # G0_M_S2: part of this module's surface (m/s2 per g)
     G0_M_S2,
-    DutLog,
     LogChecker,
-    _blocks_of_file,
-    _blocks_of_text,
-    _Header,
-    _parse_rows,
     check_meta,
     g_divisor,
 )
+from contracts.logfile import DutLog, _blocks_of_file, _blocks_of_text, _Header, _parse_rows
 from contracts.types import StationError
 
 TIME_SCALE = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
@@ -225,7 +221,7 @@ def add_import_arguments(parser) -> None:
 def read_any_log(path: str, args=None) -> DutLog:
     """A station log (design 5.1), or with any import option (args from add_import_arguments) a
     log read by import_log; a log without the station's columns is imported with the column names
-    recognised. Both are checked before any science (contracts.logfile.LogChecker)."""
+    recognised. Both are checked before any science (contracts.log_checks.LogChecker)."""
     from contracts.logfile import read_log
 
     opts = {k: getattr(args, k, None) for k in IMPORT_OPTIONS}
