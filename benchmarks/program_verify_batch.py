@@ -30,7 +30,8 @@ from drivers.sim.physics import draw_population  # noqa: E402
 from drivers.sim.station_sim import SimStation  # noqa: E402
 from station.commands.demo import sim_config  # noqa: E402
 from station.config import parse_config  # noqa: E402
-from station.daemon.supervisor import Station, open_database  # noqa: E402
+from station.daemon.storage import open_database  # noqa: E402
+from station.daemon.supervisor import Station
 from contracts.types import AXES  # noqa: E402
 
 

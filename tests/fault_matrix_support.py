@@ -661,7 +661,8 @@ async def _run_kill_plan(plan: Plan, tmp: Path) -> None:
     does what `station serve --resume` does (mark interrupted, judge the killed runs, resume)."""
     from station.commands.demo import sim_config
     from station.config import parse_config
-    from station.daemon.supervisor import Station, open_database
+    from station.daemon.storage import open_database
+    from station.daemon.supervisor import Station
     from tests.test_daemon_e2e import _to_toml
 
     db_path = tmp / "station.db"

@@ -35,7 +35,8 @@ async def _record(url: str, sc: Script) -> dict:
     from drivers.sim.station_sim import SimStation
     from station.commands.demo import sim_config
     from station.config import parse_config
-    from station.daemon.supervisor import Station, open_database
+    from station.daemon.storage import open_database
+    from station.daemon.supervisor import Station
 
     async with SimStation(n_serial=sc.n_serial, n_can=sc.n_can, seed=sc.seed, speed=SPEED) as sim:
         cfg = parse_config(sim_config(sim, speed=SPEED, db_url=url, fixture=sc.fixture), "<recorder>")

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = ("pyproject.toml", "README.md", "station", "drivers", "db", "web")
+SOURCES = ("pyproject.toml", "README.md", "contracts", "station", "drivers", "db", "web")
 
 pytestmark = pytest.mark.slow
 

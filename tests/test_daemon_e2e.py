@@ -18,7 +18,8 @@ from drivers.modbus_devices import ModbusLampRelay, ModbusLink
 from drivers.sim.station_sim import SimStation
 from station.commands.demo import sim_config, truth_by_slot
 from station.config import parse_config
-from station.daemon.supervisor import Station, open_database
+from station.daemon.storage import open_database
+from station.daemon.supervisor import Station
 from contracts.types import AXES
 
 TDB_TOL_MG_PER_C = 0.03

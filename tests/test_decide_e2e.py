@@ -24,7 +24,8 @@ from drivers.sim.station_sim import SimStation
 from station.commands.demo import sim_config
 from station.config import parse_config
 from station.decisions.limits import default_products
-from station.daemon.supervisor import Station, open_database
+from station.daemon.storage import open_database
+from station.daemon.supervisor import Station
 
 SPEED = 400.0
 SEED = 3

@@ -1,5 +1,5 @@
 """station/decisions/moment.py: the hooks between the daemon and the verdicts, on a Station-shaped object with
-the in-memory database stand-in and a real EventBus (no hardware needed: the hooks read only the
+a real (temporary SQLite) database and a real EventBus (no hardware needed: the hooks read only the
 DUT runs, the config and the database)."""
 
 from __future__ import annotations
@@ -9,9 +9,10 @@ from types import SimpleNamespace
 from station.config import parse_config
 from contracts.events import EventBus
 from station.profiles import all_profiles
-from station.daemon.sequencer import DutRun
-from station.daemon.supervisor import MemoryDb
-from station.decisions.moment import judge_final, time_left
+from station.daemon.dut_run import DutRun
+from station.daemon.progress import time_left
+from station.daemon.storage import open_database
+from station.decisions.moment import judge_final
 from contracts.types import Identity
 
 CFG = parse_config({"slots": [{"name": "s1", "serial": "/dev/null"}], "lamp": {"tcp": {"host": "127.0.0.1"}, "unit": 1},
@@ -22,20 +23,21 @@ CFG = parse_config({"slots": [{"name": "s1", "serial": "/dev/null"}], "lamp": {"
 
 
 def station_and_batch(n: int = 2, ending: str = "finished"):
-    db = MemoryDb()
+    db = open_database(None)  # no URL: a temporary SQLite file, the station's own storage path
+    batch_id = db.create_batch("fast-thermal", "op", {})
     bus = EventBus()
     q = bus.subscribe()
     st = SimpleNamespace(config=CFG, db=db, bus=bus, slots={})
     duts = []
     for i in range(n):
         d = DutRun(slot=f"s{i + 1}", identity=Identity(serial=f"SER{i}", sensor="LIS3DSH"), state="running")
-        d.run_id = db.create_run(1, d.slot, d.serial)
+        d.run_id = db.create_run(batch_id, d.slot, d.serial)
         d.n_samples = 1000
         d.result = {"axes": {ax: {"tdb_mg_per_c": 0.1, "tdsf_ppm_per_c": -100.0, "tdsf_sigma_ppm_per_c": 1.0} for ax in "xyz"},
                     "residual": {"axes": {ax: {"drift_error_fs_pct": 0.3, "drift_error_fs_sigma_pct": 0.02, "bow_mg": 0.5,
                                                "bow_sigma_mg": 0.2} for ax in "xyz"}}}
         duts.append(d)
-    seq = SimpleNamespace(batch_id=1, profile=all_profiles(CFG)["fast-thermal"], duts=duts, ending=ending, state="analysing",
+    seq = SimpleNamespace(batch_id=batch_id, profile=all_profiles(CFG)["fast-thermal"], duts=duts, ending=ending, state="analysing",
                           error="")
     return st, seq, q
 
@@ -106,10 +108,11 @@ def test_aborted_and_interrupted_batches_give_error_naming_the_end():
     assert len(events(q)) == 2
 
 
-def test_retest_attempt_in_memory():
+def test_retest_attempt():
     st, seq, q = station_and_batch(n=1)
     d = seq.duts[0]
-    d.run_id = st.db.create_run(2, "s1", d.serial)  # the same serial seen again
+    retest = st.db.create_batch("fast-thermal", "op", {})
+    d.run_id = st.db.create_run(retest, "s1", d.serial)  # the same serial seen again
     d.state = "done"
     judge_final(st, seq)
     assert d.verdict["attempt"] == 2

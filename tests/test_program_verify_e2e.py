@@ -179,7 +179,8 @@ class TruthAnalysisStation:
 async def _short_daemon(sim, tmp_path):
     from station.commands.demo import sim_config, truth_by_slot
     from station.config import parse_config
-    from station.daemon.supervisor import Station, open_database
+    from station.daemon.storage import open_database
+    from station.daemon.supervisor import Station
 
     cfg = parse_config(sim_config(sim, speed=SPEED, db_url=f"sqlite:///{tmp_path / 'pv.db'}", profiles=SHORT_PV), "<t>")
     db = open_database(cfg.database_url)

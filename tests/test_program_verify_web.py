@@ -80,7 +80,7 @@ def test_writer_outbox_carries_program_verify(tmp_path):
     from db.repository import results_since
     from db.writer import DbWriter
     from contracts.events import DutProgrammed, DutVerdict, DutVerified
-    from station.daemon.supervisor import open_database
+    from station.daemon.storage import open_database
 
     db = open_database(f"sqlite:///{tmp_path / 'o.db'}")
     try:

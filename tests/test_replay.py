@@ -37,7 +37,7 @@ def recorded(tmp_path_factory):
 
 
 def _db(url: str):
-    from station.daemon.supervisor import open_database
+    from station.daemon.storage import open_database
 
     return open_database(url, station="test")
 

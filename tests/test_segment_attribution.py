@@ -15,7 +15,8 @@ import pytest
 from drivers.sim.station_sim import SimStation
 from station.commands.demo import sim_config
 from station.config import parse_config
-from station.daemon.supervisor import Station, open_database
+from station.daemon.storage import open_database
+from station.daemon.supervisor import Station
 
 SPEED = 600.0
 

@@ -14,7 +14,9 @@ from drivers.base import Fixture, LampRelay
 from contracts.events import Alarm, EventBus, LampChanged, PromptRaised
 from station.profiles import BUILTIN_PROFILES, Profile, Step
 from station.daemon.safety import LampGuard, LampTripped
-from station.daemon.sequencer import TRANSITIONS, DutRun, Sequencer
+from station.daemon.dut_run import DutRun
+from station.daemon.sequencer import Sequencer
+from station.daemon.states import TRANSITIONS
 from contracts.types import Segment
 
 

@@ -123,7 +123,8 @@ class LiveStation:
 
     async def _amain(self) -> None:
         from drivers.sim.station_sim import SimStation
-        from station.daemon.supervisor import Station, open_database
+        from station.daemon.storage import open_database
+        from station.daemon.supervisor import Station
         from web.app import create_app, make_server
 
         self.loop = asyncio.get_running_loop()

@@ -83,7 +83,7 @@ class SecurityHeaders:
 
 def default_repository(station) -> WebRepository:
     db = getattr(station, "db", None)
-    if db is None or not hasattr(db, "engine"):  # no db, or the daemon's in-memory stand-in
+    if db is None or not hasattr(db, "engine"):  # a station-shaped test double without a database
         return NoRepository()
     from web.db_repo import DbRepository
 

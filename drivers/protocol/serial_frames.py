@@ -14,7 +14,7 @@ from operator import xor
 import numpy as np
 
 from drivers.base import LinkStats
-from drivers.protocol.cal_record import N_SFEM, N_THERMAL, crc32_f32, to_f32
+from drivers.protocol.cal_record import N_SFEM, N_THERMAL, to_f32
 from contracts.types import Identity
 
 _U32_MAX = (1 << 32) - 1

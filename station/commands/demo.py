@@ -278,7 +278,8 @@ def run(args: argparse.Namespace) -> int:
 async def _main(args: argparse.Namespace) -> int:
     from drivers.sim.station_sim import SimStation
     from station.config import parse_config
-    from station.daemon.supervisor import Station, open_database
+    from station.daemon.storage import open_database
+    from station.daemon.supervisor import Station
 
     db_url = args.db or f"sqlite:///{Path('var').resolve() / 'demo.db'}"
     stop = asyncio.Event()

@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
     if args.check and not args.verbose:
         # --check prints each faulted slot itself, one line each; no second copy from the log.
-        logging.getLogger("station.daemon.supervisor").setLevel(logging.ERROR)
+        logging.getLogger("station.daemon.slots").setLevel(logging.ERROR)
     from station.config import load_config
 
     cfg = load_config(args.config)
@@ -51,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace, cfg) -> int:
-    from station.daemon.supervisor import Station, open_database
+    from station.daemon.storage import open_database
+    from station.daemon.supervisor import Station
 
     stop = asyncio.Event()
     install_stop_signals(stop)

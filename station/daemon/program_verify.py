@@ -32,7 +32,7 @@ from contracts.events import DutProgrammed, DutVerified
 from station.science.verify import drift_before_mg, verify_compensated
 from contracts.types import AXES, SampleBlock
 
-log = logging.getLogger("station.daemon.program_verify")
+log = logging.getLogger(__name__)
 
 
 def uses_program_verify(profile: Any) -> bool:

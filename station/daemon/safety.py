@@ -26,7 +26,7 @@ from drivers.base import LampRelay, Thermometer
 from station.aio import cancel_and_wait
 from contracts.events import Alarm, EventBus, LampChanged
 
-log = logging.getLogger("station.daemon.safety")
+log = logging.getLogger(__name__)
 
 DEFAULT_RETRY_DELAYS_S = (0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
 

@@ -24,10 +24,7 @@ import asyncio
 import logging
 import math
 import time
-from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
-
-import numpy as np
+from typing import Protocol
 
 from drivers.base import Chamber, DriverError, Fixture
 from contracts.events import (
@@ -35,45 +32,17 @@ from contracts.events import (
     EventBus,
     PromptAnswered,
     PromptRaised,
-    SlotStateChanged,
     StepCompleted,
     StepStarted,
 )
-from contracts.positions import FACING_MAX_ANGLE_DEG, POSITION_NAMES, first_facing
+from contracts.positions import FACING_MAX_ANGLE_DEG
+from station.daemon import batch_view
+from station.daemon.dut_run import DutRun, wall_text
+from station.daemon.states import BATCH_STATE, TERMINAL, TRANSITIONS
 from station.profiles import Profile, Step
 from station.daemon.safety import LampGuard, LampTripped
-from contracts.types import Identity, SampleBlock, Segment
 
-log = logging.getLogger("station.daemon.sequencer")
-
-# state -> states it may go to. Terminal states go nowhere.
-TRANSITIONS: dict[str, tuple[str, ...]] = {
-    "created": ("connecting",),
-    "connecting": ("step_setup", "analysing"),  # analysing: a resumed batch whose steps were all done
-    "step_setup": ("positioning", "programming"),
-    "programming": ("step_done",),  # program and verify, part 1 (hw.program_duts)
-    "positioning": ("moving", "waiting_operator", "logging"),
-    "moving": ("logging",),
-    "waiting_operator": ("logging",),
-    "logging": ("step_done",),
-    "step_done": ("step_setup", "analysing"),
-    "analysing": ("finished",),
-    "finished": (),
-    "failed": (),
-    "aborted": (),
-    "interrupted": (),
-}
-TERMINAL = ("finished", "failed", "aborted", "interrupted")
-# Any non-terminal state may also go to failed, aborted (operator) or interrupted (daemon shutdown).
-for _s, _t in list(TRANSITIONS.items()):
-    if _s not in TERMINAL:
-        TRANSITIONS[_s] = _t + ("failed", "aborted", "interrupted")
-
-# Coarse batch state (design events: created, running, finished, aborted, failed) per sequencer state.
-BATCH_STATE = {s: "running" for s in TRANSITIONS}
-BATCH_STATE.update(created="created", waiting_operator="paused", finished="finished", failed="failed", aborted="aborted",
-                   interrupted="interrupted")
-
+log = logging.getLogger(__name__)
 
 class BatchFailed(Exception):
     """The batch cannot go on (no live DUT, fixture fault, lamp trip)."""
@@ -82,97 +51,6 @@ class BatchFailed(Exception):
 class _StopRequested(Exception):
     """stop() was called but its task cancellation was swallowed (asyncio.wait_for inside a
     Modbus client can eat a cancel on Python 3.11): the machine checks for it at every turn."""
-
-
-@dataclass
-class DutRun:
-    """One DUT in one batch: what the supervisor has received and the sequencer judges."""
-
-    slot: str
-    link: str = ""
-    state: str = "connecting"  # connecting, identified, running, done, faulted
-    identity: Identity | None = None
-    run_id: int | None = None
-    fault_reason: str = ""
-    calibrator: Any = None
-    blocks: list[SampleBlock] = field(default_factory=list)
-    block_steps: list[int] = field(default_factory=list)
-    segments: list[Segment] = field(default_factory=list)
-    segment_steps: list[int] = field(default_factory=list)
-    t0: float | None = None  # board time of the first sample in this batch
-    last_t: float | None = None  # board time of the latest sample
-    last_wall: float = field(default_factory=time.monotonic)
-    n_samples: int = 0
-    step_t_start: float = -math.inf  # board time when the current step began logging
-    step_facing: bool = True  # a static step's samples show its position (contracts.positions.first_facing)
-    facing_scan: int = 0  # blocks already searched for the first facing sample
-    step_windows: dict[int, tuple[float, float]] = field(default_factory=dict)  # step -> board time span
-    result: dict | None = None
-    link_stats: dict = field(default_factory=dict)
-    # Resume of an interrupted batch: the serial the stored run belongs to, the board time its
-    # stored stream ended at (the live stream is joined on after it) and the offset applied.
-    expected_serial: str | None = None
-    resume_t: float | None = None
-    time_offset_s: float = 0.0
-    hold_calibrator: bool = False  # resumed: samples are stored but not calibrated until logging
-    unstored_segments: list[tuple[Segment, int]] = field(default_factory=list)
-    verdict: dict | None = None  # the station's decision (station/decisions/moment.py)
-    extra_measurements: list = field(default_factory=list)  # more station.decisions.verdicts.Measurement to judge
-    program: dict | None = None  # program and verify: what was written and read back (CRC, comp)
-    verification: dict | None = None  # program and verify: verified drift error E (science.verify)
-    steps_done: int = 0  # steps this DUT completed while live (the page's progress dots, issue 9)
-
-    @property
-    def serial(self) -> str | None:
-        return self.identity.serial if self.identity else None
-
-    @property
-    def live(self) -> bool:
-        return self.state in ("connecting", "identified", "running")
-
-    @property
-    def elapsed_s(self) -> float:
-        if self.t0 is None or self.last_t is None:
-            return 0.0
-        return self.last_t - self.t0
-
-    def status(self) -> dict:
-        return {
-            "slot": self.slot,
-            "link": self.link,
-            "serial": self.serial,
-            "sensor": self.identity.sensor if self.identity else None,
-            "state": self.state,
-            "fault_reason": self.fault_reason,
-            "run_id": self.run_id,
-            "samples": self.n_samples,
-            "segments": len(self.segments),
-            "sample_time_s": self.elapsed_s,
-            "calibrator_state": getattr(self.calibrator, "state", None),
-            "link_stats": dict(self.link_stats),
-            "result": self.result,
-            "decision": self.verdict,
-            "program": self.program,
-            "verification": self.verification,
-            "steps_done": self.steps_done,
-        }
-
-    def temp_rise_c(self, t_from: float, n_edge: int = 8) -> float:
-        """How far this DUT's own temperature has risen since board time t_from (a heat step):
-        median of the latest n_edge samples minus median of the first n_edge after t_from."""
-        tail: list[np.ndarray] = []
-        for b in reversed(self.blocks):
-            if len(b) == 0:
-                continue
-            if b.time_s[-1] <= t_from:
-                break
-            tail.append(b.temp_c[b.time_s > t_from])
-        if not tail:
-            return 0.0
-        temps = np.concatenate(tail[::-1])
-        if len(temps) < 2 * n_edge:
-            return 0.0
-        return float(np.median(temps[-n_edge:]) - np.median(temps[:n_edge]))
 
 
 class _device:
@@ -565,38 +443,8 @@ class Sequencer:
         return self.clock_s() - self.step_clock_start  # no sample before the step (or resumed step)
 
     def dut_step_done(self, d: DutRun, step: Step) -> bool:
-        if step.require == "segment":
-            return any(
-                st == self.step_index and seg.position == step.position and seg.t_end_s > d.step_t_start
-                for seg, st in zip(d.segments, d.segment_steps)
-            )
-        if d.last_t is not None and not math.isfinite(d.step_t_start) and d.t0 is not None:
-            # No sample had arrived when the step began logging (a step that needs no move, a slow
-            # link): the DUT's first sample of the batch starts its dwell, instead of never.
-            d.step_t_start = d.t0
-        if d.last_t is None or not math.isfinite(d.step_t_start):
-            return False
-        if not d.step_facing and not self._find_facing(d, step):
-            return False
-        if step.require == "heat":
-            return d.last_t - d.step_t_start >= step.settle_s and d.temp_rise_c(d.step_t_start) >= step.heat_c
-        need = step.dwell_s + (step.settle_s if step.require == "static" else 0.0)
-        return d.last_t - d.step_t_start >= need
-
-    @staticmethod
-    def _find_facing(d: DutRun, step: Step) -> bool:
-        """Search the blocks that arrived since the last look for the first sample facing the
-        step's position; when found, the step's settle and dwell start at it."""
-        blocks = d.blocks[d.facing_scan:]
-        d.facing_scan += len(blocks)
-        for blk in blocks:
-            later = blk.time_s > d.step_t_start
-            k = first_facing(blk.acc_g[later], step.position)
-            if k is not None:
-                d.step_t_start = float(blk.time_s[later][k])
-                d.step_facing = True
-                return True
-        return False
+        """Has this DUT logged what the step requires (dut_run.DutRun.step_done)?"""
+        return d.step_done(step, self.step_index)
 
     async def _state_step_done(self) -> str:
         if self.step_index + 1 < len(self.profile.steps):
@@ -609,110 +457,15 @@ class Sequencer:
         await self.hw.analyse(self)
         return "finished"
 
-    # ------------------------------------------------------------ reporting
+    # ------------------------------------------------------------ reporting (batch_view.py)
     def waiting_for(self) -> str | None:
-        """What the batch is waiting for right now, in the operator's words (None once it ended):
-        a newcomer must see why nothing seems to happen (issue 9)."""
-        if self.state in TERMINAL:
-            return None
-        step = self.step
-        if self.state in ("created", "connecting"):
-            return "boards"
-        if self.state == "waiting_operator":
-            return "operator"
-        if self.state in ("positioning", "moving"):
-            return "fixture"
-        if self.state == "step_setup":
-            return "chamber" if step is not None and step.chamber_setpoint_c is not None else "step"
-        if self.state == "logging" and step is not None:
-            return WAITING_FOR_REQUIRE.get(step.require, step.require)
-        return {"programming": "programming", "analysing": "analysis", "step_done": "next step"}.get(self.state)
+        return batch_view.waiting_for(self)
 
     def dut_waiting_for(self, d: DutRun) -> str | None:
-        """The batch's waiting_for for one DUT: 'other DUTs' once it has what the step needs."""
-        if not d.live or self.state in TERMINAL:
-            return None
-        step = self.step
-        if self.state == "logging" and step is not None:
-            if self.dut_step_done(d, step):
-                return "other DUTs"
-            if not d.step_facing:
-                return f"facing {step.position_name}"
-        return self.waiting_for()
+        return batch_view.dut_waiting_for(self, d)
 
     def dut_counts(self) -> dict[str, int]:
-        """DUTs per end state, live ones as 'running': an aborted batch has none running."""
-        counts = {"running": 0, "done": 0, "faulted": 0, "interrupted": 0}
-        for d in self.duts:
-            key = "running" if d.live else d.state
-            counts[key] = counts.get(key, 0) + 1
-        return counts
+        return batch_view.dut_counts(self)
 
     def status(self) -> dict:
-        step = self.step
-        now = time.time()
-        slots = [d.status() for d in self.duts]
-        for d, st in zip(self.duts, slots):
-            st["waiting_for"] = self.dut_waiting_for(d)
-        return {
-            "id": self.batch_id,
-            "profile": self.profile.name,
-            "operator": self.operator,
-            "state": BATCH_STATE[self.state],
-            "seq_state": self.state,
-            "step_index": self.step_index,
-            "step": step.to_json() if step else None,
-            "n_steps": len(self.profile.steps),
-            "position": self.position,
-            "position_name": POSITION_NAMES[self.position] if self.position is not None else None,
-            "sample_time_s": self.clock_s(),
-            "step_elapsed_s": max(0.0, self.clock_s() - self.step_clock_start) if self.state == "logging" else 0.0,
-            "lamp_on": self.hw.lamp.is_on,
-            "lamp_state": self.hw.lamp.state,  # 'unknown' while the relay does not answer
-            "lamp_relay_error": self.hw.lamp.relay_error,
-            "lamp_on_time_s": self.hw.lamp.on_time_s(),
-            "prompt": self.prompt,
-            "error": self.error,
-            "started": self.started_wall,
-            "ended": self.ended_wall,
-            "ended_by": self.ended_by if self.ended_wall is not None else None,
-            "ended_at": iso_utc(self.ended_wall) if self.ended_wall is not None else None,
-            "elapsed_s": max(0.0, (self.ended_wall if self.ended_wall is not None else now) - self.started_wall),
-            "waiting_for": self.waiting_for(),
-            "analysis": self.profile.analysis,
-            "note": result_note(self.profile),
-            "counts": self.dut_counts(),
-            "transitions": [{"time": t, "from": a, "to": b} for t, a, b in self.history],
-            "slots": slots,
-        }
-
-
-# What a logging step waits for, by its `require` (profiles.Step), as the page shows it.
-WAITING_FOR_REQUIRE = {"heat": "temperature rise", "static": "static dwell", "segment": "segment", "none": "dwell"}
-
-
-def wall_text(t: float) -> str:
-    """A wall time as the operator reads it in a message: '2026-11-23 14:02:05 UTC'."""
-    return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(t))
-
-
-def iso_utc(t: float) -> str:
-    """RFC 3339 UTC with seconds, as the REST API gives times."""
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
-
-
-def result_note(profile: Profile) -> str | None:
-    """Said on the page for a profile without analysis: its DUTs end 'done' with no coefficients,
-    which a newcomer otherwise takes for a failed calibration."""
-    if profile.analysis != "none":
-        return None
-    return (f"profile {profile.name} logs data only: it yields no calibration result "
-            "(no TDB/TDSF, no SFEM); review the runs' logs and plots")
-
-
-def annotate_segment(seg: Segment, position: int | None) -> Segment:
-    return replace(seg, position=position)
-
-
-def publish_slot(bus: EventBus, batch_id: int, d: DutRun) -> None:
-    bus.publish(SlotStateChanged(batch_id, slot=d.slot, serial=d.serial, state=d.state, fault_reason=d.fault_reason))
+        return batch_view.status(self)

@@ -92,7 +92,8 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
     from db import repository as R
     from drivers.sim.replay import ReplayStation, recorded_digest
     from station.config import parse_config
-    from station.daemon.supervisor import Station, open_database
+    from station.daemon.storage import open_database
+    from station.daemon.supervisor import Station
 
     async with ReplayStation(recording, speed=opts.speed, can_interface=opts.can_interface) as sim:
         cfg = parse_config(replay_config(recording, sim, opts), "<replay>")

@@ -1,0 +1,137 @@
+"""Starting a batch, or resuming one a stopped daemon interrupted.
+
+A batch is one profile run on a set of slots by one sequencer (one plate, one lamp: one batch at a
+time). Every request is checked here before anything moves; a bad one is a ValueError with the
+reason the page shows (unknown profile or slot, a slot listed twice, a chamber the profile needs
+but the station lacks, a batch already running).
+
+Resume (design 6): each DUT run that was interrupted goes on as the SAME run. Its stored samples
+are replayed through a fresh calibrator (pure science: the state it had before the stop), the live
+stream is appended after them, and the board must answer with the same serial.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from contracts.types import SampleBlock
+from db.export import run_log
+from db.repository import segments_of_run
+from station.daemon.dut_run import DutRun, annotate_segment
+from station.daemon.sequencer import Sequencer
+from station.daemon.states import TERMINAL
+from station.profiles import Profile
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class BatchRt:
+    seq: Sequencer
+    pumps: dict[str, asyncio.Task] = field(default_factory=dict)
+    releasing: bool = False  # pumps end at their next turn (a cancel alone can be swallowed)
+
+
+def _check_station_free(st: Any, profile: Profile) -> None:
+    if not st.running:
+        raise ValueError("the station is not running")
+    if any(s.chamber_setpoint_c is not None for s in profile.steps) and st.chamber is None:
+        raise ValueError(f"profile {profile.name!r} needs a thermal chamber and none is configured")
+    if any(rt.seq.state not in TERMINAL for rt in st.batches.values()):
+        raise ValueError("a batch is already running on this station (one plate, one lamp)")
+
+
+def _run(st: Any, seq: Sequencer) -> None:
+    for d in seq.duts:
+        st.slots[d.slot].batch_id = seq.batch_id
+    st.batches[seq.batch_id] = BatchRt(seq)
+    st.lamp.reset(seq.batch_id)
+    seq.start()
+
+
+def start_batch(st: Any, profile: str, slots: list[str] | None = None, operator: str = "") -> int:
+    if not st.running:
+        raise ValueError("the station is not running")
+    if profile not in st.profiles_by_name:
+        raise ValueError(f"unknown profile {profile!r} (known: {', '.join(st.profiles_by_name)})")
+    prof = st.profiles_by_name[profile]
+    _check_station_free(st, prof)
+    names = list(st.slots) if slots is None else list(slots)
+    if slots is not None:
+        unknown = [n for n in names if n not in st.slots]
+        if unknown:
+            raise ValueError(f"unknown slot(s): {', '.join(unknown)}")
+        if len(set(names)) != len(names):
+            raise ValueError("a slot is listed twice")
+    if not names:
+        raise ValueError("no slots selected")
+    batch_id = int(st.db.create_batch(profile, operator, st.config.snapshot(), replay_of=st.config.replay_of))
+    duts = [DutRun(slot=n, link=st.slots[n].cfg.link) for n in names]
+    _run(st, Sequencer(batch_id, prof, duts, st, st.bus, operator=operator))
+    log.info("batch %d: profile %s on %d slot(s) by %r", batch_id, profile, len(names), operator)
+    return batch_id
+
+
+def resume_batch(st: Any, batch_id: int, operator: str = "") -> int:
+    """Resume an interrupted batch at the step after its last completed one. Faulted or finished
+    runs stay as they are. Returns the batch id."""
+    if not st.running:
+        raise ValueError("the station is not running")
+    if any(rt.seq.state not in TERMINAL for rt in st.batches.values()):
+        raise ValueError("a batch is already running on this station (one plate, one lamp)")
+    rp = st.db.resume_point(int(batch_id))  # KeyError for an unknown batch
+    if rp.state != "interrupted":
+        raise ValueError(f"batch {batch_id} is {rp.state}: only an interrupted batch can be resumed")
+    prof = st.profiles_by_name.get(rp.profile)
+    if prof is None:
+        raise ValueError(f"batch {batch_id} ran profile {rp.profile!r}, which this config does not have")
+    _check_station_free(st, prof)
+    runs = [r for r in rp.runs if r.state == "interrupted"]
+    missing = [r.slot for r in runs if r.slot not in st.slots]
+    if missing:
+        raise ValueError(f"batch {batch_id}: slot(s) {', '.join(missing)} are not in this config")
+    if not runs:
+        raise ValueError(f"batch {batch_id} has no interrupted DUT run to resume")
+    duts = [restored_dut(st, r, rp) for r in runs]
+    _run(st, Sequencer(batch_id, prof, duts, st, st.bus, operator=operator or rp.operator,
+                       start_step=min(rp.next_step, len(prof.steps))))
+    log.info("batch %d: resumed at step %d of %s with %d DUT(s)", batch_id, rp.next_step, rp.profile, len(duts))
+    return batch_id
+
+
+def restored_dut(st: Any, r: Any, rp: Any) -> DutRun:
+    """A DutRun carrying what the stored run already holds: samples, calibrator state, segments."""
+    d = DutRun(slot=r.slot, link=st.slots[r.slot].cfg.link, run_id=r.run_id, expected_serial=r.serial)
+    for step, windows in (rp.step_windows or {}).items():
+        w = windows.get(r.slot)
+        if w and None not in w:
+            d.step_windows[int(step)] = (float(w[0]), float(w[1]))
+    stored = run_log(st.db, r.run_id)
+    if len(stored) == 0:
+        return d
+    block = SampleBlock(stored.time_s, stored.acc_g, stored.temp_c)
+    d.blocks, d.block_steps = [block], [max(rp.next_step - 1, 0)]
+    d.t0, d.last_t, d.resume_t = float(block.time_s[0]), float(block.time_s[-1]), float(block.time_s[-1])
+    d.n_samples = len(block)
+    d.calibrator = st.calibrator_factory()
+    replayed = d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c)
+    steps = {g["index"]: (g["step_index"], g["position"]) for g in (segments_of_run(st.db, r.run_id) or [])}
+    for seg in replayed:
+        if seg.index in steps:
+            step, pos = steps[seg.index]
+            d.segments.append(annotate_segment(seg, pos))
+            d.segment_steps.append(step)
+        else:
+            # Logged from samples whose segment event the stop did not let commit: it belongs to
+            # the interrupted step (a completed step's segments commit before its end) and to the
+            # position the stored samples were taken at.
+            k = min(int(np.searchsorted(stored.time_s, seg.t_end_s)), len(stored) - 1)
+            pos = int(stored.position[k]) if stored.position is not None and stored.position[k] >= 0 else None
+            d.unstored_segments.append((annotate_segment(seg, pos), rp.next_step))
+    d.hold_calibrator = True  # fed again once the resumed step is logging (intake.ingest)
+    return d

@@ -1,0 +1,97 @@
+"""The station's links: Modbus instruments (lamp relay, fixture, thermometer, chamber) and the
+board drivers of its slots, built from the config.
+
+Links are shared where the hardware is: devices on one Modbus link (one TCP server or one RS-485
+port) use one client, and every CAN slot on one adapter uses one bus (two python-can handles on one
+adapter steal each other's bytes). This is the one place that knows which driver class serves
+which kind of link; the rest of the daemon sees `BoardDriver` and the instrument interfaces.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from contracts.types import StationError
+from drivers import modbus_devices as md
+from drivers.base import BoardDriver, DriverError
+from drivers.can_board import CanBoard, CanBus
+from drivers.serial_board import SerialBoard
+from station.config import ModbusDevice, SlotConfig
+
+DEVICE_CLASSES = {
+    "lamp": md.ModbusLampRelay,
+    "fixture": md.ModbusFixture,
+    "thermometer": md.ModbusThermometer,
+    "chamber": md.ModbusChamber,
+}
+
+
+class Links:
+    """Every open link of one daemon, closed together when the station closes."""
+
+    def __init__(self) -> None:
+        self.modbus: dict[tuple, Any] = {}
+        self.can_buses: dict[tuple, Any] = {}
+
+    async def modbus_device(self, kind: str, dev: ModbusDevice) -> Any:
+        """The instrument `kind` on its (shared) Modbus link; one read proves the unit answers.
+        An unreachable link or a silent unit is a StationError (one line)."""
+        key = dev.link_key
+        link = self.modbus.get(key)
+        if link is None:
+            try:
+                if dev.tcp is not None:
+                    link = md.ModbusLink(host=dev.tcp.host, port=dev.tcp.port, timeout_s=dev.timeout_s)
+                else:
+                    link = md.ModbusLink(serial_port=dev.rtu.port, baudrate=dev.rtu.baudrate, timeout_s=dev.timeout_s)
+                await link.connect()
+            except (DriverError, OSError) as exc:
+                raise StationError(f"{kind}: {exc}") from None
+            self.modbus[key] = link
+        device = DEVICE_CLASSES[kind](link, unit=dev.unit)
+        try:
+            if kind == "lamp":
+                await device.read_lamp()
+            elif kind == "fixture":
+                await device.position()
+            else:
+                await device.read_temp_c()
+        except (DriverError, OSError, asyncio.TimeoutError) as exc:
+            raise StationError(f"{kind}: no answer from {dev.link}: {exc}") from None
+        return device
+
+    async def board_driver(self, cfg: SlotConfig) -> BoardDriver:
+        """A driver for the slot's board (not yet opened, except the shared CAN bus)."""
+        if cfg.serial is not None:
+            return SerialBoard(cfg.serial)
+        c = cfg.can
+        assert c is not None
+        key = (c.interface, c.channel, c.bitrate)
+        bus = self.can_buses.get(key)
+        if bus is None:
+            kwargs: dict[str, Any] = {"sleep_after_open": 0} if c.interface == "slcan" else {}
+            bus = CanBus(c.interface, c.channel, c.bitrate, **kwargs)
+            # Registered before the first await: slots connect concurrently and must share one bus.
+            self.can_buses[key] = bus
+        try:
+            await bus.open()  # idempotent and locked: the first slot opens, the rest wait
+        except DriverError:
+            raise
+        except Exception as exc:
+            raise DriverError(f"cannot open CAN {c.interface}:{c.channel}: {exc}") from exc
+        return CanBoard(bus, c.node)
+
+    async def close(self) -> None:
+        for bus in self.can_buses.values():
+            try:
+                await bus.close()
+            except Exception:
+                pass
+        for link in self.modbus.values():
+            try:
+                res = link.close()
+                if asyncio.iscoroutine(res):
+                    await res
+            except Exception:
+                pass

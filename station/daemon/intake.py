@@ -1,0 +1,128 @@
+"""The data path of one running DUT: read its link, take each sample block in, feed the calibrator.
+
+`pump` is one task per DUT: it reads blocks at a steady pace (big enough that the calibrator's
+batch update is cheap) until the batch releases its DUTs, and turns every link problem into a
+fault of this DUT alone, with the reason the operator reads: link lost, no samples for N s, only
+garbage (bad frames, no good one), a driver bug. `ingest` is what one block does: publish it (the
+database writer stores it), keep it for the offline fit, feed the streaming calibrator and publish
+the segments it logs, and show the lamp guard the DUT's temperature.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from contracts.events import SamplesReceived, SegmentLogged
+from contracts.types import SampleBlock
+from drivers.base import DriverError
+from station.daemon.dut_run import DutRun, annotate_segment
+from station.daemon.sequencer import Sequencer
+
+log = logging.getLogger(__name__)
+
+
+async def pump(st: Any, seq: Sequencer, d: DutRun) -> None:
+    """Read one DUT's link until the batch ends; fault only this DUT on a link problem."""
+    slot = st.slots[d.slot]
+    drv = slot.driver
+    assert drv is not None
+    timing = st.config.timing
+    period = timing.read_period_s
+    stats = drv.stats
+    bad0 = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped
+    ok0 = stats.frames_ok
+    try:
+        rt = st.batches.get(seq.batch_id)
+        while d.live and not (rt is not None and rt.releasing):
+            t_read = time.monotonic()
+            try:
+                block = await drv.read_block(timeout_s=max(period, 0.25))
+            except DriverError as exc:
+                st.fault_dut(seq, d, f"{d.link}: link lost: {exc}")
+                await slot.close_driver()
+                return
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a driver bug must fault its slot, never kill the pump silently
+                log.exception("slot %s: reading %s failed", d.slot, d.link)
+                st.fault_dut(seq, d, f"{d.link}: board data could not be read: {type(exc).__name__}: {exc}")
+                await slot.close_driver()
+                return
+            now = time.monotonic()
+            if len(block):
+                try:
+                    ingest(st, seq, d, block, now)
+                except Exception as exc:  # noqa: BLE001 - same: this slot only, with a reason
+                    log.exception("slot %s: processing a block from %s failed", d.slot, d.link)
+                    st.fault_dut(seq, d, f"{d.link}: board data could not be processed: {type(exc).__name__}: {exc}")
+                    await slot.close_driver()
+                    return
+                bad0 = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped
+                ok0 = stats.frames_ok
+            elif now - d.last_wall > timing.stall_timeout_s:
+                bad = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped - bad0
+                if bad > 0 and stats.frames_ok == ok0:
+                    reason = (f"{d.link}: only garbage for {now - d.last_wall:.1f} s "
+                              f"({bad} bad frames/bytes, no good frame)")
+                else:
+                    reason = f"{d.link}: no samples for {now - d.last_wall:.1f} s"
+                st.fault_dut(seq, d, reason)
+                return
+            # Pace the reads so that blocks are big enough to be cheap (update_batch).
+            rest = period - (time.monotonic() - t_read)
+            if rest > 0:
+                await asyncio.sleep(rest)
+    finally:
+        d.link_stats = stats.as_dict()
+
+
+def ingest(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock, now: float) -> None:
+    d.last_wall = now
+    if d.resume_t is not None:
+        # First block after a resume: a board whose clock restarted (CAN time is sample index /
+        # ODR from our own count) is joined on one sample period after the stored stream.
+        if block.time_s[0] <= d.resume_t:
+            odr = d.identity.odr_hz if d.identity and d.identity.odr_hz else 1.0
+            d.time_offset_s = d.resume_t + 1.0 / odr - float(block.time_s[0])
+        d.resume_t = None
+    if d.time_offset_s:
+        block = SampleBlock(block.time_s + d.time_offset_s, block.acc_g, block.temp_c, block.lost_samples)
+    if d.t0 is None:
+        d.t0 = float(block.time_s[0])
+    d.last_t = float(block.time_s[-1])
+    d.n_samples += len(block)
+    d.blocks.append(block)
+    d.block_steps.append(seq.step_index)
+    lamp = st.lamp
+    assert lamp is not None
+    st.bus.publish(SamplesReceived(seq.batch_id, slot=d.slot, serial=d.serial or "", step_index=seq.step_index,
+                                   block=block, lamp_on=lamp.is_on, position=seq.position))
+    if d.hold_calibrator and seq.state == "logging":
+        # Resumed: the plate is where the step wants it now. No average may span the time the
+        # daemon was down or the reconnect, so the calibrator's window starts over here.
+        d.hold_calibrator = False
+        if hasattr(d.calibrator, "restart_window"):
+            d.calibrator.restart_window()
+    if d.calibrator is not None and not d.hold_calibrator:
+        segs = d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c)
+        if segs and seq.position is None and hasattr(d.calibrator, "discard_last_segment"):
+            # averaged while the plate's position was unknown (connecting, moving): no step can
+            # use it, and a kept one would make the calibrator wait for a change that never comes
+            for _ in segs:
+                d.calibrator.discard_last_segment()
+            log.info("slot %s: a segment logged while the plate position was unknown is discarded", d.slot)
+            segs = []
+        for seg in segs:
+            seg = annotate_segment(seg, seq.position)
+            d.segments.append(seg)
+            d.segment_steps.append(seq.step_index)
+            st.bus.publish(SegmentLogged(seq.batch_id, slot=d.slot, serial=d.serial or "",
+                                         step_index=seq.step_index, segment=seg))
+    lamp.note_sample_time(seq.clock_s())
+    lamp.check_dut_temp(d.slot, float(np.max(block.temp_c)))
+    seq.notify()

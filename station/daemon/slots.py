@@ -1,0 +1,196 @@
+"""Slots: one board each, identified, bound to its DUT run, streaming, or faulted ALONE.
+
+A slot is the fixture's place for one board and its link (serial port or CAN node). Between
+batches it holds the board's identity; in a batch it carries one DUT run (station/daemon/sequencer
+DutRun). A link problem faults that slot's run with the reason and nothing else: the batch goes on
+with the other boards (design 2, "faults stay in their slot").
+
+Functions take the `Station` (the facade owns the shared state: config, bus, database, links,
+batches); the pump that reads a running slot is in intake.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from contracts.events import SegmentLogged, SlotStateChanged
+from drivers.base import BoardDriver, DriverError
+from station.config import SlotConfig
+from station.daemon.intake import pump
+from station.daemon.dut_run import DutRun
+from station.daemon.sequencer import Sequencer
+from station.daemon.states import TERMINAL
+
+log = logging.getLogger(__name__)
+
+IDENTITY_FIELDS = ("serial", "sensor", "fw", "ug_per_lsb", "t_lsb_per_c", "t_lsb_at_25c", "odr_hz")
+
+
+@dataclass
+class SlotRuntime:
+    cfg: SlotConfig
+    driver: BoardDriver | None = None
+    state: str = "disconnected"  # disconnected, identified, busy, faulted
+    identity: Any = None
+    fault_reason: str = ""
+    batch_id: int | None = None
+
+    def status(self) -> dict:
+        return {
+            "slot": self.cfg.name,
+            "name": self.cfg.name,
+            "link": self.cfg.link,
+            "state": self.state,
+            "serial": self.identity.serial if self.identity else None,
+            "sensor": self.identity.sensor if self.identity else None,
+            "batch_id": self.batch_id,
+            "fault_reason": self.fault_reason,
+            "link_stats": self.driver.stats.as_dict() if self.driver is not None and hasattr(self.driver, "stats") else {},
+        }
+
+    async def close_driver(self) -> None:
+        if self.driver is not None:
+            drv, self.driver = self.driver, None
+            try:
+                await asyncio.wait_for(drv.close(), 2.0)
+            except Exception:
+                pass
+
+
+def identity_dict(ident: Any) -> dict:
+    return {k: getattr(ident, k) for k in IDENTITY_FIELDS}
+
+
+async def connect_slot(st: Any, rt: SlotRuntime, batch_id: int = 0) -> bool:
+    """Open (if needed) and identify one slot. Returns False (slot faulted) on a link problem."""
+    try:
+        if rt.driver is None:
+            rt.driver = await st.links.board_driver(rt.cfg)
+            await rt.driver.open()
+        try:
+            await rt.driver.stop()  # a board left streaming by a previous process
+        except DriverError:
+            pass
+        rt.identity = await rt.driver.identify(st.config.timing.identify_timeout_s)
+    except (DriverError, OSError) as exc:
+        rt.state, rt.fault_reason = "faulted", f"{rt.cfg.link}: {exc}"
+        await rt.close_driver()
+        log.warning("slot %s: %s", rt.cfg.name, rt.fault_reason)
+        if not batch_id:
+            st.bus.publish(SlotStateChanged(0, slot=rt.cfg.name, serial=None, state="faulted",
+                                            fault_reason=rt.fault_reason))
+        return False
+    rt.state, rt.fault_reason = "identified", ""
+    if not batch_id:  # inside a batch, connect_duts publishes once the run exists
+        st.bus.publish(SlotStateChanged(0, slot=rt.cfg.name, serial=rt.identity.serial, state="identified"))
+    return True
+
+
+def publish_dut(st: Any, seq: Sequencer, d: DutRun) -> None:
+    st.bus.publish(SlotStateChanged(seq.batch_id, slot=d.slot, serial=d.serial, state=d.state,
+                                    fault_reason=d.fault_reason))
+
+
+def fault_dut(st: Any, seq: Sequencer, d: DutRun, reason: str) -> None:
+    """This DUT's run ends faulted with `reason`; its pump stops; the others go on."""
+    if not d.live:
+        return
+    d.state, d.fault_reason = "faulted", reason
+    log.warning("batch %d slot %s faulted: %s", seq.batch_id, d.slot, reason)
+    publish_dut(st, seq, d)
+    rt = st.batches.get(seq.batch_id)
+    if rt is not None:
+        task = rt.pumps.get(d.slot)
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+    slot = st.slots[d.slot]
+    slot.state, slot.fault_reason = "faulted", reason
+    seq.notify()
+
+
+async def connect_duts(st: Any, seq: Sequencer) -> None:
+    """Identify every DUT of the batch, open (or continue) its run, start its stream and its pump."""
+    rt = st.batches[seq.batch_id]
+
+    async def one(d: DutRun) -> None:
+        slot = st.slots[d.slot]
+        d.state = "connecting"
+        publish_dut(st, seq, d)
+        if not await connect_slot(st, slot, seq.batch_id):
+            fault_dut(st, seq, d, slot.fault_reason)
+            return
+        slot.state = "busy"
+        d.identity = slot.identity
+        ident = d.identity
+        if d.expected_serial is not None and ident.serial != d.expected_serial:
+            fault_dut(st, seq, d, f"{d.link}: found serial {ident.serial}, the interrupted run was "
+                                  f"{d.expected_serial} (board swapped?)")
+            return
+        d.state = "identified"
+        if d.run_id is None:
+            d.run_id = int(st.db.create_run(seq.batch_id, d.slot, ident.serial, ident.sensor, identity_dict(ident)))
+        if st.writer is not None:
+            st.writer.bind_run(seq.batch_id, d.slot, d.run_id)
+        publish_dut(st, seq, d)
+        for seg, step in d.unstored_segments:
+            d.segments.append(seg)
+            d.segment_steps.append(step)
+            st.bus.publish(SegmentLogged(seq.batch_id, slot=d.slot, serial=ident.serial, step_index=step, segment=seg))
+        d.unstored_segments.clear()
+        if d.calibrator is None:
+            d.calibrator = st.calibrator_factory()
+        # Samples still held from the board's previous run (read after its last block until its
+        # STOP took effect) would open this run with that run's tail and a gap of the time between
+        # the batches (issue 9: the plot's first sample).
+        discard = getattr(slot.driver, "discard_held", None)  # test doubles may not have it
+        dropped = discard() if discard is not None else 0
+        if dropped:
+            log.info("batch %d slot %s: %d samples of the previous run discarded", seq.batch_id, d.slot, dropped)
+        try:
+            await slot.driver.start()  # type: ignore[union-attr]
+        except DriverError as exc:
+            fault_dut(st, seq, d, f"{d.link}: start failed: {exc}")
+            return
+        d.state = "running"
+        d.last_wall = time.monotonic()
+        publish_dut(st, seq, d)
+        rt.pumps[d.slot] = asyncio.get_running_loop().create_task(pump(st, seq, d), name=f"pump-{d.slot}")
+
+    await asyncio.gather(*(one(d) for d in seq.duts))
+
+
+async def stop_streams(st: Any, seq: Sequencer) -> None:
+    """Stop every pump of the batch (each ends at its next turn at the latest)."""
+    rt = st.batches[seq.batch_id]
+    rt.releasing = True
+    for t in rt.pumps.values():
+        t.cancel()
+    if rt.pumps:
+        # Python 3.11's asyncio.wait_for (inside read_block) can swallow a cancel that lands as its
+        # wait completes: the pump then ends on `releasing` at its next read instead.
+        _, late = await asyncio.wait(rt.pumps.values(), timeout=10.0)
+        for t in late:
+            log.error("batch %d: pump %s did not stop within 10 s", seq.batch_id, t.get_name())
+    rt.pumps.clear()
+
+
+def slots_status(st: Any) -> list[dict]:
+    """Every slot as GET /api/slots shows it: inside a running batch, its DUT run's state."""
+    out = []
+    for rt in st.slots.values():
+        s = rt.status()
+        if rt.batch_id is not None and rt.batch_id in st.batches:
+            seq = st.batches[rt.batch_id].seq
+            for d in seq.duts:
+                if d.slot == rt.cfg.name:
+                    s["run_state"] = d.state
+                    s["run_id"] = d.run_id
+                    if seq.state not in TERMINAL:
+                        s["state"] = "busy" if d.live else "faulted"
+                        s["fault_reason"] = d.fault_reason or s["fault_reason"]
+        out.append(s)
+    return out
