@@ -14,11 +14,9 @@ that the bytes of equal significance sit together.
 
 from __future__ import annotations
 
-import math
 import struct
 import zlib
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -179,18 +177,3 @@ def decode(data: bytes) -> Quantized:
 
 
 __all__ = ["Samples", "Quantized", "quantize", "encode", "decode"]
-
-
-def plain_json(value: Any) -> Any:
-    """JSON-safe copy: numpy to Python, tuples to lists, NaN/inf to None (PostgreSQL rejects NaN)."""
-    if isinstance(value, dict):
-        return {str(k): plain_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain_json(v) for v in value]
-    if hasattr(value, "tolist"):
-        return plain_json(value.tolist())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if hasattr(value, "__dataclass_fields__"):
-        return plain_json({k: getattr(value, k) for k in value.__dataclass_fields__})
-    return value

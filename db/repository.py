@@ -501,7 +501,7 @@ def audit_append(db: Database, actor: str, action: str, target: str = "", detail
     into that connection's transaction (the db writer's: it is stored with what it records, and a
     second transaction would wait on SQLite's write lock the writer holds)."""
     from db.models import AuditRow
-    from db.codec import plain_json
+    from contracts.json_safe import plain_json
 
     values = {"at": utcnow(), "station": (station if station is not None else getattr(db, "station", "")) or "",
               "actor": actor[:128], "action": action[:64], "target": target[:128], "detail": plain_json(detail or {})}
@@ -550,7 +550,7 @@ def outbox_enqueue(db: Database, idempotency_key: str, payload: dict, topic: str
 def outbox_enqueue_new(db: Database, idempotency_key: str, payload: dict, topic: str = "result") -> tuple[int, bool]:
     """(message id, True when this call queued it; False when the key was queued already)."""
     from db.database import insert_ignore
-    from db.codec import plain_json
+    from contracts.json_safe import plain_json
 
     now = utcnow()
     with db.session() as s:

@@ -54,7 +54,7 @@ from sqlalchemy.engine import Connection
 from sqlalchemy.exc import OperationalError
 
 from db import codec
-from db.codec import plain_json
+from contracts.json_safe import plain_json
 from db.database import BATCH_END_STATES, RUN_END_STATES, Database
 from db.models import (
     Batch,

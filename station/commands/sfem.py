@@ -15,6 +15,7 @@ import sys
 
 import numpy as np
 
+from contracts.json_safe import plain_json
 from station.commands.log_import import add_import_arguments, read_any_log
 from station.science.sfem import DEFAULT_REF_SIGMA_DEG
 from station.science.sfem_model import MISALIGNMENT_NOTE, SfemFit
@@ -111,21 +112,8 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     if args.json:
         out = {"serial": log.serial, "sensor": log.meta.get("sensor", ""), **res.to_json()}
-        json.dump(_finite(out), sys.stdout, indent=2, allow_nan=False)
+        json.dump(plain_json(out), sys.stdout, indent=2, allow_nan=False)
         sys.stdout.write("\n")
     else:
         print(format_text(res, log.serial))
     return 0
-
-
-def _finite(obj):
-    """NaN/inf (an uncertainty that cannot be estimated) become null: strict JSON for other tools."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj

@@ -37,11 +37,17 @@ class BatchRt:
     releasing: bool = False  # pumps end at their next turn (a cancel alone can be swallowed)
 
 
-def _check_station_free(st: Any, profile: Profile) -> None:
+def _require_running(st: Any) -> None:
     if not st.running:
         raise ValueError("the station is not running")
+
+
+def _require_chamber(st: Any, profile: Profile) -> None:
     if any(s.chamber_setpoint_c is not None for s in profile.steps) and st.chamber is None:
         raise ValueError(f"profile {profile.name!r} needs a thermal chamber and none is configured")
+
+
+def _require_no_batch(st: Any) -> None:
     if any(rt.seq.state not in TERMINAL for rt in st.batches.values()):
         raise ValueError("a batch is already running on this station (one plate, one lamp)")
 
@@ -55,12 +61,12 @@ def _run(st: Any, seq: Sequencer) -> None:
 
 
 def start_batch(st: Any, profile: str, slots: list[str] | None = None, operator: str = "") -> int:
-    if not st.running:
-        raise ValueError("the station is not running")
+    _require_running(st)
     if profile not in st.profiles_by_name:
         raise ValueError(f"unknown profile {profile!r} (known: {', '.join(st.profiles_by_name)})")
     prof = st.profiles_by_name[profile]
-    _check_station_free(st, prof)
+    _require_chamber(st, prof)
+    _require_no_batch(st)
     names = list(st.slots) if slots is None else list(slots)
     if slots is not None:
         unknown = [n for n in names if n not in st.slots]
@@ -80,17 +86,15 @@ def start_batch(st: Any, profile: str, slots: list[str] | None = None, operator:
 def resume_batch(st: Any, batch_id: int, operator: str = "") -> int:
     """Resume an interrupted batch at the step after its last completed one. Faulted or finished
     runs stay as they are. Returns the batch id."""
-    if not st.running:
-        raise ValueError("the station is not running")
-    if any(rt.seq.state not in TERMINAL for rt in st.batches.values()):
-        raise ValueError("a batch is already running on this station (one plate, one lamp)")
+    _require_running(st)
+    _require_no_batch(st)
     rp = st.db.resume_point(int(batch_id))  # KeyError for an unknown batch
     if rp.state != "interrupted":
         raise ValueError(f"batch {batch_id} is {rp.state}: only an interrupted batch can be resumed")
     prof = st.profiles_by_name.get(rp.profile)
     if prof is None:
         raise ValueError(f"batch {batch_id} ran profile {rp.profile!r}, which this config does not have")
-    _check_station_free(st, prof)
+    _require_chamber(st, prof)
     runs = [r for r in rp.runs if r.state == "interrupted"]
     missing = [r.slot for r in runs if r.slot not in st.slots]
     if missing:

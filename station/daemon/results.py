@@ -9,12 +9,11 @@ they work on a snapshot of the block list.
 
 from __future__ import annotations
 
-import dataclasses
-import math
 from typing import Any
 
 import numpy as np
 
+from contracts.json_safe import plain_json
 from contracts.positions import GRAVITY_DIRECTIONS
 from contracts.types import SampleBlock, StationError
 from station.daemon.dut_run import DutRun
@@ -35,7 +34,7 @@ def thermal_result(d: DutRun, operating_range_c: float = 70.0) -> dict:
     except Exception as exc:
         res["streaming_live"] = {"error": str(exc)}
     res["n_samples"] = int(len(block))
-    return finite(res)
+    return plain_json(res)
 
 
 def sfem_result(d: DutRun, profile: Profile) -> dict:
@@ -63,34 +62,9 @@ def sfem_result(d: DutRun, profile: Profile) -> dict:
         if len(means) < 9:
             continue
         fit = sfem.fit_sfem(np.array(means), ref_dir=np.array(refs))
-        fj = fit.to_json() if hasattr(fit, "to_json") else jsonable(fit)
+        fj = fit.to_json() if hasattr(fit, "to_json") else plain_json(fit)
         out["temperatures"].append({"setpoint_c": setpoint, "lamp": lamp, "temp_c": float(np.mean(temps)),
                                     "n_positions": len(means), "fit": fj})
     if not out["temperatures"]:
         raise StationError("no temperature step has enough static positions for an SFEM fit")
-    return finite(out)
-
-
-def jsonable(v: Any) -> Any:
-    if dataclasses.is_dataclass(v) and not isinstance(v, type):
-        return {f.name: jsonable(getattr(v, f.name)) for f in dataclasses.fields(v)}
-    if isinstance(v, dict):
-        return {k: jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [jsonable(x) for x in v]
-    if hasattr(v, "tolist"):
-        return v.tolist()
-    return v
-
-
-def finite(v: Any) -> Any:
-    """NaN and inf become None (JSON has neither; PostgreSQL refuses NaN in JSON)."""
-    if isinstance(v, float):
-        return v if math.isfinite(v) else None
-    if isinstance(v, dict):
-        return {k: finite(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [finite(x) for x in v]
-    if hasattr(v, "tolist"):
-        return finite(v.tolist())
-    return v
+    return plain_json(out)

@@ -24,7 +24,7 @@ import asyncio
 import logging
 import math
 import time
-from typing import Protocol
+from typing import Callable, Protocol
 
 from drivers.base import Chamber, DriverError, Fixture
 from contracts.events import (
@@ -322,15 +322,7 @@ class Sequencer:
         await self.hw.lamp.off(f"step {self.step_index} program")
         await self.hw.program_duts(self)
         self._ensure_live()
-        for d in self.duts:
-            if d.last_t is not None:
-                d.step_windows[self.step_index] = (d.last_t, d.last_t)
-        for d in self.live_duts:
-            d.steps_done += 1
-        self.bus.publish(StepCompleted(
-            self.batch_id, step_index=self.step_index,
-            windows={d.slot: d.step_windows[self.step_index] for d in self.live_duts if self.step_index in d.step_windows},
-        ))
+        self._complete_step(lambda d: d.last_t)  # a program step spans no samples
         return "step_done"
 
     async def _state_positioning(self) -> str:
@@ -424,9 +416,15 @@ class Sequencer:
                     )
                 continue
             await self._wait()
+        self._complete_step(lambda d: d.step_t_start)
+        return "step_done"
+
+    def _complete_step(self, window_start: Callable[[DutRun], float]) -> None:
+        """Record each DUT's sample-time window of this step (from window_start(d) to its latest
+        sample), count the step for the live DUTs and publish StepCompleted with their windows."""
         for d in self.duts:
             if d.last_t is not None:
-                d.step_windows[self.step_index] = (d.step_t_start, d.last_t)
+                d.step_windows[self.step_index] = (window_start(d), d.last_t)
         for d in self.live_duts:
             d.steps_done += 1
         self.bus.publish(StepCompleted(
@@ -434,7 +432,6 @@ class Sequencer:
             windows={d.slot: d.step_windows[self.step_index] for d in self.live_duts
                      if self.step_index in d.step_windows},
         ))
-        return "step_done"
 
     def _step_elapsed_s(self, d: DutRun) -> float:
         """Sample time this DUT has spent in the current step (its own board clock)."""
