@@ -7,7 +7,14 @@ Every effect is a term added to the baseline thermal model of martinez2022 eq. 1
 with the simulator's exact physics (team contract "Hidden effects"). A term is linear in its
 per-axis amplitudes (solved by least squares) and may have shared nonlinear parameters (time
 constants, widths) fitted by variable projection. `thermal_lag` is special: it has no amplitude,
-it replaces the temperature every other term sees by a first-order lag of the measured one.
+it replaces the temperature every other term sees by a lag of the measured one.
+
+Families: an effect may have a discrete nonlinear parameter (NonlinearParam.choices), its shape.
+The fit tries every shape and keeps the one the data support; the report names it (Effect.shape).
+`hysteresis` is a family of rate-independent operators (relay with a switching threshold,
+backlash/play, smooth approach: Prandtl-Ishlinskii/Preisach elements) and `thermal_lag` one of
+first- and second-order lags (die, die + package). A family is one candidate for the ranking and
+the false-discovery budget, and the gate charges its shape choice as one parameter.
 
 Register your own effect with `register(MyEffect())` in a Python file and pass the file with
 `station diagnose --effects-file FILE` (see docs/diagnostics.md and the example
@@ -22,9 +29,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import lfilter
 
 from contracts.types import StationError, T_REF_C
+from station.diagnostics.operators import hysteresis_state, lag_filter, smooth_temperature
 
 PPM_G_TO_MG = 1e-3  # ppm (1e-6) of an acceleration in g (1000 mg): 1e-6 * 1000 mg
 
@@ -39,6 +46,12 @@ class NonlinearParam:
     lower: float
     upper: float
     log: bool = True
+    # a discrete parameter (an effect family's shape): its value is an index into choices
+    choices: tuple[str, ...] = ()
+    # active only when the effect's discrete parameter takes one of these choices (else ignored)
+    only_for: tuple[str, ...] = ()
+    # points of the coarse profile grid the fit starts from (a rough objective needs more)
+    grid: int = 7
 
 
 @dataclass
@@ -80,8 +93,39 @@ class Effect:
     # Features (station.diagnostics.identifiability.data_features): "ramp_rates" = >= 2 distinct ramp rates.
     confusable_with: dict = {}
 
+    # the term's shape in words (a family overrides shape() with the shape its fit chose)
+    shape_text: str = ""
+    # True: the term may be evaluated at the 10 s block means of time and temperature (it is smooth
+    # on that scale: every built-in). False (a user's effect, by default): it is evaluated sample by
+    # sample and averaged over each block, exact for any term but ~30x slower.
+    block_level: bool = False
+
     def columns(self, ctx: Context, nl: dict[str, float]) -> np.ndarray:
         raise NotImplementedError
+
+    def choice(self, nl: dict[str, float]) -> str | None:
+        """The chosen shape of a family (its discrete parameter), None for a single-shape effect."""
+        for p in self.nonlinear:
+            if p.choices:
+                k = int(round(nl.get(p.name, p.init)))
+                return p.choices[min(max(k, 0), len(p.choices) - 1)]
+        return None
+
+    def active(self, nl: dict[str, float]) -> list[NonlinearParam]:
+        """The continuous nonlinear parameters in play for the shape chosen in nl."""
+        c = self.choice(nl)
+        return [p for p in self.nonlinear if not p.choices and (not p.only_for or c in p.only_for)]
+
+    def n_nonlinear(self, nl: dict[str, float]) -> int:
+        """Parameters the fit chose beyond the linear amplitudes: the active continuous ones plus
+        one per discrete choice (choosing a family's shape is a fitted parameter, and the evidence
+        gate charges it as one)."""
+        return len(self.active(nl)) + sum(1 for p in self.nonlinear if p.choices)
+
+    def shape(self, nl: dict[str, float]) -> str:
+        """The fitted term's shape in words, with its nonlinear values."""
+        vals = ", ".join(f"{p.name} {nl[p.name]:.3g} {p.unit}".rstrip() for p in self.active(nl) if p.name in nl)
+        return ", ".join(x for x in (self.choice(nl) or self.shape_text, vals) if x)
 
     def temperature(self, temp_c: np.ndarray, time_s: np.ndarray, nl: dict[str, float]) -> np.ndarray | None:
         """Temperature the MEMS sees, if this effect changes it (thermal_lag); None otherwise."""
@@ -97,84 +141,157 @@ class Effect:
         }
 
 
+class BuiltinEffect(Effect):
+    """The library's effects: smooth within a 10 s block, so evaluated at the block means."""
+
+    block_level = True
+
+
 def _per_axis(col: np.ndarray) -> np.ndarray:
     """(n,) -> (n, 3, 1): the same regressor for every axis."""
     return np.repeat(col[:, None, None], 3, axis=1)
 
 
-class BiasT2(Effect):
+class BiasT2(BuiltinEffect):
     name = "bias_t2"
     note = "quadratic bias drift: + c2 dT^2 (the bias curve bends; eq. 1 assumes a straight line)"
     needs = "at least 3 distinct temperatures (a ramp or 3 plateaus) in any orientation"
     identify_hint = "log at 3 or more temperature plateaus"
+    shape_text = "quadratic in dT"
     linear = ("c2_mg_per_c2",)
 
     def columns(self, ctx, nl):
         return _per_axis(ctx.dt_c**2)
 
 
-class BiasT3(Effect):
+class BiasT3(BuiltinEffect):
     name = "bias_t3"
     note = "cubic bias drift: + c3 dT^3 (S-shaped bias curve)"
     needs = "at least 4 distinct temperatures, ideally on both sides of 25 C"
     identify_hint = "log at 4 or more temperature plateaus"
+    shape_text = "cubic in dT"
     linear = ("c3_mg_per_c3",)
 
     def columns(self, ctx, nl):
         return _per_axis(ctx.dt_c**3)
 
 
-class ScaleT2(Effect):
+class ScaleT2(BuiltinEffect):
     name = "scale_t2"
     note = "quadratic scale-factor drift: + k2 dT^2 Acc0 (sensitivity curve bends with temperature)"
     needs = "at least 3 temperatures in at least 2 orientations with different Acc0 on the axis"
     identify_hint = "log 3 or more temperatures in each of 2 orientations"
+    shape_text = "quadratic in dT, times Acc0"
     linear = ("k2_ppm_per_c2",)
 
     def columns(self, ctx, nl):
         return ((ctx.dt_c**2)[:, None] * ctx.acc0_g * PPM_G_TO_MG)[:, :, None]
 
 
-class ThermalLag(Effect):
+# A lag shorter than two 10 s fit blocks cannot be told from smoothing the thermometer's own
+# noise and 1 C quantization (an errors-in-variables gain, not a lag): on clean fast-thermal logs a
+# free tau of 1-3 s won delta BIC down to -224 and was admitted once in 8 DUTs (issue 23).
+LAG_MIN_S = 10.0
+
+
+class ThermalLag(BuiltinEffect):
+    """A family: the MEMS sees the die temperature through one first-order lag (the die) or two in
+    series (die and package); the fit chooses the order the data support."""
+
     name = "thermal_lag"
-    note = ("the MEMS structure lags the die temperature sensor by a first-order lag tau: "
-            "dT uses T_mems = lag(T_measured, tau); the output leads/lags the thermometer on ramps")
+    note = ("the MEMS structure lags the die temperature sensor: dT uses T_mems = lag(T_measured), a "
+            "first-order lag tau or a second-order one (die tau, package tau2 in series); the output "
+            "leads/lags the thermometer on ramps")
     needs = "temperature ramps; >= 2 ramp rates to tell it from hysteresis"
     identify_hint = "ramp at 2 or more different rates (lamp and chamber, or two lamp powers)"
-    nonlinear = (NonlinearParam("tau_s", "s", 60.0, 1.0, 3000.0),)
+    nonlinear = (NonlinearParam("order", "", 0.0, 0.0, 1.0, log=False, choices=("first-order", "second-order")),
+                 NonlinearParam("tau_s", "s", 60.0, LAG_MIN_S, 3000.0),
+                 NonlinearParam("tau2_s", "s", 600.0, LAG_MIN_S, 6000.0, only_for=("second-order",)))
     confusable_with = {"hysteresis": "ramp_rates"}
 
     def columns(self, ctx, nl):
         return np.zeros((ctx.time_s.shape[0], 3, 0))
 
     def temperature(self, temp_c, time_s, nl):
-        return lag_filter(temp_c, time_s, nl["tau_s"])
+        t = lag_filter(temp_c, time_s, nl["tau_s"])
+        if self.choice(nl) == "second-order":
+            t = lag_filter(t, time_s, nl.get("tau2_s", 600.0))
+        return t
+
+    def shape(self, nl):
+        if self.choice(nl) == "second-order":
+            a, b = sorted((nl["tau_s"], nl.get("tau2_s", 600.0)))
+            return f"second-order lag: die {a:.3g} s, package {b:.3g} s in series"
+        return f"first-order lag, tau {nl['tau_s']:.3g} s"
 
 
-class Hysteresis(Effect):
+HYSTERESIS_SHAPES = ("relay", "backlash", "smooth")
+
+
+class Hysteresis(BuiltinEffect):
+    """A family of rate-independent heating/cooling hysteresis operators (Prandtl-Ishlinskii /
+    Preisach elements), each a state z in [-1, 1] (+1 after heating, -1 after cooling) of the
+    smoothed die temperature, times an amplitude h per axis:
+
+    - relay: switches at once after the temperature has turned back by width_c (a threshold);
+    - backlash: play of total travel width_c: after a reversal z moves linearly with the
+      temperature and saturates (a mechanical stop);
+    - smooth: approaches the new state exponentially, 1/e per width_c of travel.
+
+    The fit chooses the shape and its width (coarse grid of both, then the width refined)."""
+
     name = "hysteresis"
-    note = ("heating/cooling hysteresis: + h z, play-type state z in [-1, 1] moving toward "
-            "sign(dT/dt) by |dT| / width (rate-independent)")
+    note = ("heating/cooling hysteresis: + h z, z in [-1, 1] a rate-independent operator of the die "
+            "temperature (relay with a switching threshold, backlash/play, or smooth approach) of width w")
     needs = "heating and cooling through the same temperatures; >= 2 ramp rates to tell it from lag"
     identify_hint = "ramp at 2 or more different rates (lag scales with rate, hysteresis does not)"
     linear = ("h_mg",)
-    nonlinear = (NonlinearParam("width_c", "C", 3.0, 0.2, 40.0),)
+    nonlinear = (NonlinearParam("shape", "", 2.0, 0.0, 2.0, log=False, choices=HYSTERESIS_SHAPES),
+                 NonlinearParam("width_c", "C", 3.0, 0.2, 40.0, grid=25))
 
-    def columns(self, ctx, nl):
-        key = ("hyst_z", round(nl["width_c"], 9))
+    # the operators are computed at these widths (a log grid, 4.5 % apart) and interpolated in log
+    # width between them: a refit moves the width without rerunning the operator, and the
+    # objective is smooth in the width for the local refine
+    WIDTH_GRID_C = np.geomspace(0.2, 40.0, 121)
+    TABLE_BYTES = 16 << 20  # all widths in one pass when the table fits (the 10 s fit blocks)
+
+    def _state(self, ctx, shape: str, k: int) -> np.ndarray:
+        n = ctx.temp_smooth_c.shape[0]
+        g = self.WIDTH_GRID_C
+        if n * g.size * 8 <= self.TABLE_BYTES:
+            table = ctx.cache.get(("hyst_table", shape))
+            if table is None:
+                table = ctx.cache[("hyst_table", shape)] = hysteresis_state(ctx.temp_smooth_c, ctx.time_s, g, shape)
+            return table[:, k]
+        key = ("hyst_z", shape, k)
         z = ctx.cache.get(key)
         if z is None:
-            z = play_state(ctx.temp_smooth_c, nl["width_c"])
-            ctx.cache[key] = z
+            z = ctx.cache[key] = hysteresis_state(ctx.temp_smooth_c, ctx.time_s, float(g[k]), shape)
+        return z
+
+    def columns(self, ctx, nl):
+        shape = self.choice(nl)
+        g = self.WIDTH_GRID_C
+        lw = math.log(min(max(nl["width_c"], g[0]), g[-1]))
+        k = min(int(np.searchsorted(np.log(g), lw, side="right")) - 1, g.size - 2)
+        f = (lw - math.log(g[k])) / (math.log(g[k + 1]) - math.log(g[k]))
+        z = self._state(ctx, shape, k) if f <= 1e-12 else (
+            (1.0 - f) * self._state(ctx, shape, k) + f * self._state(ctx, shape, k + 1))
         return _per_axis(z)
 
+    def shape(self, nl):
+        word = {"relay": "relay, switching threshold", "backlash": "backlash (play), total travel",
+                "smooth": "smooth approach, 1/e width"}[self.choice(nl)]
+        return f"{word} {nl['width_c']:.3g} C"
 
-class SelfHeating(Effect):
+
+class SelfHeating(BuiltinEffect):
     name = "self_heating"
     note = ("warm-up transient after power-on not seen by the temperature sensor: "
             "+ w exp(-(t - t_power_on)/tau)")
     needs = "the first minutes after power-on in the log (or several power cycles)"
     identify_hint = "log from power-on"
+    shape_text = "exponential decay from power-on"
     linear = ("w_mg",)
     nonlinear = (NonlinearParam("tau_s", "s", 300.0, 5.0, 20000.0),)
 
@@ -183,11 +300,12 @@ class SelfHeating(Effect):
         return _per_axis(np.exp(-age / nl["tau_s"]))
 
 
-class CrossAxis(Effect):
+class CrossAxis(BuiltinEffect):
     name = "cross_axis"
     note = "thermal cross-axis coupling: + dT sum_{j != i} x_ij Acc0_j"
     needs = ">= 3 orientations whose Acc0_j pattern is not an affine function of Acc0_i (e.g. six-position)"
     identify_hint = "add orientations where the axes are not all equal (six-position or sfem-24) at 2 temperatures"
+    shape_text = "linear in dT, times the other axes' Acc0"
     linear = ("x_ppm_per_c[0]", "x_ppm_per_c[1]", "x_ppm_per_c[2]")
 
     def columns(self, ctx, nl):
@@ -200,83 +318,16 @@ class CrossAxis(Effect):
         return out
 
 
-class ScaleNonlinearity(Effect):
+class ScaleNonlinearity(BuiltinEffect):
     name = "scale_nonlinearity"
     note = "temperature drift of the 2nd-order nonlinearity: + dT n_i Acc0_i^2"
     needs = ">= 3 orientations with distinct Acc0_i (two orientations make Acc0_i^2 affine in Acc0_i)"
     identify_hint = "add a third orientation per axis (e.g. 0 g or +-1 g: six-position) at 2 temperatures"
+    shape_text = "linear in dT, times Acc0 squared"
     linear = ("n_ppm_per_c_per_g",)
 
     def columns(self, ctx, nl):
         return (ctx.dt_c[:, None] * ctx.acc0_g**2 * PPM_G_TO_MG)[:, :, None]
-
-
-# ---------------------------------------------------------------------------------------------
-# signal helpers (pure)
-
-
-def lag_filter(x: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """First-order lag y' = (x - y)/tau, exact for x held between samples; starts settled at x[0].
-
-    Uses the median sample interval (logs are evenly sampled; a few lost samples barely matter).
-    """
-    x = np.asarray(x, dtype=np.float64)
-    if x.size == 0:
-        return x.copy()
-    dt = float(np.median(np.diff(time_s))) if x.size > 1 else 1.0
-    a = math.exp(-max(dt, 1e-9) / max(tau_s, 1e-9))
-    y, _ = lfilter([1.0 - a], [1.0, -a], x, zi=[a * x[0]])
-    return y
-
-
-def smooth_temperature(temp_c: np.ndarray, time_s: np.ndarray, window_s: float = 60.0) -> np.ndarray:
-    """Zero-phase moving average: removes the 1 C quantization staircase and its dither, no lag."""
-    n = temp_c.shape[0]
-    if n < 3:
-        return temp_c.astype(np.float64).copy()
-    dt = float(np.median(np.diff(time_s)))
-    w = max(1, int(round(window_s / max(dt, 1e-9))))
-    if w <= 1:
-        return temp_c.astype(np.float64).copy()
-    half = w // 2
-    padded = np.concatenate([np.full(half, temp_c[0]), temp_c, np.full(w - half - 1, temp_c[-1])])
-    c = np.concatenate([[0.0], np.cumsum(padded, dtype=np.float64)])
-    return (c[w:] - c[:-w]) / w
-
-
-def play_state(temp_c: np.ndarray, width_c: float, decimate: int = 16, deadband_c: float = 0.1) -> np.ndarray:
-    """Play-type hysteresis state z(t), z' = (sign(dT/dt) - z) |dT/dt| / width, z(0) = 0.
-
-    Exact per step: z <- s + (z - s) exp(-|dT|/width). The input is the smoothed measured
-    temperature; a backlash of deadband_c first removes its residual noise wiggles, which would
-    otherwise (summed over an hour-long plateau) pull z toward 0 while the true die temperature
-    moves monotonically. Computed on every `decimate`-th sample and interpolated back.
-    """
-    n = temp_c.shape[0]
-    if n == 0:
-        return np.zeros(0)
-    idx = np.arange(0, n, max(1, decimate))
-    if idx[-1] != n - 1:
-        idx = np.append(idx, n - 1)
-    t = temp_c[idx]
-    zk = np.empty(idx.shape[0])
-    z = 0.0
-    zk[0] = 0.0
-    y = float(t[0])
-    half = deadband_c / 2.0
-    w = max(width_c, 1e-9)
-    for k in range(1, t.shape[0]):
-        tk = t[k]
-        if tk > y + half:
-            d = tk - half - y
-            y = tk - half
-            z = 1.0 + (z - 1.0) * math.exp(-d / w)
-        elif tk < y - half:
-            d = y - (tk + half)
-            y = tk + half
-            z = -1.0 + (z + 1.0) * math.exp(-d / w)
-        zk[k] = z
-    return np.interp(np.arange(n), idx, zk)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -345,5 +396,5 @@ def load_effects_file(path: str | Path) -> list[str]:
 
 __all__ = [
     "Effect", "NonlinearParam", "Context", "REGISTRY", "BUILTIN_NAMES", "register", "get_effect",
-    "load_effects_file", "lag_filter", "play_state", "smooth_temperature", "T_REF_C",
+    "load_effects_file", "lag_filter", "hysteresis_state", "HYSTERESIS_SHAPES", "smooth_temperature", "T_REF_C",
 ]

@@ -10,29 +10,47 @@ comparison (noise_gls.compare) refits under its noise model.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from station.diagnostics.fit import DutFit, fit_dut, heldout_residual, predict_dut, window_rms
+from station.diagnostics.fit import DutFit, block_rms, fit_dut, heldout_blocks, predict_blocks, predict_dut
 from station.diagnostics.noise_gls import gls_sigma
 from station.diagnostics.segmentation import DutData
 
 
 @dataclass
 class ModelEval:
-    """A fitted model structure over all DUTs, with its in-sample and held-out residuals."""
+    """A fitted model structure over all DUTs, with its in-sample and held-out residuals on the fit
+    blocks (every figure is computed there); the per-sample residual is computed when asked for."""
 
     effects: list[str]
     fits: list[DutFit]
-    resid: list[np.ndarray]  # per DUT (n, 3) mg, in-sample
-    heldout: list[np.ndarray]  # per DUT (n, 3) mg, held-out
+    resid_block: list[np.ndarray]  # per DUT (n_blocks, 3) mg, in-sample
+    heldout_block: list[np.ndarray]  # per DUT (n_blocks, 3) mg, held-out
+    data: list[DutData] = field(repr=False, default_factory=list)
     rms_mg: float = 0.0
     heldout_rms_mg: float = 0.0
     rms_sample_mg: float = 0.0
     heldout_rms_sample_mg: float = 0.0
     n_params: int = 0
+    _resid: list[np.ndarray] | None = field(repr=False, default=None)
+    _sigma_done: bool = field(repr=False, default=False)
 
+    @property
+    def resid(self) -> list[np.ndarray]:
+        """Per DUT (n, 3) mg: measured - model, sample by sample (plots, saved models)."""
+        if self._resid is None:
+            self._resid = [d.acc_mg - predict_dut(d, f) for d, f in zip(self.data, self.fits)]
+        return self._resid
+
+    def with_sigma(self) -> "ModelEval":
+        """Parameter sigmas from the GLS fit under the residual's noise model (for reported models)."""
+        if not self._sigma_done:
+            for d, f in zip(self.data, self.fits):
+                f.beta_sigma = gls_sigma(d, f)
+            self._sigma_done = True
+        return self
 
 
 def _pooled_rms(data: list[DutData], res: list[np.ndarray], basis: str) -> float:
@@ -42,9 +60,10 @@ def _pooled_rms(data: list[DutData], res: list[np.ndarray], basis: str) -> float
         ok = ~np.isnan(r).any(axis=1)
         if not ok.any():
             continue
-        v = window_rms(d, r, basis=basis)
-        num += v * v * ok.sum()
-        den += ok.sum()
+        v = block_rms(d, r, basis=basis)
+        n = float(d.block_count[ok].sum())
+        num += v * v * n
+        den += n
     return math.sqrt(num / den) if den else float("nan")
 
 
@@ -53,11 +72,10 @@ def evaluate(data: list[DutData], effects: list[str], basis: str, n_folds: int,
     fits, res, held = [], [], []
     for k, d in enumerate(data):
         f = fit_dut(d, effects, nl_start=nl_start[k] if nl_start else None)
-        f.beta_sigma = gls_sigma(d, f)  # the residual's AR noise model, not white noise
         fits.append(f)
-        res.append(d.acc_mg - predict_dut(d, f))
-        held.append(heldout_residual(d, effects, f, n_folds))
-    m = ModelEval(effects=list(effects), fits=fits, resid=res, heldout=held)
+        res.append(d.y_block - predict_blocks(d, f))
+        held.append(heldout_blocks(d, effects, f))
+    m = ModelEval(effects=list(effects), fits=fits, resid_block=res, heldout_block=held, data=data)
     m.rms_mg = _pooled_rms(data, res, basis)
     m.heldout_rms_mg = _pooled_rms(data, held, basis)
     m.rms_sample_mg = _pooled_rms(data, res, "sample")

@@ -23,7 +23,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.linalg import cho_factor, cho_solve
+from scipy.optimize import least_squares, minimize_scalar
 
 from station.diagnostics.design import _Design
 from station.diagnostics.effects import Effect, get_effect
@@ -45,25 +46,35 @@ class DutFit:
     n_train_blocks: int
 
 
-def _solve(Xb: np.ndarray, yb: np.ndarray, w: np.ndarray, want_cov: bool = True):
-    """Weighted least squares dropping columns that are zero on the training blocks."""
-    sw = np.sqrt(w)
-    A = Xb * sw[:, None]
+def _solve(A: np.ndarray, yw: np.ndarray, want_cov: bool = True):
+    """Least squares of the (already weighted) design A against yw, dropping columns that are zero
+    on the training blocks.
+
+    Columns scaled to unit norm, then the normal equations by Cholesky (a few dozen columns over a
+    few thousand blocks: ~10x faster than an SVD); a nearly singular system falls back to lstsq."""
+    norm = np.sqrt(np.einsum("ij,ij->j", A, A))
     # a column with no support in the training data (e.g. a warm-up transient whose start is held
     # out, with a tiny tau) carries no information: do not let column scaling blow it up
-    live = np.max(np.abs(A), axis=0) > 1e-9 * max(1.0, float(np.max(np.abs(A))))
-    beta = np.zeros(Xb.shape[1])
-    cov = np.full((Xb.shape[1], Xb.shape[1]), np.nan)
+    live = norm > 1e-9 * max(1.0, float(norm.max(initial=0.0)))
+    beta = np.zeros(A.shape[1])
+    cov = np.full((A.shape[1], A.shape[1]), np.nan)
     if live.any():
-        As = A[:, live]
-        scale = np.linalg.norm(As, axis=0)
-        scale[scale == 0] = 1.0
-        sol, *_ = np.linalg.lstsq(As / scale, yb * sw, rcond=None)
+        scale = norm[live]
+        As = A[:, live] / scale
+        G = As.T @ As
+        try:
+            c, low = cho_factor(G, check_finite=False)
+            dg = np.abs(np.diag(c))
+            if dg.min() < 1e-6 * dg.max():
+                raise np.linalg.LinAlgError("ill-conditioned")
+            sol = cho_solve((c, low), As.T @ yw, check_finite=False)
+        except (np.linalg.LinAlgError, ValueError):
+            sol, *_ = np.linalg.lstsq(As, yw, rcond=None)
         beta[live] = sol / scale
         if not want_cov:
             return beta, cov, live
         try:
-            inv = np.linalg.pinv((As / scale).T @ (As / scale))
+            inv = np.linalg.pinv(G)
             cov[np.ix_(live, live)] = inv / np.outer(scale, scale)
         except np.linalg.LinAlgError:
             pass
@@ -76,33 +87,33 @@ def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray,
     d = design.d
     P = len(d.pos_labels)
     acc0 = acc0_init.copy()
-    w = d.block_count[train_blocks]
+    everything = bool(train_blocks.all())
+    sw = np.sqrt(d.block_count if everything else d.block_count[train_blocks])
+    yw_all = (d.y_block if everything else d.y_block[train_blocks]) * sw[:, None]
     for _ in range(passes):
         mats, names = design.block_matrices(nl, acc0)
         betas, covs, res = [], [], []
         new_acc0 = np.full((P, 3), np.nan)
         for i in range(3):
-            Xb = mats[i][train_blocks]
-            # a column with < 1 % of its full-log size in the training blocks (a warm-up transient
-            # whose start is held out) would be extrapolated by 100x: not fitted in this fold
-            full_max = np.max(np.abs(mats[i]), axis=0)
-            weak = np.max(np.abs(Xb), axis=0) < 1e-2 * full_max if Xb.shape[0] else np.zeros(Xb.shape[1], bool)
-            if weak.any():
-                Xb = Xb.copy()
-                Xb[:, weak] = 0.0
-            yb = d.y_block[train_blocks, i]
-            beta, cov, live = _solve(Xb, yb, w, want_cov=want_cov)
+            Xb = mats[i] if everything else mats[i][train_blocks]
+            # an effect column with < 1 % of its full-log size in the training blocks (a warm-up
+            # transient whose start is held out) would be extrapolated by 100x: not fitted here
+            if Xb.shape[1] > P + 2 and Xb.shape[0] and not everything:
+                full_max = np.abs(mats[i][:, P + 2:]).max(axis=0)
+                weak = np.abs(Xb[:, P + 2:]).max(axis=0) < 1e-2 * full_max
+                if weak.any():
+                    Xb = Xb.copy()
+                    Xb[:, P + 2:][:, weak] = 0.0
+            A = Xb * sw[:, None]
+            yw = yw_all[:, i]
+            beta, cov, live = _solve(A, yw, want_cov=want_cov)
             betas.append(beta)
             covs.append(cov)
-            res.append((yb - Xb @ beta) * np.sqrt(w))
+            res.append(yw - A @ beta)
             present = live[:P]
             new_acc0[present, i] = beta[:P][present]
         acc0 = new_acc0
     return betas, covs, acc0, np.concatenate(res), mats, names
-
-
-def _nl_specs(effects: list[Effect]):
-    return [(e.name, p) for e in effects for p in e.nonlinear]
 
 
 def _initial_acc0(d: DutData, train_blocks: np.ndarray) -> np.ndarray:
@@ -115,75 +126,131 @@ def _initial_acc0(d: DutData, train_blocks: np.ndarray) -> np.ndarray:
     return acc0
 
 
+def _shape_choices(effects: list[Effect], nl_start: dict | None) -> list[dict[str, dict[str, float]]]:
+    """Every combination of the families' discrete shapes to fit; an effect whose shape the start
+    holds (a fold refit, or an effect admitted before) keeps it."""
+    combos: list[dict[str, dict[str, float]]] = [{}]
+    for e in effects:
+        for p in e.nonlinear:
+            if not p.choices:
+                continue
+            start = (nl_start or {}).get(e.name, {})
+            ks = [float(start[p.name])] if p.name in start else [float(k) for k in range(len(p.choices))]
+            combos = [{**c, e.name: {**c.get(e.name, {}), p.name: k}} for c in combos for k in ks]
+    return combos
+
+
+def _fit_continuous(design: _Design, effects: list[Effect], fixed: dict, train_blocks: np.ndarray,
+                    base_acc0: np.ndarray, nl_start: dict | None, max_nfev: int, want_sigma: bool = True):
+    """Variable projection over the continuous nonlinear parameters active for the fixed shapes:
+    a coarse profile grid per parameter the start does not hold (others held), then a bounded
+    local refine (Brent for one parameter, trust-region least squares for more). Returns the
+    values, their sigmas (projected Jacobian, white-noise scaling) and the weighted residual."""
+    specs = [(e.name, p) for e in effects for p in e.active(fixed.get(e.name, {}))]
+    start = nl_start or {}
+
+    def unpack(u):
+        out = {e.name: dict(fixed.get(e.name, {})) for e in effects}
+        for (name, p), v in zip(specs, u):
+            out[name][p.name] = float(math.exp(v) if p.log else v)
+        return out
+
+    lo = np.array([math.log(p.lower) if p.log else p.lower for _, p in specs])
+    hi = np.array([math.log(p.upper) if p.log else p.upper for _, p in specs])
+    # The Acc0 fixed point is held during the search: one linear pass per evaluation, a
+    # deterministic objective for the finite-difference Jacobian (the final solve iterates again).
+    state = {"acc0": base_acc0}
+
+    def resid(u):
+        return _inner(design, unpack(u), train_blocks, state["acc0"], passes=1, want_cov=False)[3]
+
+    if not specs:
+        return unpack(np.zeros(0)), {e.name: {} for e in effects}, resid(np.zeros(0))
+    u0 = np.empty(len(specs))
+    half_step = np.full(len(specs), 0.25)  # the local refine's reach around a start (log units)
+    gridded = []
+    for k, (name, p) in enumerate(specs):
+        if p.name in start.get(name, {}):
+            v = start[name][p.name]
+            u0[k] = min(max(math.log(v) if p.log else v, lo[k] + 1e-9), hi[k] - 1e-9)
+        else:
+            u0[k] = math.log(p.init) if p.log else p.init
+            gridded.append(k)
+    for k in gridded:  # coarse profile grid per parameter, the others held
+        grid = np.linspace(lo[k], hi[k], specs[k][1].grid + 2)[1:-1]
+        costs = []
+        for g in grid:
+            u = u0.copy()
+            u[k] = g
+            costs.append(float(np.sum(resid(u) ** 2)))
+        u0[k] = grid[int(np.argmin(costs))]
+        half_step[k] = grid[1] - grid[0]
+    state["acc0"] = _inner(design, unpack(u0), train_blocks, base_acc0, passes=2, want_cov=False)[2]
+    if len(specs) == 1:
+        a, b = max(lo[0], u0[0] - half_step[0]), min(hi[0], u0[0] + half_step[0])
+        sol1 = minimize_scalar(lambda x: float(np.sum(resid(np.array([x])) ** 2)), bounds=(a, b), method="bounded",
+                               options={"xatol": 2e-3, "maxiter": max_nfev})
+        x = np.array([sol1.x]) if sol1.fun <= float(np.sum(resid(u0) ** 2)) else u0
+        fun = resid(x)
+        h = 1e-3
+        J = ((resid(x + h) - resid(x - h)) / (2 * h))[:, None] if want_sigma else np.zeros((fun.size, 1))
+    else:
+        sol = least_squares(resid, u0, bounds=(lo, hi), diff_step=1e-3, x_scale=1.0, max_nfev=max_nfev)
+        x, fun, J = sol.x, sol.fun, sol.jac
+    nl = unpack(x)
+    nl_sigma: dict[str, dict[str, float]] = {e.name: {} for e in effects}
+    s2 = float(np.sum(fun**2)) / max(1, fun.size - J.shape[1])
+    try:
+        cov_u = np.linalg.pinv(J.T @ J) * s2
+        for k, (name, p) in enumerate(specs):
+            su = math.sqrt(max(cov_u[k, k], 0.0))
+            val = nl[name][p.name]
+            nl_sigma[name][p.name] = val * su if p.log else su
+    except np.linalg.LinAlgError:
+        pass
+    return nl, nl_sigma, fun
+
+
 def fit_dut(d: DutData, effect_names: list[str], train_blocks: np.ndarray | None = None,
             nl_start: dict[str, dict[str, float]] | None = None, max_nfev: int = 40) -> DutFit:
-    """Fit baseline + effects on the training blocks (all blocks by default)."""
+    """Fit baseline + effects on the training blocks (all blocks by default).
+
+    A family (an effect with a discrete shape parameter) is fitted in every shape and the shape
+    the data support is kept: lowest BIC over the effective number of blocks (the residual's
+    integrated autocorrelation time), so a shape with more parameters must earn them. With
+    nl_start (a fold refit) the shape is the start's and only the continuous values are refined.
+    """
     effects = [get_effect(n) for n in effect_names]
     if train_blocks is None:
         train_blocks = np.ones(d.block_starts.shape[0], bool)
     design = _Design(d, effects)
     acc0 = _initial_acc0(d, train_blocks)
-    specs = _nl_specs(effects)
     nl: dict[str, dict[str, float]] = {e.name: {} for e in effects}
     nl_sigma: dict[str, dict[str, float]] = {e.name: {} for e in effects}
-    if specs:
-        def unpack(u):
-            out = {e.name: {} for e in effects}
-            for (name, p), v in zip(specs, u):
-                out[name][p.name] = float(math.exp(v) if p.log else v)
-            return out
-
-        def pack(vals):
-            return np.array([math.log(vals[name][p.name]) if p.log else vals[name][p.name]
-                             for name, p in specs])
-
-        lo = np.array([math.log(p.lower) if p.log else p.lower for _, p in specs])
-        hi = np.array([math.log(p.upper) if p.log else p.upper for _, p in specs])
-        # The Acc0 fixed point is solved once per stage (baseline, then at the start values) and held
-        # during the search: one linear pass per evaluation, a deterministic objective for the
-        # finite-difference Jacobian. The final solve below iterates Acc0 to convergence again.
+    if any(e.nonlinear for e in effects):
         base_acc0 = _inner(_Design(d, []), {}, train_blocks, acc0, passes=2, want_cov=False)[2]
-        state = {"acc0": base_acc0}
-
-        def resid(u):
-            _, _, a0, r, _, _ = _inner(design, unpack(u), train_blocks, state["acc0"], passes=1, want_cov=False)
-            return r
-
-        if nl_start and all(p.name in nl_start.get(name, {}) for name, p in specs):
-            u0 = np.clip(pack(nl_start), lo + 1e-9, hi - 1e-9)
+        tried = [_fit_continuous(design, effects, fixed, train_blocks, base_acc0, nl_start, max_nfev,
+                                 want_sigma=max_nfev >= 20)
+                 for fixed in _shape_choices(effects, nl_start)]
+        if len(tried) == 1:
+            nl, nl_sigma, _ = tried[0]
         else:
-            # coarse grid per parameter (others at their init), best start for the polish
-            u0 = np.array([math.log(p.init) if p.log else p.init for _, p in specs])
-            for k in range(len(specs)):
-                grid = np.linspace(lo[k], hi[k], 9)[1:-1]
-                costs = []
-                for g in grid:
-                    u = u0.copy()
-                    u[k] = g
-                    costs.append(float(np.sum(resid(u) ** 2)))
-                u0[k] = grid[int(np.argmin(costs))]
-        state["acc0"] = _inner(design, unpack(u0), train_blocks, base_acc0, passes=2, want_cov=False)[2]
-        sol = least_squares(resid, u0, bounds=(lo, hi), diff_step=1e-3, x_scale=1.0, max_nfev=max_nfev)
-        nl = unpack(sol.x)
-        # nonlinear uncertainty from the projected Jacobian (white-noise scaling; see noise_gls.gls_sigma)
-        J = sol.jac
-        dof = max(1, sol.fun.size - J.shape[1])
-        s2 = float(np.sum(sol.fun**2)) / dof
-        try:
-            cov_u = np.linalg.pinv(J.T @ J) * s2
-            for k, (name, p) in enumerate(specs):
-                su = math.sqrt(max(cov_u[k, k], 0.0))
-                val = nl[name][p.name]
-                nl_sigma[name][p.name] = val * su if p.log else su
-        except np.linalg.LinAlgError:
-            pass
-    betas, covs, acc0, r, mats, names = _inner(design, nl, train_blocks, acc0, passes=3)
+            best_r = min(tried, key=lambda t: float(np.sum(t[2] ** 2)))[2]
+            n_eff = max(2.0, best_r.size / float(np.mean([_tau_int(x) for x in np.split(best_r, 3)])))
+
+            def bic(t):
+                k = sum(get_effect(n).n_nonlinear(v) for n, v in t[0].items())
+                return n_eff * math.log(max(float(np.mean(t[2] ** 2)), 1e-300)) + k * math.log(n_eff)
+
+            nl, nl_sigma, _ = min(tried, key=bic)
+    want_sigma = max_nfev >= 20  # a fold refit only predicts its held-out leg
+    betas, covs, acc0, r, mats, names = _inner(design, nl, train_blocks, acc0, passes=3, want_cov=want_sigma)
     nb = int(train_blocks.sum())
     rk = [r[k * nb:(k + 1) * nb] for k in range(3)]
     ssr = np.array([float(np.sum(x**2)) for x in rk])
     # autocorrelated residuals: inflate the white-noise covariance by the integrated
     # autocorrelation time of the (weighted) block residual
-    tau = np.array([_tau_int(x) for x in rk])
+    tau = np.array([_tau_int(x) for x in rk]) if want_sigma else np.ones(3)
     sig = []
     for i in range(3):
         ncol = mats[i].shape[1]
@@ -257,19 +324,50 @@ def window_rms(d: DutData, resid_mg: np.ndarray, mask: np.ndarray | None = None,
     return float(np.sqrt(np.sum(cnt[keep, None] * means**2) / (3.0 * cnt[keep].sum())))
 
 
-def heldout_residual(d: DutData, effect_names: list[str], full: DutFit, n_folds: int | None = None,
-                     max_nfev: int = 8) -> np.ndarray:
-    """Residual of each sample predicted by a fit that never saw its thermal leg nor the guard
-    around it (blocked K-fold over whole legs, see Segmentation).
+def predict_blocks(d: DutData, fit: DutFit) -> np.ndarray:
+    """Model prediction on the fit blocks (n_blocks, 3) in mg; NaN for orientations never seen."""
+    mats, _ = _Design(d, [get_effect(n) for n in fit.effects]).block_matrices(fit.nl, fit.acc0_g)
+    pred = np.stack([mats[i] @ fit.beta[i] for i in range(3)], axis=1)
+    pred[np.isnan(fit.acc0_g[d.block_pos]).any(axis=1)] = np.nan
+    return pred
 
+
+def block_rms(d: DutData, resid_block_mg: np.ndarray, basis: str = "window") -> float:
+    """RMS over axes of a block-level residual (measured block mean - model), NaN blocks left out.
+
+    window: RMS of the means over the RMS windows (whole blocks, exact). sample: the per-sample
+    RMS of a model held constant over each 10 s block: the block residual plus the measurement's
+    own scatter inside the block (the model moves far less than the noise in 10 s)."""
+    ok = ~np.isnan(resid_block_mg).any(axis=1)
+    if not ok.any():
+        return float("nan")
+    r = resid_block_mg[ok]
+    cnt = d.block_count[ok]
+    if basis == "sample":
+        ss = float(np.sum(cnt[:, None] * r**2) + np.sum(d.block_ss_within[ok]))
+        return float(np.sqrt(ss / (3.0 * cnt.sum())))
+    wid = d.block_window[ok]
+    cw = np.bincount(wid, weights=cnt)
+    sums = np.stack([np.bincount(wid, weights=cnt * r[:, i], minlength=cw.size) for i in range(3)], axis=1)
+    keep = cw > 0
+    means = sums[keep] / cw[keep, None]
+    return float(np.sqrt(np.sum(cw[keep, None] * means**2) / (3.0 * cw[keep].sum())))
+
+
+def heldout_blocks(d: DutData, effect_names: list[str], full: DutFit, max_nfev: int = 8) -> np.ndarray:
+    """Residual of each block predicted by a fit that never saw its thermal leg nor the guard
+    around it (blocked K-fold over whole legs, see Segmentation); (n_blocks, 3) mg.
+
+    A fold refit starts from the full fit's nonlinear values and keeps a family's shape (choosing
+    among two or three shapes on all the data is a small optimism the gate's charge covers).
     An orientation seen only in held-out data has no fitted Acc0 (it is the fixture's reading, not
     a model parameter): its offset per axis is taken from the held-out residual itself, so the
     held-out error of such a leg is its shape error; every model gets the same treatment.
     """
-    out = np.full((d.n, 3), np.nan)
+    out = np.full((d.block_starts.shape[0], 3), np.nan)
     P = len(d.pos_labels)
     for k in range(d.n_folds):
-        test = d.fold == k
+        test = d.block_fold == k
         if not test.any():
             continue
         train_blocks = train_mask(d, k)
@@ -284,14 +382,13 @@ def heldout_residual(d: DutData, effect_names: list[str], full: DutFit, n_folds:
                 f.acc0_g[p] = full.acc0_g[p]
                 for i in range(3):
                     f.beta[i][p] = full.acc0_g[p, i]
-        pred = predict_dut(d, f)
-        r = d.acc_mg - pred
+        r = d.y_block - predict_blocks(d, f)
         for p in unseen:
-            sel = test & (d.pos == p)
+            sel = test & (d.block_pos == p)
             if sel.any():
-                r[sel] -= np.nanmean(r[sel], axis=0)
+                r[sel] -= np.average(r[sel], axis=0, weights=d.block_count[sel])
         out[test] = r[test]
     return out
 
 
-__all__ = ["DutFit", "fit_dut", "predict_dut", "window_rms", "heldout_residual"]
+__all__ = ["DutFit", "fit_dut", "predict_dut", "predict_blocks", "window_rms", "block_rms", "heldout_blocks"]

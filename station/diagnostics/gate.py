@@ -67,4 +67,38 @@ def _masked_pair(data, rows: list[dict], admitted: list[str], partners: dict, cu
     return best
 
 
-__all__ = ["BIC_GATE", "HELDOUT_GAIN_GATE", "SCORE_P_GATE"]
+
+def why_not(row: dict, base_heldout_mg: float | None) -> str:
+    """Why a ranked candidate was not admitted, in words (the page's ranking table shows it)."""
+    flags = row.get("flags", [])
+    for f in flags:
+        if f.startswith("stands_for_it:"):
+            return (f"cannot be told apart from {f.split(':', 1)[1]} on this data; that one was admitted and "
+                    f"stands for it")
+        if f.startswith("explained_by:"):
+            rec = row.get("given_admitted") or {}
+            extra = ""
+            if rec.get("heldout_rms_mg") is not None:
+                extra = (f": on top of it the held-out error is {rec['heldout_rms_mg']} mg "
+                         f"(delta BIC {rec.get('delta_bic')}, p {rec.get('score_p')})")
+            return f"explained by {f.split(':', 1)[1]}, admitted before it{extra}"
+    dbic, p, gain = row.get("delta_bic"), row.get("score_p"), row.get("heldout_gain_rel")
+    held = row.get("heldout_rms_mg")
+    strong = dbic is not None and dbic < BIC_GATE and p is not None and p < SCORE_P_GATE
+    if strong and (gain is None or gain < HELDOUT_GAIN_GATE):
+        return (f"fits in sample (delta BIC {dbic}, p {p:.3g}) but does not predict the held-out legs: held-out "
+                f"error {base_heldout_mg} -> {held} mg, needs at least {100 * HELDOUT_GAIN_GATE:g} % lower")
+    parts = []
+    if dbic is None or dbic >= BIC_GATE:
+        parts.append(f"too weak in sample (delta BIC {dbic}, needs < {BIC_GATE:g})")
+    if p is None or p >= SCORE_P_GATE:
+        parts.append(f"likelihood-ratio p {p if p is None else f'{p:.3g}'} under the correlated-noise model "
+                     f"(needs < {SCORE_P_GATE:g})")
+    if gain is None or gain < HELDOUT_GAIN_GATE:
+        parts.append(f"held-out error {base_heldout_mg} -> {held} mg (needs {100 * HELDOUT_GAIN_GATE:g} % lower)")
+    if not parts:
+        return "passes the gate alone but not on top of the effects admitted before it"
+    return "; ".join(parts)
+
+
+__all__ = ["BIC_GATE", "HELDOUT_GAIN_GATE", "SCORE_P_GATE", "why_not"]

@@ -19,7 +19,6 @@ from station.diagnostics.design import _Design, tdsf_identifiable
 from station.diagnostics.effects import get_effect
 from station.diagnostics.evaluation import ModelEval
 from station.diagnostics.fit import DutFit
-from station.diagnostics.noise_gls import block_resid
 from station.diagnostics.segmentation import DutData
 from contracts.types import AXES
 
@@ -29,8 +28,7 @@ CONFUSABLE_COS = 0.9
 
 def _baseline_design(d: DutData, fit: DutFit):
     """Baseline columns per axis (block means) at the fitted Acc0."""
-    mats, _ = _Design(d, []).matrices({}, fit.acc0_g)
-    return [d.block_mean(m) for m in mats]
+    return _Design(d, []).block_matrices({}, fit.acc0_g)[0]
 
 
 def _residualize(Xb: np.ndarray, Z: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -51,17 +49,17 @@ def candidate_regressors(d: DutData, base_fit: DutFit, cand_fit: DutFit) -> list
     """
     eff = [get_effect(n) for n in cand_fit.effects if n not in base_fit.effects]
     design = _Design(d, eff)
-    mats, names = design.matrices(cand_fit.nl, base_fit.acc0_g)
+    mats, names = design.block_matrices(cand_fit.nl, base_fit.acc0_g)
     P = len(d.pos_labels)
     out = []
     for i in range(3):
         cols = [mats[i][:, P + 2:]]
         if design.lag:
-            base_mats, _ = _Design(d, []).matrices({}, base_fit.acc0_g)
+            base_mats, _ = _Design(d, []).block_matrices({}, base_fit.acc0_g)
             base_pred = base_mats[i] @ base_fit.beta[i][: P + 2]
             lag_pred = mats[i][:, : P + 2] @ base_fit.beta[i][: P + 2]
             cols.append((lag_pred - base_pred)[:, None])
-        out.append(d.block_mean(np.hstack(cols)))
+        out.append(np.hstack(cols))
     return out
 
 
@@ -74,16 +72,15 @@ def identifiability(data: list[DutData], base: ModelEval, name: str) -> float:
     for d, bf in zip(data, base.fits):
         nl0 = {eff.name: {p.name: p.init for p in eff.nonlinear}}
         design = _Design(d, [eff])
-        mats, _ = design.matrices(nl0, bf.acc0_g)
+        mats, _ = design.block_matrices(nl0, bf.acc0_g)
         P = len(d.pos_labels)
         Xs = _baseline_design(d, bf)
         rel_cols = []
         for i in range(3):
-            Z = d.block_mean(mats[i][:, P + 2:])
+            Z = mats[i][:, P + 2:]
             if design.lag:
-                base_mats, _ = _Design(d, []).matrices({}, bf.acc0_g)
-                dl = (mats[i][:, P] - base_mats[i][:, P])[:, None]  # lagged minus measured dT
-                Z = np.hstack([Z, d.block_mean(dl)])
+                dl = (mats[i][:, P] - Xs[i][:, P])[:, None]  # lagged minus measured dT
+                Z = np.hstack([Z, dl])
             for c in range(Z.shape[1]):
                 z = Z[:, c]
                 nz = float(np.sqrt(np.sum(d.block_count * z * z)))
@@ -101,8 +98,8 @@ def _contribution(data, base: ModelEval, cand: ModelEval) -> np.ndarray:
     """The candidate's fitted change of prediction (block means, all DUTs and axes), baseline
     projected out."""
     parts = []
-    for d, bf, rb_, rc in zip(data, base.fits, base.resid, cand.resid):
-        delta = block_resid(d, rb_) - block_resid(d, rc)  # = pred_cand - pred_base
+    for d, bf, rb_, rc in zip(data, base.fits, base.resid_block, cand.resid_block):
+        delta = np.nan_to_num(rb_ - rc)  # = pred_cand - pred_base
         Xs = _baseline_design(d, bf)
         for i in range(3):
             parts.append(_residualize(Xs[i], delta[:, i:i + 1], d.block_count)[:, 0] * np.sqrt(d.block_count))
@@ -182,11 +179,11 @@ def alias_groups(data: list[DutData], base: ModelEval, names: list[str]) -> list
     for n in lin:
         parts = []
         for d, bf in zip(data, base.fits):
-            mats, _ = _Design(d, [get_effect(n)]).matrices({}, bf.acc0_g)
+            mats, _ = _Design(d, [get_effect(n)]).block_matrices({}, bf.acc0_g)
             Xs = _baseline_design(d, bf)
             P = len(d.pos_labels)
             for i in range(3):
-                Z = d.block_mean(mats[i][:, P + 2:])
+                Z = mats[i][:, P + 2:]
                 parts.append(_residualize(Xs[i], Z, d.block_count) if Z.shape[1] else Z)
         cols[n] = parts
     groups: list[list[str]] = []

@@ -42,13 +42,15 @@ model.py (the saved model).
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from station.diagnostics.effects import REGISTRY, get_effect, load_effects_file
 from station.diagnostics.evaluation import ModelEval, _spec, evaluate
-from station.diagnostics.gate import BIC_GATE, HELDOUT_GAIN_GATE, SCORE_P_GATE
+from station.diagnostics.gate import BIC_GATE, HELDOUT_GAIN_GATE, SCORE_P_GATE, why_not
 from station.diagnostics.identifiability import (
     CONFUSABLE_COS, FEATURE_TEXT, TERMS, UNIDENTIFIABLE_REL, _contribution, _cos, alias_groups, data_features,
     drift_identifiability, identifiability,
@@ -86,6 +88,7 @@ class DiagnosisReport:
     drift: dict = field(default_factory=dict)
     baseline_parameters: dict = field(default_factory=dict)
     candidates: dict[str, ModelEval] = field(repr=False, default_factory=dict)
+    ranked: "Ranked | None" = field(repr=False, default=None)
 
     def to_json(self) -> dict:
         return {
@@ -118,12 +121,59 @@ def _eval_json(m: ModelEval) -> dict:
 
 
 
+@dataclass
+class Ranked:
+    """Everything `--add` does not change: the prepared logs, the ranking, the admitted staircase and
+    every model fitted so far (so adding effects refits only the new structures)."""
+
+    data: list[DutData]
+    seg: Segmentation
+    basis: str
+    cache: dict
+    base: ModelEval
+    rows: list[dict]
+    confusable: list[dict]
+    unident: list[dict]
+    aliases: list[dict]
+    alias_of: dict
+    feats: dict
+    admitted: list[str]
+    auto_steps: list[dict]
+
+    def get_eval(self, effs: list[str]) -> ModelEval:
+        key = tuple(effs)
+        if key not in self.cache:
+            # effects already fitted in the model one step smaller start where that fit ended
+            prefix = self.cache.get(key[:-1]) if len(key) > 1 else None
+            start = [f.nl for f in prefix.fits] if prefix is not None else None
+            self.cache[key] = evaluate(self.data, list(effs), self.basis, self.seg.n_folds, nl_start=start)
+        return self.cache[key]
+
+
+_RANKED: "OrderedDict[tuple, Ranked]" = OrderedDict()
+RANKED_CACHE_SIZE = 4  # logs whose ranking is kept for --add (a 10 h log: ~20 MB each)
+
+
+def _log_key(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation) -> tuple:
+    """The log content (hash of every array) and the model question asked of it."""
+    h = hashlib.sha256()
+    for lg in logs:
+        for arr in (lg.time_s, lg.acc_g, lg.temp_c, lg.position, lg.lamp):
+            if arr is not None:
+                h.update(np.ascontiguousarray(arr).tobytes())
+        h.update(repr(sorted((k, str(v)) for k, v in lg.meta.items())).encode())
+    effs = tuple((n, type(REGISTRY[n]).__qualname__, id(REGISTRY[n])) for n in names)
+    return h.hexdigest(), effs, basis, repr(seg)
+
+
 def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candidates: list[str] | None = None,
              effects_file: str | None = None, basis: str = "window", seg: Segmentation | None = None,
              ) -> DiagnosisReport:
     """Fit the baseline, rank candidate effects, refit with `add`; one DUT or a batch together.
 
     basis: "sample" (RMS of every sample's residual) or "window" (RMS of 1-minute means).
+    The ranked state of the last few logs is kept in memory (keyed by the logs' content and the
+    candidate set), so asking again with other `add` effects refits only the new models.
     """
     if effects_file:
         load_effects_file(effects_file)
@@ -136,6 +186,27 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
         get_effect(a)
     if basis not in ("sample", "window"):
         raise StationError(f"unknown RMS basis {basis!r} (sample or window)")
+    names = list(candidates) if candidates is not None else list(REGISTRY)
+    key = _log_key(logs, names, basis, seg)
+    ranked = _RANKED.get(key)
+    if ranked is None:
+        ranked = _rank(logs, names, basis, seg)
+        _RANKED[key] = ranked
+        while len(_RANKED) > RANKED_CACHE_SIZE:
+            _RANKED.popitem(last=False)
+    else:
+        _RANKED.move_to_end(key)
+    return _report(ranked, add)
+
+
+def with_added(report: DiagnosisReport, add: list[str]) -> DiagnosisReport:
+    """The same diagnosis with other effects added (the engineer's click): only new models are fitted."""
+    for a in add:
+        get_effect(a)
+    return _report(report.ranked, list(dict.fromkeys(add)))
+
+
+def _rank(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation) -> Ranked:
     data = [prepare(lg, seg) for lg in logs]
     for d in data:
         span = float(np.max(d.temp_smooth_c) - np.min(d.temp_smooth_c))
@@ -145,20 +216,14 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
         if d.block_starts.shape[0] < 20:
             raise StationError(f"{d.serial}: only {d.n} samples ({d.time_s[-1] - d.time_s[0]:.0f} s) in usable "
                                f"runs, too little data for held-out validation")
-    names = list(candidates) if candidates is not None else list(REGISTRY)
-    cache: dict[tuple, ModelEval] = {}
-
-    def get_eval(effs: list[str]) -> ModelEval:
-        key = tuple(effs)
-        if key not in cache:
-            cache[key] = evaluate(data, list(effs), basis, seg.n_folds)
-        return cache[key]
-
-    base = get_eval([])
+    st = Ranked(data=data, seg=seg, basis=basis, cache={}, base=None, rows=[], confusable=[], unident=[],  # type: ignore[arg-type]
+                aliases=[], alias_of={}, feats={}, admitted=[], auto_steps=[])
+    get_eval = st.get_eval
+    base = st.base = get_eval([])
 
     # identifiability first: a candidate the data cannot identify is not ranked
     unident, ident = [], []
-    for name in names + [a for a in add if a not in names]:  # added effects are checked too
+    for name in names:
         rel = identifiability(data, base, name)
         if rel < UNIDENTIFIABLE_REL:
             e = get_effect(name)
@@ -167,7 +232,6 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
                             "needs": e.needs, "test_to_identify": e.identify_hint})
         else:
             ident.append(name)
-    ident = [n for n in ident if n in names]
     # aliases: identical regressors on this data are one term, ranked under the first name
     feats = data_features(data)
     aliases = []
@@ -201,6 +265,7 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
             "admitted": False,
             "flags": [],
             "note": get_effect(name).note,
+            "shape": _shape_text(name, cand),
         }
         grp = next((a for a in aliases if a["ranked_as"] == name), None)
         if grp:
@@ -249,18 +314,46 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
     rows.sort(key=lambda r: (r["heldout_rms_mg"] if r["heldout_rms_mg"] is not None else 1e300))
     admitted, auto_steps = _admit_forward(data, base, rows, confusable, get_eval)
 
-    # --add: error staircase
+    for r in rows:
+        if not r["admitted"]:
+            r["why"] = why_not(r, _r(base.heldout_rms_mg))
+    st.rows, st.confusable, st.unident, st.aliases, st.alias_of, st.feats = rows, confusable, unident, aliases, alias_of, feats
+    st.admitted, st.auto_steps = admitted, auto_steps
+    return st
+
+
+def _shape_text(name: str, m: ModelEval) -> str:
+    """The fitted shape of an effect in words (per DUT when a batch's DUTs differ)."""
+    eff = get_effect(name)
+    shapes = list(dict.fromkeys(eff.shape(f.nl.get(name, {})) for f in m.fits))
+    return shapes[0] if len(shapes) == 1 else "; ".join(f"{d.serial}: {s_}" for d, s_ in
+                                                          zip(m.data, (eff.shape(f.nl.get(name, {})) for f in m.fits)))
+
+
+def _report(st: Ranked, add: list[str]) -> DiagnosisReport:
+    data, base, get_eval, seg = st.data, st.base, st.get_eval, st.seg
+    unident, aliases, alias_of = list(st.unident), st.aliases, st.alias_of
+    for a in add:  # added effects are checked too
+        if a not in {u["effect"] for u in unident} and not any(r["effect"] == a for r in st.rows) \
+                and a not in alias_of and identifiability(data, base, a) < UNIDENTIFIABLE_REL:
+            e = get_effect(a)
+            unident.append({"effect": a, "relative_residual_norm": None,
+                            "reason": "its regressors are a linear combination of the baseline's on this data",
+                            "needs": e.needs, "test_to_identify": e.identify_hint})
+
     def step_json(model: str, m: ModelEval) -> dict:
         return {"model": model, "effects": list(m.effects), "rms_mg": _r(m.rms_mg),
                 "heldout_rms_mg": _r(m.heldout_rms_mg), "rms_per_sample_mg": _r(m.rms_sample_mg),
                 "heldout_rms_per_sample_mg": _r(m.heldout_rms_sample_mg)}
 
+    base.with_sigma()
     staircase = [step_json("baseline", base)]
     current = base
     for k in range(len(add)):
         effs = add[: k + 1]
-        current = get_eval(effs)
-        step = {**step_json("+" + effs[-1], current), "parameters": _params_json(data, current.fits)}
+        current = get_eval(effs).with_sigma()
+        step = {**step_json("+" + effs[-1], current), "parameters": _params_json(data, current.fits),
+                "shape": _shape_text(effs[-1], current)}
         warn = [u for u in unident if u["effect"] == effs[-1]]
         if warn:
             step["warning"] = (f"{effs[-1]} is not identifiable from this data (its parameters are arbitrary); "
@@ -270,8 +363,9 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
                                f"({next(a['text'] for a in aliases if effs[-1] in a['effects'])})")
         staircase.append(step)
     admitted_staircase = [step_json("baseline", base)] + [
-        {**step_json(s_["model"], get_eval(s_["effects"])), "delta_bic": s_["delta_bic"], "score_p": s_["score_p"]}
-        for s_ in auto_steps]
+        {**step_json(s_["model"], get_eval(s_["effects"])), "delta_bic": s_["delta_bic"], "score_p": s_["score_p"],
+         "shape": _shape_text(s_["effects"][-1], get_eval(s_["effects"]))}
+        for s_ in st.auto_steps]
     base_noise = compare(data, _spec(base), _spec(base)).noise
     n_seg = [int(d.seg_bounds_s.shape[0]) for d in data]
     noise_model = {
@@ -285,13 +379,12 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
     }
     drift = {"tdsf_identifiable": drift_identifiability(data, base), "test_to_identify": TDSF_TEST}
     return DiagnosisReport(
-        serials=[d.serial for d in data], rms_basis="per sample" if basis == "sample" else "1-minute means",
-        baseline=base, ranking=rows, model=current, staircase=staircase, confusable=confusable,
-        unidentifiable=unident, parameters=_params_json(data, current.fits), features=feats, data=data,
-        candidates={k[0]: v for k, v in cache.items() if len(k) == 1},
-        admitted=admitted, admitted_staircase=admitted_staircase, aliases=aliases, noise_model=noise_model,
-        drift=drift, baseline_parameters=_params_json(data, base.fits))
+        serials=[d.serial for d in data], rms_basis="per sample" if st.basis == "sample" else "1-minute means",
+        baseline=base, ranking=st.rows, model=current, staircase=staircase, confusable=st.confusable,
+        unidentifiable=unident, parameters=_params_json(data, current.fits), features=st.feats, data=data,
+        candidates={k[0]: v for k, v in st.cache.items() if len(k) == 1},
+        admitted=st.admitted, admitted_staircase=admitted_staircase, aliases=aliases, noise_model=noise_model,
+        drift=drift, baseline_parameters=_params_json(data, base.fits), ranked=st)
 
 
-
-__all__ = ["diagnose", "DiagnosisReport"]
+__all__ = ["diagnose", "with_added", "DiagnosisReport", "Ranked"]

@@ -67,7 +67,14 @@ class DutData:
     guard_s: float = 600.0
     n_folds: int = 1
     y_block: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    # block means of the inputs: every fit, held-out prediction and RMS window is computed on these
+    block_temp_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    block_temp_smooth_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    block_window: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    block_run: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    block_ss_within: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # per block and axis, mg^2
     cache: dict = field(default_factory=dict)  # per-sample regressors that depend only on the data
+    block_cache: dict = field(default_factory=dict)  # the same for block-level regressors
 
     @property
     def n(self) -> int:
@@ -222,6 +229,13 @@ def prepare(log: DutLog, seg: Segmentation | None = None) -> DutData:
     d.guard_s = seg.guard_s
     d.n_folds = n_folds
     d.y_block = d.block_mean(d.acc_mg)
+    d.block_temp_c = d.block_mean(temp_c)
+    d.block_temp_smooth_c = d.block_mean(temp_smooth)
+    d.block_window = window[block_starts]
+    d.block_run = run[block_starts]
+    # the measurement's scatter inside its 10 s blocks (white noise, mostly): the per-sample RMS of a
+    # model held constant over each block is its block residual plus this
+    d.block_ss_within = np.add.reduceat((d.acc_mg - d.y_block[block]) ** 2, block_starts, axis=0)
     return d
 
 
