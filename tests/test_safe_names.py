@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 
 from contracts.filenames import _WINDOWS_DEVICES, HASH_LEN, MAX_LEN, check_inside, safe_name, safe_path
 from contracts.types import StationError
+from station.diagnostics.plots import DUT_PLOTS, REPORT_PLOTS
 
 ROOT = Path(__file__).resolve().parents[1]
 SAFE = re.compile(r"[A-Za-z0-9._+\-]+")
@@ -146,7 +147,7 @@ def test_diagnose_save_model_and_plots_write_only_inside_the_named_folders(sim_l
     models = sorted((work / "models").iterdir())
     plots = sorted((work / "plots").iterdir())
     assert len(models) == len(serials)  # one per DUT: no two serials collide into one file
-    assert len(plots) == 5 * len(serials) + 2
+    assert len(plots) == len(DUT_PLOTS) * len(serials) + len(REPORT_PLOTS)
     for p in models + plots:
         assert p.parent.resolve() in ((work / "models").resolve(), (work / "plots").resolve())
         _assert_safe(p.name, MAX_LEN + len("_residual_vs_acceleration.png"))
@@ -183,4 +184,4 @@ def test_a_serial_with_a_newline_or_nul_from_memory_stays_inside(tmp_path):
     new = _tree(tmp_path) - before
     assert all(n == "deep" or n.startswith(os.path.join("deep", "out")) for n in new), new
     assert all(p.resolve().parent in (d.resolve(), (d / "models").resolve()) for p in files)
-    assert len(files) == 5 + 2 + 1
+    assert len(files) == len(DUT_PLOTS) + len(REPORT_PLOTS) + 1

@@ -11,7 +11,9 @@ with the chosen effects and prints the error staircase baseline -> +effect -> ..
     station diagnose LOG.csv --effects-file my_effect.py --add my_effect --plots out/
     station diagnose LOG.csv --add bias_t2 --save-model SIM0001.model.json
 
-Residual = measured - model, in mg, always.
+Residual = measured - model, in mg, always. The report ends with the noise statement per DUT
+(station/diagnostics/noise_view.py: the residual's Allan deviation against a static segment of the
+log); --json has it under "noise", per serial.
 """
 
 from __future__ import annotations
@@ -131,6 +133,14 @@ def format_report(doc: dict) -> str:
                     else:
                         per = "  ".join(f"{ax} {_fmt_value(e)}" for ax, e in entry.items())
                         lines.append(f"  {serial}  {eff}.{pname}: {per}")
+    noise = doc.get("noise") or {}
+    if noise:
+        lines.append("")
+        lines.append("noise: Allan deviation of the residual against the sensor's own noise (a static segment of the log):")
+        for nv in noise.values():
+            lines.append(f"  {nv['statement']}")
+            for ax, e in nv["axes"].items():
+                lines.append(f"    {ax}: {e['statement']}")
     return "\n".join(lines)
 
 
@@ -155,6 +165,9 @@ def run(args: argparse.Namespace) -> int:
         raise StationError(f"the same DUT serial appears twice among the logs ({', '.join(serials)})")
     report = diagnose(logs, add=add, candidates=candidates, basis=args.basis)
     doc = report.to_json()
+    from station.diagnostics.noise_view import noise_view
+
+    doc["noise"] = {d.serial: noise_view(report, k) for k, d in enumerate(report.data)}
     if args.plots:
         from station.diagnostics.plots import write_plots
 

@@ -1,7 +1,9 @@
 """PNG plots of a diagnosis (design 7), with matplotlib's object API (no pyplot global state).
 
 Per DUT: measured vs model, residual vs temperature (heating and cooling in two colours), residual
-vs time, residual vs dT/dt, residual vs acceleration. Per report: ranking bars, error staircase.
+vs time, residual vs dT/dt, residual vs acceleration, and the Allan deviation of the residual against
+the sensor's own noise (a static segment of the log; station/diagnostics/noise_view.py). Per report:
+ranking bars, error staircase.
 Sample-level series are drawn as 1-minute means (the report's RMS windows): 940 points for a
 15-hour log instead of 176 000, and the quantity the RMS figures are computed on.
 
@@ -12,6 +14,7 @@ in colour, the baseline's residual in grey behind it when effects were added.
 from __future__ import annotations
 
 import io
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +24,7 @@ from matplotlib.figure import Figure
 from contracts.types import AXES, StationError
 
 DUT_PLOTS = ("measured_vs_model", "residual_vs_temperature", "residual_vs_time", "residual_vs_rate",
-             "residual_vs_acceleration")
+             "residual_vs_acceleration", "allan_deviation")
 REPORT_PLOTS = ("ranking", "staircase")
 PLOTS = DUT_PLOTS + REPORT_PLOTS
 HEAT, COOL, STEADY = "#d62728", "#1f77b4", "#999999"
@@ -136,6 +139,95 @@ def plot_residual_vs_acceleration(report, k: int = 0) -> Figure:
     return _residual_panels(report, k, None, "acceleration (g)", "acceleration", per_axis_x=s["acc_g"])
 
 
+def _arr(x) -> np.ndarray:
+    return np.array([np.nan if v is None else v for v in (x or [])], dtype=float)
+
+
+def _tau(t: float) -> str:
+    return f"{t:.0f}" if t >= 100 else f"{t:.2g}"
+
+
+def _axis_verdict(ax_name: str, e: dict) -> str:
+    c = e.get("comparison")
+    if not c or c.get("at_sensor_noise") is None:
+        return f"{ax_name}: residual alone (no sensor reference)"
+    if c["at_sensor_noise"]:
+        return f"{ax_name}: at the sensor's noise"
+    if c["unmodelled_signal"]:
+        rng = ", ".join(f"{_tau(a)}-{_tau(b)} s" for a, b in c["unmodelled_ranges_s"])
+        return f"{ax_name}: unmodelled signal {rng} (up to {c['max_unmodelled_ratio']:.2g}x)"
+    rng = ", ".join(f"{_tau(a)}-{_tau(b)} s" for a, b in c["ranges_s"])
+    return f"{ax_name}: above {rng}, the model's own noise"
+
+
+def plot_allan_deviation(report, k: int = 0) -> Figure:
+    """Log-log Allan deviation per axis: the residual (with 1-sigma intervals) against the sensor's
+    static segment (band), the model's own input noise, and faint -1/2, 0, +1/2 reference slopes."""
+    from station.diagnostics.noise_view import noise_view
+
+    nv = noise_view(report, k)
+    fig = Figure(figsize=(12, 5.2), layout="constrained")
+    panels = fig.subplots(1, 3, sharey=True)
+    for ax, (name, e) in zip(panels, nv["axes"].items()):
+        r, st, mn = e["residual"], e.get("static"), e.get("model_noise")
+        tr, ar = _arr(r["taus_s"]), _arr(r["adev_mg"])
+        ref_t, ref_a = (_arr(st["taus_s"]), _arr(st["adev_mg"])) if st else (tr, ar)
+        if st:
+            ax.fill_between(ref_t, _arr(st["lo_mg"]), _arr(st["hi_mg"]), color="#888888", alpha=0.25, lw=0)
+            ax.plot(ref_t, ref_a, "o-", ms=3, lw=1, color="black", label="sensor: static segment (1-sigma band)")
+            c = e.get("comparison") or {}
+            bound = np.array([x == "bound" for x in c.get("reference", [])], bool)
+            if bound.any():
+                last = int(np.flatnonzero(~bound)[-1])
+                bt = _arr(c["taus_s"])[last:]
+                ax.plot(bt, _arr(c["static_adev_mg"])[last:], "--", lw=1, color="black",
+                        label="sensor bound beyond the static segment (x sqrt(tau))")
+        if mn and len(mn["taus_s"]):
+            ax.plot(_arr(mn["taus_s"]), _arr(mn["adev_mg"]), ":", lw=1.2, color="#ff7f0e",
+                    label="model's own noise (per-sample temperature)")
+        if tr.size:
+            yerr = np.vstack([ar - _arr(r["lo_mg"]), _arr(r["hi_mg"]) - ar])
+            ax.errorbar(tr, ar, yerr=yerr, fmt="s-", ms=3, lw=1, capsize=2, color="#2ca02c",
+                        label=f"residual ({_model_label(report)})")
+            c = e.get("comparison") or {}
+            if c.get("taus_s"):
+                ct = _arr(c["taus_s"])
+                ca = _arr(c["residual_adev_mg"])
+                un = np.array(c["unmodelled"], bool)
+                own = np.array(c["above"], bool) & ~un
+                if un.any():
+                    ax.plot(ct[un], ca[un], "o", ms=8, mfc="none", color="#d62728", label="unmodelled signal")
+                if own.any():
+                    ax.plot(ct[own], ca[own], "o", ms=8, mfc="none", color="#ff7f0e",
+                            label="above: the model's own noise")
+        ok = np.isfinite(ref_a) & (ref_a > 0)
+        ys = np.concatenate([ar, ref_a])  # the model's own noise may fall below: clipped
+        ys = ys[np.isfinite(ys) & (ys > 0)]
+        if ok.any():  # reference slopes: the sensor's terms where present, else through the curve's minimum
+            i0 = int(np.nanargmin(np.where(ok, ref_a, np.inf)))
+            terms = e.get("terms") or e.get("residual_terms") or {}
+            t_all = np.concatenate([tr, ref_t])
+            tt = np.geomspace(np.nanmin(t_all), np.nanmax(t_all), 50)
+            for p, term, at_1, lab in ((-0.5, "white", lambda v: v, "slopes -1/2 (white), 0 (bias instability), "
+                                        "+1/2 (random walk)"),
+                                       (0.0, "bias_instability", lambda v: 0.664 * v, None),
+                                       (0.5, "random_walk", lambda v: v / np.sqrt(3.0), None)):
+                t_ = terms.get(term) or {}
+                y1 = at_1(t_["value"]) if t_.get("present") and t_.get("value") else ref_a[i0] / ref_t[i0] ** p
+                ax.plot(tt, y1 * tt ** p, "--", lw=0.8, color="#bbbbbb", label=lab, zorder=0)
+        if ys.size:
+            ax.set_ylim(ys.min() / 3.0, ys.max() * 2.0)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("averaging time tau (s)")
+        ax.grid(alpha=0.3, which="both")
+        ax.set_title(textwrap.fill(_axis_verdict(name, e), 48), fontsize=8)
+    panels[0].set_ylabel("Allan deviation (mg)")
+    panels[0].legend(loc="lower left", fontsize=7)
+    fig.suptitle(textwrap.fill(nv["statement"], 150), fontsize=9)
+    return fig
+
+
 def plot_ranking(report) -> Figure:
     rows = report.ranking
     fig = Figure(figsize=(8, 0.45 * max(len(rows), 2) + 1.6), layout="constrained")
@@ -187,6 +279,7 @@ _DUT_FUNCS = {
     "residual_vs_time": plot_residual_vs_time,
     "residual_vs_rate": plot_residual_vs_rate,
     "residual_vs_acceleration": plot_residual_vs_acceleration,
+    "allan_deviation": plot_allan_deviation,
 }
 
 
