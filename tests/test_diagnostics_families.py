@@ -11,12 +11,15 @@ Twenty clean logs admit nothing.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 import diag_plant as G
+from station.diagnostics.effects import REGISTRY, Effect, register
 from station.diagnostics.ranking import diagnose
 
-FLOOR_RATIO = 1.1  # issue 23; measured 0.98-1.06 (seed 1), see the closing note
+FLOOR_RATIO = 1.1  # issue 23; measured 0.98-1.06 at seed 1, 0.91-1.02 at seed 3; at seed 2 1.00-1.13,
+# where the true operator itself reaches only 1.10-1.11 (see the last test)
 CASES = {
     # generator effect: (library effect, the shape's words, extra check on the fitted shape)
     "relay": ("hysteresis", "relay", ("width_c", 4.0, 0.15)),
@@ -82,3 +85,42 @@ def test_twenty_clean_logs_admit_nothing():
         if doc["admitted"]:
             admitted[seed] = doc["admitted"]
     assert admitted == {}
+
+
+class _TrueOperator(Effect):
+    """The generator's own operator of the true die temperature, as a user effect: the best any
+    hysteresis model can do on this log (only its three amplitudes are fitted)."""
+
+    linear = ("h_mg",)
+
+    def __init__(self, name, z_of_die):
+        self.name = name
+        t_s, plate_c, _ = G.plate_profile()
+        self._z = z_of_die(G.first_order_lag(plate_c, 40.0))
+
+    def columns(self, ctx, nl):
+        z = self._z[np.clip(np.round(ctx.time_s * G.RATE_HZ).astype(int), 0, self._z.size - 1)]
+        return np.repeat(z[:, None, None], 3, axis=1)
+
+
+@pytest.fixture
+def true_operators():
+    ops = {"relay": _TrueOperator("true_relay", lambda x: G.relay(x, 4.0)),
+           "backlash": _TrueOperator("true_backlash", lambda x: G.backlash(x, 10.0))}
+    for op in ops.values():
+        register(op)
+    yield ops
+    for op in ops.values():
+        REGISTRY.pop(op.name, None)
+
+
+@pytest.mark.parametrize("generated", ["relay", "backlash"])
+def test_the_family_predicts_held_out_legs_as_well_as_the_true_operator(generated, true_operators):
+    """Seed 2's noise puts even the true operator at 1.10-1.11x the control floor (the amplitudes
+    fitted under bias wander cost that much held out), so the floor ratio alone cannot judge the
+    shape there: the family's held-out error must be that of the true operator."""
+    log = G.make_log(generated, 2)
+    fam = diagnose([log], candidates=["hysteresis"], add=["hysteresis"]).model.heldout_rms_mg
+    true = diagnose([log], candidates=[true_operators[generated].name],
+                    add=[true_operators[generated].name]).model.heldout_rms_mg
+    assert fam <= 1.02 * true, (fam, true)
