@@ -95,6 +95,10 @@ def format_report(doc: dict) -> str:
         lines.append(f"  {r['effect']:<20}{_f(r['heldout_rms_mg']):>12}{_f(r['heldout_gain_mg']):>10}"
                      f"{_f(r['delta_bic'], '.1f'):>12}{_f(r['score_p'], '.2g'):>10}  "
                      f"{'yes' if r['admitted'] else 'no':<9}{' '.join(r['flags'])}")
+        if r.get("shape"):
+            lines.append(f"  {'':<20}shape: {r['shape']}")
+        if r.get("why"):
+            lines.append(f"  {'':<20}why not: {r['why']}")
         if r.get("same_as"):
             lines.append(f"  {'':<20}one term -- {r['same_as']}")
     for c in doc["confusable"]:
@@ -112,7 +116,8 @@ def format_report(doc: dict) -> str:
         for s_ in auto:
             extra = (f"  delta BIC {_f(s_.get('delta_bic'), '.1f')}, LR p {_f(s_.get('score_p'), '.2g')}"
                      if "delta_bic" in s_ else "")
-            lines.append(f"    {s_['model']:<26}held-out {_f(s_['heldout_rms_mg'])} mg{extra}")
+            shape = f"  ({s_['shape']})" if s_.get("shape") else ""
+            lines.append(f"    {s_['model']:<26}held-out {_f(s_['heldout_rms_mg'])} mg{extra}{shape}")
     lines.append("")
     lines.append("error staircase:")
     lines.append(f"  {'model':<28}{'in-sample mg':>14}{'held-out mg':>13}")
