@@ -14,6 +14,7 @@ not white, as on a real sensor.
 Effects (terms added to martinez2022 eq. 1, in mg), each with its own code here:
 - hysteresis of three shapes on the die temperature: relay (switch after a reversal of `width_c`),
   backlash (play of total travel `width_c`: linear, then saturated), smooth (exponential approach);
+  and a mixture of two mechanisms (a 3 C backlash and a 20 C smooth approach);
 - thermal lag: the MEMS sees the die through a first-order lag, or through two in series (die and
   package), in the drift term dT (TDB + TDSF Acc0);
 - bias polynomials: + c2 dT^2, + c3 dT^3.
@@ -118,7 +119,8 @@ def correlated_noise(n: int, rng: np.random.Generator, white_mg: float = 0.7, rw
 
 
 def make_log(effect: str | None = None, seed: int = 0, **p) -> DutLog:
-    """A log with at most one effect: "relay", "backlash", "smooth", "lag1", "lag2", "bias2", "bias3".
+    """A log with at most one effect: "relay", "backlash", "smooth", "mixture", "lag1", "lag2",
+    "bias2", "bias3".
 
     The noise depends only on the seed, so the same seed without the effect is its control."""
     rng = np.random.default_rng(seed)
@@ -141,6 +143,8 @@ def make_log(effect: str | None = None, seed: int = 0, **p) -> DutLog:
         acc_mg += backlash(die, p.get("width_c", 10.0))[:, None] * amp
     elif effect == "smooth":
         acc_mg += smooth(die, p.get("width_c", 5.0))[:, None] * amp
+    elif effect == "mixture":  # two mechanisms at once: a stiff play and a slow smooth approach
+        acc_mg += (0.5 * backlash(die, 3.0) + 0.6 * smooth(die, 20.0))[:, None] * amp
     elif effect == "bias2":
         acc_mg += (p.get("c2", 0.0015) * (die - 25.0) ** 2)[:, None] * np.array([1.0, -0.7, 0.9])
     elif effect == "bias3":

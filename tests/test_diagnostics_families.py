@@ -2,7 +2,7 @@
 
 Each hidden effect has its own code in the generator (not station/diagnostics/effects.py, not
 drivers/sim): hysteresis of three shapes (relay with a switching threshold, backlash, smooth
-approach), thermal lag of first and second order, quadratic and cubic bias, all under the
+approach) and a mixture of two (the family's Prandtl-Ishlinskii superposition), thermal lag of first and second order, quadratic and cubic bias, all under the
 correlated noise of a LIS3DSH-class part (white + bias random walk + flicker). The diagnosis must
 rank the effect first, admit it alone, name its shape, and bring the held-out error within 1.1x of
 the control floor: the baseline's held-out error on the same log (same noise) without the effect.
@@ -25,6 +25,8 @@ CASES = {
     "relay": ("hysteresis", "relay", ("width_c", 4.0, 0.15)),
     "backlash": ("hysteresis", "backlash", ("width_c", 10.0, 0.1)),
     "smooth": ("hysteresis", "smooth", ("width_c", 5.0, 0.1)),
+    # a 3 C backlash and a 20 C smooth approach at once: no single operator has that loop
+    "mixture": ("hysteresis", "superposition", None),
     "lag1": ("thermal_lag", "first-order", ("tau_s", 150.0, 0.1)),
     "lag2": ("thermal_lag", "second-order", None),
     "bias2": ("bias_t2", "quadratic", None),

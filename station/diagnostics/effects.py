@@ -225,7 +225,10 @@ class ThermalLag(BuiltinEffect):
         return f"first-order lag, tau {nl['tau_s']:.3g} s"
 
 
-HYSTERESIS_SHAPES = ("relay", "backlash", "smooth")
+HYSTERESIS_SHAPES = ("relay", "backlash", "smooth", "superposition")
+
+
+PI_TRAVELS_C = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)  # the superposition's backlash elements
 
 
 class Hysteresis(BuiltinEffect):
@@ -236,18 +239,22 @@ class Hysteresis(BuiltinEffect):
     - relay: switches at once after the temperature has turned back by width_c (a threshold);
     - backlash: play of total travel width_c: after a reversal z moves linearly with the
       temperature and saturates (a mechanical stop);
-    - smooth: approaches the new state exponentially, 1/e per width_c of travel.
+    - smooth: approaches the new state exponentially, 1/e per width_c of travel;
+    - superposition: a Prandtl-Ishlinskii operator, backlash elements of travels 1, 2, 4, 8, 16 and
+      32 C each with its own amplitude per axis: any loop whose branches bend monotonically, at the
+      price of 18 amplitudes (the family's choice and the gate charge every one of them).
 
     The fit chooses the shape and its width (coarse grid of both, then the width refined)."""
 
     name = "hysteresis"
     note = ("heating/cooling hysteresis: + h z, z in [-1, 1] a rate-independent operator of the die "
-            "temperature (relay with a switching threshold, backlash/play, or smooth approach) of width w")
+            "temperature (relay with a switching threshold, backlash/play, smooth approach, or a "
+            "superposition of backlash elements of 1-32 C) of width w")
     needs = "heating and cooling through the same temperatures; >= 2 ramp rates to tell it from lag"
     identify_hint = "ramp at 2 or more different rates (lag scales with rate, hysteresis does not)"
-    linear = ("h_mg",)
-    nonlinear = (NonlinearParam("shape", "", 2.0, 0.0, 2.0, log=False, choices=HYSTERESIS_SHAPES),
-                 NonlinearParam("width_c", "C", 3.0, 0.2, 40.0, grid=25))
+    linear = ("h_mg",) + tuple(f"h_play{w:g}c_mg" for w in PI_TRAVELS_C)
+    nonlinear = (NonlinearParam("shape", "", 2.0, 0.0, 3.0, log=False, choices=HYSTERESIS_SHAPES),
+                 NonlinearParam("width_c", "C", 3.0, 0.2, 40.0, grid=25, only_for=HYSTERESIS_SHAPES[:3]))
 
     # the operators are computed at these widths (a log grid, 4.5 % apart) and interpolated in log
     # width between them: a refit moves the width without rerunning the operator, and the
@@ -269,17 +276,29 @@ class Hysteresis(BuiltinEffect):
             z = ctx.cache[key] = hysteresis_state(ctx.temp_smooth_c, ctx.time_s, float(g[k]), shape)
         return z
 
-    def columns(self, ctx, nl):
-        shape = self.choice(nl)
+    def _z(self, ctx, shape: str, width_c: float) -> np.ndarray:
         g = self.WIDTH_GRID_C
-        lw = math.log(min(max(nl["width_c"], g[0]), g[-1]))
+        lw = math.log(min(max(width_c, g[0]), g[-1]))
         k = min(int(np.searchsorted(np.log(g), lw, side="right")) - 1, g.size - 2)
         f = (lw - math.log(g[k])) / (math.log(g[k + 1]) - math.log(g[k]))
-        z = self._state(ctx, shape, k) if f <= 1e-12 else (
-            (1.0 - f) * self._state(ctx, shape, k) + f * self._state(ctx, shape, k + 1))
-        return _per_axis(z)
+        if f <= 1e-12:
+            return self._state(ctx, shape, k)
+        return (1.0 - f) * self._state(ctx, shape, k) + f * self._state(ctx, shape, k + 1)
+
+    def columns(self, ctx, nl):
+        shape = self.choice(nl)
+        out = np.zeros((ctx.time_s.shape[0], 3, len(self.linear)))
+        if shape == "superposition":
+            for m, w in enumerate(PI_TRAVELS_C, start=1):
+                out[:, :, m] = self._z(ctx, "backlash", w)[:, None]
+        else:
+            out[:, :, 0] = self._z(ctx, shape, nl["width_c"])[:, None]
+        return out
 
     def shape(self, nl):
+        if self.choice(nl) == "superposition":
+            return "superposition (Prandtl-Ishlinskii) of backlash elements, travels " + \
+                ", ".join(f"{w:g}" for w in PI_TRAVELS_C) + " C"
         word = {"relay": "relay, switching threshold", "backlash": "backlash (play), total travel",
                 "smooth": "smooth approach, 1/e width"}[self.choice(nl)]
         return f"{word} {nl['width_c']:.3g} C"

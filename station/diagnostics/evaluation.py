@@ -74,7 +74,7 @@ def evaluate(data: list[DutData], effects: list[str], basis: str, n_folds: int,
         f = fit_dut(d, effects, nl_start=nl_start[k] if nl_start else None)
         fits.append(f)
         res.append(d.y_block - predict_blocks(d, f))
-        held.append(heldout_blocks(d, effects, f))
+        held.append(f.heldout_block if f.heldout_block is not None else heldout_blocks(d, effects, f))
     m = ModelEval(effects=list(effects), fits=fits, resid_block=res, heldout_block=held, data=data)
     m.rms_mg = _pooled_rms(data, res, basis)
     m.heldout_rms_mg = _pooled_rms(data, held, basis)
