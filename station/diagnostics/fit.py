@@ -233,19 +233,20 @@ def _shape_scores(design: _Design, tried: list, train_blocks: np.ndarray, base_a
     return scores, ks
 
 
-def _choose_full(scores: list[float], rms: list[float], ks: list[int]) -> int:
+def _choose_full(scores: list[float], held, ks: list[int]) -> int:
     """A family's shape on the full log: start from the simplest shapes (fewest parameters; the
-    best prewhitened BIC among equals) and move to one with more parameters only when it wins on both
-    counts: a prewhitened BIC lower by SHAPE_MARGIN and a held-out error lower by
-    SHAPE_HELDOUT_MARGIN_REL. In-sample evidence alone let an 18-amplitude superposition fit a lag
-    and a hysteresis that mask each other and predict held-out legs 16 % worse than the baseline;
-    held-out error alone preferred a second-order lag on first-order data by 1.1 % (the 10 s
-    blocks' discretization), at a BIC only 21 lower."""
+    best prewhitened BIC among equals) and move to one with more parameters only when it wins on
+    both counts: a prewhitened BIC lower by SHAPE_MARGIN and a held-out error (held(j), computed
+    only for such a contender and the shape it would replace) lower by SHAPE_HELDOUT_MARGIN_REL.
+    In-sample evidence alone let an 18-amplitude superposition fit a lag and a hysteresis that
+    mask each other and predict held-out legs 16 % worse than the baseline; held-out error alone
+    preferred a second-order lag on first-order data by 1.1 % (the 10 s blocks' discretization),
+    at a BIC only 21 lower."""
     order = sorted(range(len(ks)), key=lambda j: (ks[j], scores[j]))
     cur = order[0]
     for j in order[1:]:
         if ks[j] > ks[cur] and scores[j] < scores[cur] - SHAPE_MARGIN and \
-                rms[j] < rms[cur] * (1.0 - SHAPE_HELDOUT_MARGIN_REL):
+                held(j) < held(cur) * (1.0 - SHAPE_HELDOUT_MARGIN_REL):
             cur = j
     return cur
 
@@ -290,12 +291,18 @@ def fit_dut(d: DutData, effect_names: list[str], train_blocks: np.ndarray | None
             nl, nl_sigma, _ = tried[0]
         else:
             scores, ks = _shape_scores(design, tried, train_blocks, base_acc0)
-            if bool(train_blocks.all()):  # the full fit: the shape that predicts held-out legs
-                fits = [_finish(d, effect_names, design, t[0], t[1], train_blocks, acc0, max_nfev) for t in tried]
-                held = [heldout_blocks(d, effect_names, f) for f in fits]
-                rms = [block_rms(d, h) for h in held]
-                j = _choose_full(scores, rms, ks)
-                fits[j].heldout_block = held[j]
+            if bool(train_blocks.all()):  # the full fit: more parameters must also predict better
+                fits: dict[int, DutFit] = {}
+
+                def held(j: int) -> float:  # held-out error of shape j, computed when first asked
+                    if j not in fits:
+                        fits[j] = _finish(d, effect_names, design, tried[j][0], tried[j][1], train_blocks, acc0,
+                                          max_nfev)
+                        fits[j].heldout_block = heldout_blocks(d, effect_names, fits[j])
+                    return block_rms(d, fits[j].heldout_block)
+
+                j = _choose_full(scores, held, ks)
+                held(j)
                 return fits[j]
             nl, nl_sigma, _ = tried[_simplest_near(scores, ks, SHAPE_MARGIN)]
     return _finish(d, effect_names, design, nl, nl_sigma, train_blocks, acc0, max_nfev)
