@@ -9,11 +9,14 @@ Per axis i and orientation p: Acc_i = Acc0_{p,i} + dT (TDB_i + TDSF_i Acc0_{p,i}
 Linear parameters (Acc0 per orientation, TDB, TDSF, effect amplitudes) are solved by weighted
 least squares; the bilinear TDSF*Acc0 products use the current Acc0 estimate and are iterated to
 the fixed point (the product is ~1e-3 of Acc0, so 3 passes converge to machine precision). Shared
-nonlinear parameters (lag and warm-up time constants, hysteresis width) are fitted by variable
-projection: scipy.optimize.least_squares over them, with the linear solve inside.
+nonlinear parameters (lag time constants, hysteresis width, warm-up time constant) are fitted by
+variable projection over them with the linear solve inside: a coarse profile grid, then Brent's
+method (one parameter) or scipy.optimize.least_squares (more). A family's discrete shape is tried
+in turn (fit_dut says how one is chosen).
 
-Fitting runs on 10 s block means of the regressors (exact for a linear model: regressors are
-computed per sample, then averaged), which keeps every fit fast; predictions are per sample.
+Every fit and held-out prediction runs on the 10 s fit blocks (design._Design.block_matrices: the
+terms at the blocks' mean time and temperatures), which keeps a 10 h log at 3 600 rows; the
+per-sample prediction (predict_dut) serves plots and saved models.
 Residual = measured - model, in mg, always.
 """
 
