@@ -12,6 +12,15 @@ import math
 from typing import Any
 
 
+def finite_or_none(value: Any) -> float | None:
+    """A stored number as a finite float, or None (missing, not a number, NaN or inf)."""
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
 def plain_json(value: Any) -> Any:
     """JSON-safe copy: numpy to Python, tuples to lists, NaN/inf to None (PostgreSQL rejects NaN)."""
     if isinstance(value, dict):

@@ -54,7 +54,7 @@ from sqlalchemy.engine import Connection
 from sqlalchemy.exc import OperationalError
 
 from db import codec
-from contracts.json_safe import plain_json
+from contracts.json_safe import finite_or_none as _num, plain_json
 from db.database import BATCH_END_STATES, RUN_END_STATES, Database
 from db.models import (
     Batch,
@@ -88,14 +88,6 @@ log = logging.getLogger(__name__)
 
 STALL_ALARM_S = 5.0  # a commit in progress longer than this raises the storage alarm (DbWriter(stall_s=))
 AUDIT_VERDICT_SUPERSEDED = "verdict superseded"  # the audit action of a verdict record replaced by a newer one
-
-
-def _num(v: Any) -> float | None:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
 
 
 def thermal_rows(thermal: dict | None) -> list[dict]:

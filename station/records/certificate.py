@@ -22,12 +22,12 @@ configured" instead of a made-up name. The CLI may pass a config's section inste
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from typing import Any, Iterable
 
+from contracts.json_safe import finite_or_none as _f
 from contracts.types import AXES
 
 COVERAGE_K = 2.0  # coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law)
@@ -145,13 +145,6 @@ class Certificate:
 
 
 # ---- pure core ---------------------------------------------------------------------------------
-def _f(v: Any) -> float | None:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
-
 
 def ordered_checks(checks: Iterable[Any]) -> list[dict]:
     """Every check, worst outcome first (error, fail, marginal, pass), the verdict's own order kept
