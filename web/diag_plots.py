@@ -21,7 +21,6 @@ from collections import OrderedDict
 from typing import Callable, Generic, Hashable, TypeVar
 
 from station.diagnostics.effects import REGISTRY, get_effect
-from station.diagnostics.noise_view import noise_view
 from station.diagnostics.plots import PLOTS, render_png
 from station.diagnostics.ranking import DiagnosisReport, diagnose
 from contracts.logfile import DutLog
@@ -166,7 +165,7 @@ def report_json(rep: DiagnosisReport) -> dict:
     doc["plots"] = list(PLOTS)
     doc["library"] = [REGISTRY[n].describe() for n in REGISTRY]
     # is the residual at the sensor's own noise? (Allan deviation beside a static segment, ~30 ms)
-    doc["noise"] = {d.serial: noise_view(rep, k) for k, d in enumerate(rep.data)}
+    doc["noise"] = {d.serial: rep.noise(k) for k, d in enumerate(rep.data)}
     return doc
 
 

@@ -170,9 +170,7 @@ def run(args: argparse.Namespace) -> int:
         raise StationError(f"the same DUT serial appears twice among the logs ({', '.join(serials)})")
     report = diagnose(logs, add=add, candidates=candidates, basis=args.basis)
     doc = report.to_json()
-    from station.diagnostics.noise_view import noise_view
-
-    doc["noise"] = {d.serial: noise_view(report, k) for k, d in enumerate(report.data)}
+    doc["noise"] = {d.serial: report.noise(k) for k, d in enumerate(report.data)}
     if args.plots:
         from station.diagnostics.plots import write_plots
 

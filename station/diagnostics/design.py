@@ -78,7 +78,7 @@ class _Design:
         return out
 
     def block_matrices(self, nl, acc0_g: np.ndarray) -> tuple[list[np.ndarray], list[list[str]]]:
-        """Per axis: the design on the fit blocks (n_blocks, k); same columns as matrices().
+        """Per axis: the design on the fit blocks (n_blocks, k), the parameters named by names().
 
         Every fit block lies inside one constant-orientation run, so Acc0 is constant over a
         block; the other columns are the terms at the block's mean time and temperatures.
@@ -118,28 +118,6 @@ class _Design:
             cols = [ind, dtb[:, None], (dtb * a0b[:, i] * 1e-3)[:, None]] + [eb[:, i, :] for eb in eff_blocks]
             mats.append(np.hstack(cols))
         return mats, self.names()
-
-    def matrices(self, nl, acc0_g: np.ndarray) -> tuple[list[np.ndarray], list[list[str]]]:
-        """Per axis: (n, k) design in mg per unit of parameter, and the parameter names."""
-        d = self.d
-        P = len(d.pos_labels)
-        a0 = np.nan_to_num(acc0_g)[d.pos]  # (n, 3)
-        ctx = self.context(nl, a0)
-        tdsf_on = tdsf_identifiable(acc0_g)
-        ind = np.zeros((d.n, P))
-        ind[np.arange(d.n), d.pos] = 1000.0  # Acc0 in g -> mg
-        extra = [e.columns(ctx, nl.get(e.name, {})) for e in self.effects]
-        mats, names = [], []
-        for i in range(3):
-            cols = [ind, ctx.dt_c[:, None], (ctx.dt_c * a0[:, i] * 1e-3 * tdsf_on[i])[:, None]]
-            nm = [f"acc0_g[{lab}]" for lab in d.pos_labels] + ["tdb_mg_per_c", "tdsf_ppm_per_c"]
-            for e, c in zip(self.effects, extra):
-                if c.shape[2]:
-                    cols.append(c[:, i, :])
-                    nm += [f"{e.name}.{ln}" for ln in e.linear]
-            mats.append(np.hstack(cols))
-            names.append(nm)
-        return mats, names
 
 
 __all__ = ["tdsf_identifiable", "TDSF_MIN_SPREAD_G"]

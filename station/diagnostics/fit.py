@@ -260,8 +260,8 @@ def _simplest_near(values: list[float], ks: list[int], margin: float) -> int:
     return min(near, key=lambda j: (ks[j], values[j]))
 
 
-# the admission gate's margin on delta BIC (gate.BIC_GATE), for the same reason: the AR(1)
-# prewhitening is an approximate noise model. Measured: a first-order lag's truth gave its
+# The margin on delta BIC for an approximate noise model (here the AR(1) prewhitening); the
+# admission gate uses the same one (gate.BIC_GATE = -SHAPE_MARGIN). Measured: a first-order lag's truth gave its
 # second-order fit (die 15 s + package 132 s, the 10 s blocks' discretization) a BIC 21 lower.
 SHAPE_MARGIN = 30.0
 # ... and on the full log a shape with more parameters must also predict held-out legs 1 % better

@@ -10,10 +10,11 @@ effects of opposite sign that hide each other held out are gated, and admitted, 
 from __future__ import annotations
 
 from station.diagnostics.evaluation import ModelEval, _spec
+from station.diagnostics.fit import SHAPE_MARGIN
 from station.diagnostics.noise_gls import Comparison, compare
 from station.diagnostics.report_values import _r
 
-BIC_GATE = -30.0  # "very strong" is -10 for an exact likelihood; a margin for the approximate noise model
+BIC_GATE = -SHAPE_MARGIN  # "very strong" is -10 for an exact likelihood; a margin for the approximate noise model
 HELDOUT_GAIN_GATE = 0.03
 SCORE_P_GATE = 1e-3
 

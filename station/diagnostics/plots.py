@@ -163,9 +163,7 @@ def _axis_verdict(ax_name: str, e: dict) -> str:
 def plot_allan_deviation(report, k: int = 0) -> Figure:
     """Log-log Allan deviation per axis: the residual (with 1-sigma intervals) against the sensor's
     static segment (band), the model's own input noise, and faint -1/2, 0, +1/2 reference slopes."""
-    from station.diagnostics.noise_view import noise_view
-
-    nv = noise_view(report, k)
+    nv = report.noise(k)
     fig = Figure(figsize=(12, 5.2), layout="constrained")
     panels = fig.subplots(1, 3, sharey=True)
     for ax, (name, e) in zip(panels, nv["axes"].items()):

@@ -57,6 +57,7 @@ from station.diagnostics.identifiability import (
 )
 from station.diagnostics.model import DiagnosticModel
 from station.diagnostics.noise_gls import compare
+from station.diagnostics.noise_view import noise_view
 from station.diagnostics.report_values import TDSF_TEST, _params_json, _r
 from station.diagnostics.segmentation import DutData, Segmentation, prepare
 from station.diagnostics.staircase import _admit_forward
@@ -89,6 +90,14 @@ class DiagnosisReport:
     baseline_parameters: dict = field(default_factory=dict)
     candidates: dict[str, ModelEval] = field(repr=False, default_factory=dict)
     ranked: "Ranked | None" = field(repr=False, default=None)
+    _noise: dict = field(repr=False, default_factory=dict)
+
+    def noise(self, k: int = 0) -> dict:
+        """DUT k's noise view (noise_view.noise_view), computed once per report: the CLI's text and
+        JSON, the web JSON and the Allan plot all read it."""
+        if k not in self._noise:
+            self._noise[k] = noise_view(self, k)
+        return self._noise[k]
 
     def to_json(self) -> dict:
         return {
