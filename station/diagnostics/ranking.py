@@ -148,6 +148,8 @@ class Ranked:
     feats: dict
     admitted: list[str]
     auto_steps: list[dict]
+    noise_model: dict = field(default_factory=dict)
+    drift: dict = field(default_factory=dict)
 
     def get_eval(self, effs: list[str]) -> ModelEval:
         key = tuple(effs)
@@ -328,19 +330,33 @@ def _rank(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation) -
             r["why"] = why_not(r, _r(base.heldout_rms_mg))
     st.rows, st.confusable, st.unident, st.aliases, st.alias_of, st.feats = rows, confusable, unident, aliases, alias_of, feats
     st.admitted, st.auto_steps = admitted, auto_steps
+    base_noise = compare(data, _spec(base), _spec(base)).noise
+    n_seg = [int(d.seg_bounds_s.shape[0]) for d in data]
+    noise_model = {
+        "residual": ("local level (bias random walk + white, IMA(1,1)) + AR(p <= 6 by BIC) of the 10 s block "
+                     "means of the residual, per DUT and axis within constant-orientation runs, estimated on the "
+                     "larger model of each comparison; p-values, delta BIC and parameter sigmas come from the "
+                     "prewhitened (GLS) fits"),
+        "baseline": base_noise,
+        "heldout": (f"whole thermal legs ({', '.join(map(str, n_seg))} per DUT) in "
+                    f"{', '.join(str(d.n_folds) for d in data)} folds, {seg.guard_s:g} s guard on each side"),
+    }
+    drift = {"tdsf_identifiable": drift_identifiability(data, base), "test_to_identify": TDSF_TEST}
+    st.noise_model, st.drift = noise_model, drift
     return st
 
 
 def _shape_text(name: str, m: ModelEval) -> str:
     """The fitted shape of an effect in words (per DUT when a batch's DUTs differ)."""
     eff = get_effect(name)
-    shapes = list(dict.fromkeys(eff.shape(f.nl.get(name, {})) for f in m.fits))
-    return shapes[0] if len(shapes) == 1 else "; ".join(f"{d.serial}: {s_}" for d, s_ in
-                                                          zip(m.data, (eff.shape(f.nl.get(name, {})) for f in m.fits)))
+    per_dut = [eff.shape(f.nl.get(name, {})) for f in m.fits]
+    if len(set(per_dut)) == 1:
+        return per_dut[0]
+    return "; ".join(f"{d.serial}: {s_}" for d, s_ in zip(m.data, per_dut))
 
 
 def _report(st: Ranked, add: list[str]) -> DiagnosisReport:
-    data, base, get_eval, seg = st.data, st.base, st.get_eval, st.seg
+    data, base, get_eval = st.data, st.base, st.get_eval
     unident, aliases, alias_of = list(st.unident), st.aliases, st.alias_of
     for a in add:  # added effects are checked too
         if a not in {u["effect"] for u in unident} and not any(r["effect"] == a for r in st.rows) \
@@ -375,25 +391,13 @@ def _report(st: Ranked, add: list[str]) -> DiagnosisReport:
         {**step_json(s_["model"], get_eval(s_["effects"])), "delta_bic": s_["delta_bic"], "score_p": s_["score_p"],
          "shape": _shape_text(s_["effects"][-1], get_eval(s_["effects"]))}
         for s_ in st.auto_steps]
-    base_noise = compare(data, _spec(base), _spec(base)).noise
-    n_seg = [int(d.seg_bounds_s.shape[0]) for d in data]
-    noise_model = {
-        "residual": ("local level (bias random walk + white, IMA(1,1)) + AR(p <= 6 by BIC) of the 10 s block "
-                     "means of the residual, per DUT and axis within constant-orientation runs, estimated on the "
-                     "larger model of each comparison; p-values, delta BIC and parameter sigmas come from the "
-                     "prewhitened (GLS) fits"),
-        "baseline": base_noise,
-        "heldout": (f"whole thermal legs ({', '.join(map(str, n_seg))} per DUT) in "
-                    f"{', '.join(str(d.n_folds) for d in data)} folds, {seg.guard_s:g} s guard on each side"),
-    }
-    drift = {"tdsf_identifiable": drift_identifiability(data, base), "test_to_identify": TDSF_TEST}
     return DiagnosisReport(
         serials=[d.serial for d in data], rms_basis="per sample" if st.basis == "sample" else "1-minute means",
         baseline=base, ranking=st.rows, model=current, staircase=staircase, confusable=st.confusable,
         unidentifiable=unident, parameters=_params_json(data, current.fits), features=st.feats, data=data,
         candidates={k[0]: v for k, v in st.cache.items() if len(k) == 1},
-        admitted=st.admitted, admitted_staircase=admitted_staircase, aliases=aliases, noise_model=noise_model,
-        drift=drift, baseline_parameters=_params_json(data, base.fits), ranked=st)
+        admitted=st.admitted, admitted_staircase=admitted_staircase, aliases=aliases, noise_model=st.noise_model,
+        drift=st.drift, baseline_parameters=_params_json(data, base.fits), ranked=st)
 
 
 __all__ = ["diagnose", "with_added", "DiagnosisReport", "Ranked"]
