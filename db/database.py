@@ -27,8 +27,9 @@ from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
-from db.models import SCHEMA_REVISION, Batch, Dut, DutRun, SampleChunk, SegmentRow, utcnow
+from contracts.trace import Trace
 from contracts.types import StationError
+from db.models import SCHEMA_REVISION, Batch, Dut, DutRun, SampleChunk, SegmentRow, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,7 @@ class RunPoint:
     n_samples: int
     n_segments: int
     last_time_s: float | None
+    label_serial: str | None = None
 
 
 @dataclass
@@ -293,9 +295,12 @@ class Database:
 
     # ---- batches and runs (the daemon's synchronous calls) ---------------------------------
     def create_batch(self, profile: str, operator: str, config_snapshot: dict, state: str = "created",
-                     replay_of: str | None = None) -> int:
+                     replay_of: str | None = None, trace: Trace | None = None) -> int:
+        trace = trace or Trace()
         with self.session() as s:
             b = Batch(
+                **trace.fields(),
+                labels=dict(trace.labels) or None,
                 station=self.station,
                 replay_of=replay_of or None,
                 profile=profile,
@@ -375,8 +380,9 @@ class Database:
             attempt = earlier + 1
             if s.scalar(select(Batch.replay_of).where(Batch.id == batch_id)) is not None:
                 attempt = max(1, earlier)
+            labels = s.scalar(select(Batch.labels).where(Batch.id == batch_id)) or {}
             run = DutRun(batch_id=batch_id, station=self.station, slot=slot, dut_id=dut.id, state=state, identity=dict(identity or {}),
-                         attempt=attempt)
+                         attempt=attempt, label_serial=labels.get(slot) or None)
             s.add(run)
             s.flush()
             return run.id
@@ -419,6 +425,14 @@ class Database:
             )
         return ids
 
+    def batch_trace(self, batch_id: int) -> Trace:
+        """The work order, part, lot and label serials a batch was started with."""
+        with self.session() as s:
+            b = s.get(Batch, batch_id)
+            if b is None:
+                raise KeyError(f"no batch {batch_id}")
+            return Trace.of(b)
+
     def resume_point(self, batch_id: int) -> ResumePoint:
         """What the daemon needs to resume a batch: its last completed step and its runs."""
         with self.session() as s:
@@ -455,6 +469,7 @@ class Database:
                     n_samples=int(r.n_samples),
                     n_segments=int(n or 0),
                     last_time_s=t,
+                    label_serial=r.label_serial,
                 )
                 for r, serial, sensor, n, t in rows
             ]

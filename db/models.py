@@ -29,7 +29,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 # The revision of the newest schema this code knows (db/migrations/versions/).
-SCHEMA_REVISION = "0007"
+SCHEMA_REVISION = "0008"
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -113,6 +113,12 @@ class Batch(Base):
     # Its runs get no result_seq (never sent to the MES) and are no attempts, yields or SPC points.
     replay_of: Mapped[str | None] = mapped_column(String(256), index=True)
     replay_diff: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    # traceability (issue 24): what the batch was started for; '' when not given
+    work_order: Mapped[str] = mapped_column(String(64), default="", server_default="", index=True)
+    part_number: Mapped[str] = mapped_column(String(64), default="", server_default="", index=True)
+    part_revision: Mapped[str] = mapped_column(String(32), default="", server_default="")
+    lot: Mapped[str] = mapped_column(String(64), default="", server_default="")
+    labels: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # {slot: label serial scanned at start}
 
     runs: Mapped[list["DutRun"]] = relationship(back_populates="batch", order_by="DutRun.id")
 
@@ -148,6 +154,7 @@ class DutRun(Base):
     limits_name: Mapped[str | None] = mapped_column(String(64))
     limits_version: Mapped[str | None] = mapped_column(String(32))
     judged_at: Mapped[datetime | None] = mapped_column()
+    label_serial: Mapped[str | None] = mapped_column(String(64))  # scanned from the part's label, if any
 
     batch: Mapped[Batch] = relationship(back_populates="runs")
     dut: Mapped[Dut] = relationship(back_populates="runs")

@@ -25,6 +25,7 @@ from db.models import (
     ThermalResultRow,
     utcnow,
 )
+from contracts.trace import Trace
 from contracts.types import AXES
 
 PREFERRED_THERMAL = ("offline", "streaming")  # the offline fit is the better estimate when both exist
@@ -157,10 +158,20 @@ def _run_json(r: DutRun, serial: str, n_segments: int | None = None) -> dict:
         "result_seq": r.result_seq,
         "started_at": _iso(r.started_at),
         "ended_at": _iso(r.ended_at),
+        "label_serial": r.label_serial,
         **verdict_json(r),
     }
     if n_segments is not None:
         out["n_segments"] = n_segments
+    return out
+
+
+def trace_json(b: Batch, with_labels: bool = True) -> dict:
+    """A batch's traceability fields (contracts/trace.py): work order, part number, revision, lot
+    (and the label serials scanned per slot)."""
+    out: dict[str, Any] = dict(Trace.of(b).fields())
+    if with_labels:
+        out["labels"] = dict(b.labels or {})
     return out
 
 
@@ -244,15 +255,17 @@ def run_detail(db: Database, run_id: int) -> dict | None:
     """One run with its results and its batch's profile."""
     with db.session() as s:
         row = s.execute(
-            select(DutRun, Dut.serial, Batch.profile).join(Dut, Dut.id == DutRun.dut_id).join(Batch, Batch.id == DutRun.batch_id)
+            select(DutRun, Dut.serial, Batch).join(Dut, Dut.id == DutRun.dut_id).join(Batch, Batch.id == DutRun.batch_id)
             .where(DutRun.id == run_id)
         ).first()
         if row is None:
             return None
-        r, serial, profile = row
+        r, serial, b = row
         n = s.scalar(select(func.count(SegmentRow.id)).where(SegmentRow.run_id == run_id)) or 0
         out = _run_json(r, serial, int(n))
-        out["profile"] = profile
+        out["profile"] = b.profile
+        out["operator"] = b.operator
+        out.update(trace_json(b, with_labels=False))
         out["verdict_detail"] = r.verdict_detail  # every check: value, sigma, limits, outcome
         out.update(_run_results(s, run_id))
         return out
@@ -317,7 +330,7 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
     limit = max(1, min(int(limit), 1000))
     with db.session() as s:
         q = (
-            select(H, revision_of(H.run_id, H.result_seq), DutRun, Dut.serial, Batch.profile)
+            select(H, revision_of(H.run_id, H.result_seq), DutRun, Dut.serial, Batch)
             .join(DutRun, DutRun.id == H.run_id)
             .join(Dut, Dut.id == DutRun.dut_id)
             .join(Batch, Batch.id == DutRun.batch_id)
@@ -330,7 +343,7 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
         if since_time is not None:
             q = q.where(H.judged_at >= since_time)
         out = []
-        for h, rev, r, serial, profile in s.execute(q).all():
+        for h, rev, r, serial, b in s.execute(q).all():
             item = {
                 "id": h.result_seq,
                 "idempotency_key": result_key(r.id, h.result_seq),
@@ -344,9 +357,12 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
                 "slot": r.slot,
                 "serial": serial,
                 "sensor": (r.identity or {}).get("sensor"),
-                "profile": profile,
+                "profile": b.profile,
+                "operator": b.operator,
                 "state": r.state,
                 "ended_at": _iso(r.ended_at),
+                **trace_json(b, with_labels=False),
+                "label_serial": r.label_serial,
                 **record_verdict_json(h, r.attempt),
             }
             item.update(_run_results(s, r.id))
@@ -424,6 +440,7 @@ def batch_detail(db: Database, batch_id: int) -> dict | None:
             "schema_version": b.schema_version,
             "created_at": _iso(b.created_at),
             "ended_at": _iso(b.ended_at),
+            **trace_json(b),
             "runs": [_run_json(r, serial, int(n or 0)) for r, serial, n in rows],
         }
         pv = {row.run_id: program_verify_json(row) for row in s.scalars(
@@ -465,7 +482,7 @@ def list_batches(db: Database, limit: int = 50, before_id: int | None = None) ->
         return [
             {"id": b.id, "station": b.station, "profile": b.profile, "operator": b.operator, "state": b.state, "step_index": b.step_index,
              "last_completed_step": b.last_completed_step, "created_at": _iso(b.created_at), "ended_at": _iso(b.ended_at),
-             "replay_of": b.replay_of}
+             "replay_of": b.replay_of, **trace_json(b, with_labels=False)}
             for b in s.scalars(q)
         ]
 
@@ -477,21 +494,66 @@ def run_sample_bytes(db: Database, run_id: int) -> int:
 
 
 # ---- yield and SPC ----------------------------------------------------------------------------
-def judged_runs(db: Database, limit: int = 5000, station: str | None = None) -> list[dict]:
-    """The newest `limit` judged runs, oldest first, with their verdict checks (each judged
-    measurement with its value and the limits it was judged by): the input of station/records/spc.py."""
+def _judged_filters(q: Any, station: str | None = None, judged_from: datetime | None = None,
+                    judged_to: datetime | None = None, part_number: str | None = None,
+                    part_revision: str | None = None, work_order: str | None = None,
+                    limits_name: str | None = None, limits_version: str | None = None) -> Any:
+    """The WHERE of judged_runs / judged_facets. None = no filter; '' is a value (runs whose batch
+    carried no part number or work order). judged_from inclusive, judged_to exclusive."""
+    if station:
+        q = q.where(DutRun.station == station)
+    if judged_from is not None:
+        q = q.where(DutRun.judged_at >= judged_from)
+    if judged_to is not None:
+        q = q.where(DutRun.judged_at < judged_to)
+    for col, v in ((Batch.part_number, part_number), (Batch.part_revision, part_revision),
+                   (Batch.work_order, work_order), (DutRun.limits_name, limits_name),
+                   (DutRun.limits_version, limits_version)):
+        if v is not None:
+            q = q.where(col == v)
+    return q
+
+
+def judged_runs(db: Database, limit: int = 5000, station: str | None = None, *, judged_from: datetime | None = None,
+                judged_to: datetime | None = None, part_number: str | None = None, part_revision: str | None = None,
+                work_order: str | None = None, limits_name: str | None = None,
+                limits_version: str | None = None) -> list[dict]:
+    """The newest `limit` judged runs under the filters, oldest first, with their verdict checks
+    (each judged measurement with its value and the limits it was judged by), the batch's product
+    and traceability, the run's end state and verdict reasons: the input of
+    station/records/spc.py and pareto.py. Filters (None = any): station, judged_at from (inclusive)
+    / to (exclusive), part number and revision, work order, limits set name and version; the
+    limit applies after them, so a product's newest runs are never crowded out by another's."""
     with db.session() as s:
-        q = (select(DutRun, Dut.serial).join(Dut, Dut.id == DutRun.dut_id).where(DutRun.verdict.is_not(None))
-             .where(DutRun.batch_id.in_(_real_batches())).order_by(DutRun.judged_at.desc(), DutRun.id.desc()).limit(max(1, min(int(limit), 100_000))))
-        if station:
-            q = q.where(DutRun.station == station)
-        rows = s.execute(q).all()
+        q = (select(DutRun, Dut.serial, Batch).join(Dut, Dut.id == DutRun.dut_id).join(Batch, Batch.id == DutRun.batch_id)
+             .where(DutRun.verdict.is_not(None)).where(DutRun.batch_id.in_(_real_batches())))
+        q = _judged_filters(q, station, judged_from, judged_to, part_number, part_revision, work_order, limits_name,
+                            limits_version)
+        rows = s.execute(q.order_by(DutRun.judged_at.desc(), DutRun.id.desc()).limit(max(1, min(int(limit), 100_000)))).all()
         out = [{"run_id": r.id, "batch_id": r.batch_id, "station": r.station, "slot": r.slot, "serial": serial,
                 "judged_at": _iso(r.judged_at), "verdict": r.verdict, "grade": r.grade, "limits_name": r.limits_name,
-                "limits_version": r.limits_version, "checks": list((r.verdict_detail or {}).get("checks") or [])}
-               for r, serial in rows]
+                "limits_version": r.limits_version, "checks": list((r.verdict_detail or {}).get("checks") or []),
+                "reasons": list((r.verdict_detail or {}).get("reasons") or []), "state": r.state,
+                "profile": b.profile, **trace_json(b, with_labels=False), "product": Trace.of(b).product}
+               for r, serial, b in rows]
     out.reverse()
     return out
+
+
+def judged_facets(db: Database, judged_from: datetime | None = None, judged_to: datetime | None = None) -> list[dict]:
+    """What the judged runs in a date range can be filtered by: one row per distinct (station, part
+    number, revision, work order, limits name, version) with its run count. Fills the Records
+    view's selects from the data, independent of the other filters (choosing a product must not
+    empty the product list)."""
+    cols = (DutRun.station, Batch.part_number, Batch.part_revision, Batch.work_order, DutRun.limits_name,
+            DutRun.limits_version)
+    with db.session() as s:
+        q = (select(*cols, func.count(DutRun.id)).join(Batch, Batch.id == DutRun.batch_id)
+             .where(DutRun.verdict.is_not(None)).where(DutRun.batch_id.in_(_real_batches())))
+        q = _judged_filters(q, judged_from=judged_from, judged_to=judged_to).group_by(*cols)
+        return [{"station": st or "", "part_number": pn or "", "part_revision": rev or "", "work_order": wo or "",
+                 "product": Trace(part_number=pn or "", part_revision=rev or "").product, "limits_name": ln or "",
+                 "limits_version": lv or "", "runs": int(n)} for st, pn, rev, wo, ln, lv, n in s.execute(q).all()]
 
 
 # ---- audit trail ------------------------------------------------------------------------------
@@ -609,6 +671,7 @@ __all__ = [
     "audit_append",
     "outbox_enqueue_new",
     "judged_runs",
+    "judged_facets",
     "audit_list",
     "batch_detail",
     "yields",

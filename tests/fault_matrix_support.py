@@ -38,6 +38,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
+from contracts.trace import Trace
 from drivers.sim.station_sim import SimStation
 from contracts.types import AXES
 from tests.test_daemon_e2e import coil, daemon, wait_for  # noqa: F401 (coil: re-exported for the test)
@@ -51,6 +52,8 @@ PLAN_SLACK_S = 90.0
 LIMITS = {"lamp_max_on_s": 9000.0}  # CI: wall x speed overstates the on-time (see test_program_verify_e2e)
 
 ROWS = [
+    "label serial mismatch",
+    "operator cannot turn the plate",
     "link lost",
     "link lost, verify heat",
     "write refused",
@@ -175,6 +178,7 @@ class Plan:
     kill: Callable[["KillCtx"], Awaitable[None]] | None = None  # SIGKILL cell: waits, returns -> SIGKILL
     timeout_s: float = 150.0
     kw: dict = dataclasses.field(default_factory=dict)  # more sim_config arguments
+    labels: Callable[[SimStation], dict[str, str]] | None = None  # label serials scanned at the start
 
 
 @dataclasses.dataclass
@@ -578,7 +582,8 @@ async def _run_plan(plan: Plan, tmp: Path, mount: Path | None) -> None:
         if plan.arm is not None:
             plan.arm(sim)
         async with daemon(sim, tmp, plan.speed, limits=LIMITS, **plan.kw) as st:
-            bid = st.start_batch(plan.profile, None, "fault-matrix")
+            trace = Trace(work_order="WO-FM", labels=plan.labels(sim)) if plan.labels is not None else None
+            bid = st.start_batch(plan.profile, None, "fault-matrix", trace)
             ctx = Ctx(sim, st, bid, plan, mount=mount)
             extra: list[str] = []
             inj = asyncio.create_task(plan.inject(ctx)) if plan.inject is not None else None

@@ -1,5 +1,8 @@
-"""Audit trail (issue 13) over real HTTP: batch start, prompt answer, abort and resume through the
-REST API each leave one row naming the token's name and the station; GET /api/audit is admin only."""
+"""Audit trail (issue 13) over real HTTP: prompt answer, abort and resume through the REST API
+each leave one row naming who acted (the person the page names in X-Operator with the token's
+name, or the token's name alone) and the station; GET /api/audit is admin only. batch.start is
+recorded by the daemon itself for every start, REST, demo or replay (tests/test_line_day.py); here
+the route hands it the person and the token."""
 
 from __future__ import annotations
 
@@ -25,14 +28,14 @@ class _FakeStation:
     def batch_ids(self):
         return []
 
-    def start_batch(self, profile, slots, operator):
-        self.calls.append(("start", profile, slots, operator))
+    def start_batch(self, profile, slots, operator, trace=None, by=""):
+        self.calls.append(("start", profile, slots, operator, by))
         return 41
 
     def abort(self, batch_id, reason="", by="operator"):  # the facade's signatures (station/daemon/supervisor.py)
         self.calls.append(("abort", batch_id, by))
 
-    def answer_prompt(self, batch_id, prompt_id, answer="done", by=None):
+    def answer_prompt(self, batch_id, prompt_id, answer="done", by=None, note=""):
         if prompt_id == 99:
             raise ValueError("no prompt 99 is open")
         self.calls.append(("answer", batch_id, prompt_id, answer, by))
@@ -59,10 +62,12 @@ def test_audit_trail_over_rest(tmp_path):
         assert r.status_code == 201, r.text
         assert op.post("/api/batches/41/prompt", json={"prompt_id": 3, "answer": "done"}).status_code == 200
         assert op.post("/api/batches/41/prompt", json={"prompt_id": 99}).status_code == 409  # refused: not audited
-        assert op.post("/api/batches/41/abort").status_code == 200
+        assert op.post("/api/batches/41/abort", headers={"X-Operator": "Anna  K"}).status_code == 200
         assert admin.post("/api/batches/41/resume").status_code == 200
         # the daemon is told who acted (the batch's ended_by / the prompt's answerer), by token name
-        assert ("abort", 41, "anna (operator)") in fake.calls and ("answer", 41, 3, "done", "anna (operator)") in fake.calls
+        assert ("abort", 41, "Anna K (token anna (operator))") in fake.calls
+        assert ("answer", 41, 3, "done", "anna (operator)") in fake.calls
+        assert ("start", "fast-thermal", ["s01", "s02"], "Anna K", "REST: anna (operator)") in fake.calls
         # admin only
         assert op.get("/api/audit").status_code == 403
         assert httpx.get(f"{base}/api/audit", headers={"Authorization": f"Bearer {MES}"}).status_code == 403
@@ -72,16 +77,14 @@ def test_audit_trail_over_rest(tmp_path):
         rows = r.json()
         assert [(a["action"], a["actor"], a["target"]) for a in rows] == [
             ("batch.resume", "lead", "batch 41"),
-            ("batch.abort", "anna (operator)", "batch 41"),
+            ("batch.abort", "Anna K (token anna (operator))", "batch 41"),
             ("prompt.answer", "anna (operator)", "batch 41"),
-            ("batch.start", "anna (operator)", "batch 41"),
         ]
         assert {a["station"] for a in rows} == {"line-3"}
-        assert rows[3]["detail"] == {"profile": "fast-thermal", "slots": ["s01", "s02"], "operator": "Anna K"}
         assert rows[2]["detail"] == {"prompt_id": 3, "answer": "done"}
         assert all(OP not in str(a) and ADMIN not in str(a) for a in rows)  # names, never tokens
-        page = admin.get("/api/audit", params={"limit": 2, "before_id": rows[1]["id"]}).json()
-        assert [a["action"] for a in page] == ["prompt.answer", "batch.start"]
+        page = admin.get("/api/audit", params={"limit": 2, "before_id": rows[0]["id"]}).json()
+        assert [a["action"] for a in page] == ["batch.abort", "prompt.answer"]
         assert admin.get("/api/audit", params={"station": "other"}).json() == []
         op.close()
         admin.close()

@@ -44,6 +44,23 @@ ABORT = ("abort",)
 RELAY = ("relay",)
 DISK = ("not stored", "database", "disk", "space")
 KILL = ("restart", "resum", "interrupt", "killed", "programming record")
+LABEL = ("label serial",)
+CANNOT = ("could not turn the plate",)
+NO_FIXTURE = {"fixture": False}  # the operator turns the plate: the station prompts
+
+
+def _labels(**by_slot):
+    """Label serials per slot: a string is scanned as is; 0 scans the board's own serial (a match)."""
+    def labels(sim: SimStation) -> dict[str, str]:
+        return {slot: (v if isinstance(v, str) else _own_serial(sim, slot)) for slot, v in by_slot.items()}
+    return labels
+
+
+def _own_serial(sim: SimStation, slot: str) -> str:
+    """The serial the simulated board in `slot` reports (s01.. serial boards first, then c01.. CAN)."""
+    kind, k = slot[0], int(slot[1:]) - 1
+    index = k if kind == "s" else sim.n_serial + k
+    return sim.world.identity(index).serial
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -78,6 +95,17 @@ def _abort_in_heat():
     async def inject(ctx: Ctx) -> None:
         async with ctx.at_heat_lamp_on():
             ctx.st.abort(ctx.bid, "fault matrix: abort during the verification heat")
+    return inject
+
+
+def _cannot_at_first_prompt():
+    """No fixture: at the first "turn the plate" prompt the operator answers that it cannot be done,
+    with words (every DUT on the plate ends as error, the batch fails, the lamp stays off)."""
+    async def inject(ctx: Ctx) -> None:
+        await ctx.wait(lambda: ctx.st.prompt(ctx.bid) is not None, "the first turn-the-plate prompt")
+        prompt = ctx.st.prompt(ctx.bid)
+        ctx.st.answer_prompt(ctx.bid, prompt["id"], "cannot", by="fault matrix",
+                             note="plate jammed against the lamp bracket")
     return inject
 
 
@@ -165,13 +193,17 @@ def _verified_plans() -> list[Plan]:
         async with ctx.at_heat_lamp_on(then=s03_streams):
             ctx.sim.board(2).disconnect()
 
-    plans.append(Plan("ftv-link", P, FAST, 3, 1, 22, arm=arm_link, inject=lose_in_heat, expects={
+    # c01's label names another part: stopped at connect, before any data (error, never judged)
+    plans.append(Plan("ftv-link", P, FAST, 3, 1, 22, arm=arm_link, inject=lose_in_heat, labels=_labels(c01="WRONG-1"),
+                      expects={
         "s01": Expect("link lost", "faulted", LINK),
         "s02": Expect("power cycle write->readback", "judged"),
         "s03": Expect("link lost, verify heat", "faulted", LINK),
-        "c01": Expect("link lost", "healthy"),
+        "c01": Expect("label serial mismatch", "faulted", LABEL),
     }))
 
+    plans.append(Plan("ftv-cannot", P, FAST, 1, 1, 23, inject=_cannot_at_first_prompt(), kw=NO_FIXTURE,
+                      expects=_all(_slots(1, 1), "operator cannot turn the plate", keywords=CANNOT)))
     rows = ["abort, 1st step", "abort, 2nd step", "abort, 3rd step", "abort, 4th step"]
     for k, row in enumerate(rows):
         plans.append(Plan(f"ftv-abort{k}", P, FAST, 1, 1, 30 + k, inject=_abort_in(k),
@@ -211,10 +243,14 @@ def _fast_thermal_plans() -> list[Plan]:
         async with ctx.at_step(1, 20):
             ctx.sim.board(0).disconnect()
 
-    plans.append(Plan("ft-link", P, FAST, 3, 1, 41, inject=lose_in_p_hot, expects={
-        "s01": Expect("link lost", "faulted", LINK), "s02": Expect("link lost", "healthy"),
+    # s02's label names another part (stopped at connect); s03's label is its own (runs on)
+    plans.append(Plan("ft-link", P, FAST, 3, 1, 41, inject=lose_in_p_hot, labels=_labels(s02="WRONG-2", s03=0),
+                      expects={
+        "s01": Expect("link lost", "faulted", LINK), "s02": Expect("label serial mismatch", "faulted", LABEL),
         "s03": Expect("link lost", "healthy"), "c01": Expect("link lost", "healthy"),
     }))
+    plans.append(Plan("ft-cannot", P, FAST, 1, 1, 42, inject=_cannot_at_first_prompt(), kw=NO_FIXTURE,
+                      expects=_all(_slots(1, 1), "operator cannot turn the plate", keywords=CANNOT)))
     for k, row in enumerate(["abort, 1st step", "abort, 2nd step", "abort, 3rd step", "abort, 4th step"]):
         plans.append(Plan(f"ft-abort{k}", P, FAST, 1, 1, 50 + k, inject=_abort_in(k),
                           expects=_all(_slots(1, 1), row, keywords=ABORT)))
@@ -253,6 +289,8 @@ def _sfem_plans() -> list[Plan]:
         "s01": Expect("link lost", "faulted", LINK), "s02": Expect("link lost", "healthy"),
         "c01": Expect("link lost", "healthy"),
     }))
+    plans.append(Plan("sfem-cannot", P, SFEM_SPEED, 1, 1, 60, inject=_cannot_at_first_prompt(), kw=NO_FIXTURE,
+                      timeout_s=200, expects=_all(_slots(1, 1), "operator cannot turn the plate", keywords=CANNOT)))
     for name, step, row in (("first", 0, "abort, 1st step"), ("45c", mid, "abort, 45 C block"), ("last", 71, "abort, last step")):
         plans.append(Plan(f"sfem-abort-{name}", P, SFEM_SPEED, 1, 1, 62 + step, inject=_abort_in(step, 0), timeout_s=200,
                           expects=_all(_slots(1, 1), row, keywords=ABORT)))
@@ -273,6 +311,7 @@ def _sfem_plans() -> list[Plan]:
             "transient write fault (retried)", "power cycle write->readback", "abort, program step",
             "abort, verify heat", "relay failure, verify heat"], "n/a (no program/verify)")
     _na(P, ["abort, 2nd step", "abort, 3rd step", "abort, 4th step"], "n/a (see 45 C / last)")
+    _na(P, ["label serial mismatch"], "n/a (checked at connect, before any step: one code path for all profiles)")
     return plans
 
 

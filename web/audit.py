@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from typing import Any
+from urllib.parse import unquote
 
 from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
@@ -24,9 +25,16 @@ BATCH_RESUME = "batch.resume"
 LIMITS_CHANGE = "limits.change"
 
 
+OPERATOR_HEADER = "X-Operator"  # the person at the page, percent-encoded (a shared kiosk token is not a person)
+
+
 def actor_of(request: Request) -> str:
+    """Who acted: the person the page names in X-Operator, with the token's name ("Ana (token
+    line-3 kiosk)"); the token's name alone when no person is named (a script, the MES)."""
     principal = getattr(request.state, "principal", None)
-    return getattr(principal, "name", None) or "unknown"
+    token = getattr(principal, "name", None) or "unknown"
+    person = " ".join(unquote(request.headers.get(OPERATOR_HEADER) or "").split())[:100]  # the page percent-encodes
+    return f"{person} (token {token})" if person else token
 
 
 async def record(request: Request, action: str, target: str, detail: dict[str, Any] | None = None) -> None:

@@ -186,8 +186,11 @@ class DbRepository(WebRepository):
     def audit_list(self, limit: int = 100, before_id: int | None = None, station: str | None = None) -> list[dict]:
         return R.audit_list(self.db, limit, before_id, station)
 
-    def judged_runs(self, limit: int = 5000, station: str | None = None) -> list[dict]:
-        return R.judged_runs(self.db, limit, station)
+    def judged_runs(self, limit: int = 5000, station: str | None = None, **filters) -> list[dict]:
+        return R.judged_runs(self.db, limit, station, **filters)
+
+    def judged_facets(self, judged_from=None, judged_to=None) -> list[dict]:
+        return R.judged_facets(self.db, judged_from, judged_to)
 
     def replays(self, limit: int = 50) -> list[dict]:
         return R.replays(self.db, limit)
@@ -201,6 +204,17 @@ class DbRepository(WebRepository):
 
         cert = certificate_for(self.db, serial)
         return None if cert is None else render_pdf(cert)
+
+    def export_file(self, fmt: str, batch_id: int | None = None, run_id: int | None = None) -> bytes | None:
+        from station.records.export_model import ExportNotFound, load_report
+        from station.records.export_ocptv import write_ocptv
+        from station.records.export_stdf import write_stdf
+
+        try:
+            report = load_report(self.db, batch_id=batch_id, run_id=run_id)
+        except ExportNotFound:
+            return None
+        return write_stdf(report) if fmt == "stdf" else write_ocptv(report)
 
     def health(self) -> str:
         try:

@@ -19,8 +19,9 @@ from dataclasses import dataclass
 
 import httpx
 
-from station.aio import cancel_and_wait
 from contracts.events import DutVerdict
+from contracts.trace import TRACE_FIELDS
+from station.aio import cancel_and_wait
 from web.repo import WebRepository
 from web.views import clean
 
@@ -67,8 +68,11 @@ def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
 
 
 def payload_of(result: dict, station_name: str) -> dict:
+    """The webhook body of one feed record (db/repository.py results_since): the same data as the
+    feed, so the MES gets the trace (work order, part, lot, label serial, operator) either way."""
     thermal = result.get("thermal") or None
     axes = thermal.get("axes") if isinstance(thermal, dict) and "axes" in thermal else thermal
+    by_method = result.get("thermal_by_method") or {}
     return clean(
         {
             "idempotency_key": result["idempotency_key"],
@@ -84,9 +88,11 @@ def payload_of(result: dict, station_name: str) -> dict:
             "revision": result.get("revision"),
             "supersedes": result.get("supersedes"),
             "thermal": axes,
-            "streaming": thermal.get("streaming") if isinstance(thermal, dict) else None,
-            "offline": thermal.get("offline") if isinstance(thermal, dict) else None,
+            "streaming": by_method.get("streaming"),
+            "offline": by_method.get("offline"),
             "sfem": result.get("sfem"),
+            # what the batch was started for and who ran it (contracts/trace.py, issue 24)
+            **{k: result.get(k) for k in ("profile", "operator", "sensor", "label_serial", *TRACE_FIELDS)},
             # the station's decision (issue 12): verdict pass/marginal/fail/error, grade (bin), tray,
             # plain-words reason, the serial's attempt number and the limits set it was judged by
             **{k: result.get(k) for k in ("verdict", "grade", "tray", "reason", "attempt", "limits_name",

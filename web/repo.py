@@ -92,8 +92,14 @@ class WebRepository(abc.ABC):
 
         raise HTTPException(status_code=503, detail="this station runs without a database: no audit trail")
 
-    def judged_runs(self, limit: int = 5000, station: str | None = None) -> list[dict]:
-        """Judged runs with their verdict checks, oldest first (db.repository.judged_runs)."""
+    def judged_runs(self, limit: int = 5000, station: str | None = None, **filters: Any) -> list[dict]:
+        """Judged runs with their verdict checks, oldest first; filters as db.repository.judged_runs."""
+        from fastapi import HTTPException
+
+        raise HTTPException(status_code=503, detail="this station runs without a database: no SPC")
+
+    def judged_facets(self, judged_from: Any = None, judged_to: Any = None) -> list[dict]:
+        """What judged runs can be filtered by (db.repository.judged_facets)."""
         from fastapi import HTTPException
 
         raise HTTPException(status_code=503, detail="this station runs without a database: no SPC")
@@ -113,6 +119,13 @@ class WebRepository(abc.ABC):
         from fastapi import HTTPException
 
         raise HTTPException(status_code=503, detail="this station runs without a database: no certificates")
+
+    def export_file(self, fmt: str, batch_id: int | None = None, run_id: int | None = None) -> bytes | None:
+        """A batch or run as STDF ('stdf') or OCPTV JSON lines ('ocptv'): station/records/export_*.py;
+        None for an unknown id; station.records.export_model.ExportNotReady while it is still running."""
+        from fastapi import HTTPException
+
+        raise HTTPException(status_code=503, detail="this station runs without a database: no exports")
 
     def health(self) -> str:
         return "ok"

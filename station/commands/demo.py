@@ -209,6 +209,9 @@ async def serve_web(station, host: str, port: int):
     if task.done():
         exc = task.exception() if not task.cancelled() else None
         raise StationError(f"cannot serve HTTP on {host}:{port}: {exc or 'server exited'}")
+    from station.daemon.heap import freeze_startup_heap
+
+    freeze_startup_heap()  # full GC passes walk only what runs make, not the imports (150-200 ms each)
     return server, task
 
 
@@ -317,7 +320,7 @@ async def _main(args: argparse.Namespace) -> int:
                           + ", ".join(f"{t['role']}: {t['token']}" for t in DEMO_TOKENS), flush=True)
             batch_id = None
             if not args.no_batch or args.once:
-                batch_id = station.start_batch(args.profile, None, "demo")
+                batch_id = station.start_batch(args.profile, None, "demo", by="station demo")
                 print(f"station demo: batch {batch_id} ({args.profile}) started", flush=True)
             if args.once:
                 assert batch_id is not None

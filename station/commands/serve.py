@@ -90,7 +90,7 @@ async def _main(args: argparse.Namespace, cfg) -> int:
         if args.start_batch:
             names = [s.strip() for s in args.slots.split(",")] if args.slots else None
             try:
-                batch_id = station.start_batch(args.start_batch, names, "serve --start-batch")
+                batch_id = station.start_batch(args.start_batch, names, "serve --start-batch", by="station serve")
             except ValueError as exc:
                 raise StationError(str(exc)) from None
             print(f"station serve: batch {batch_id} ({args.start_batch}) started", flush=True)

@@ -75,6 +75,8 @@ def status(seq: Any) -> dict:
         "id": seq.batch_id,
         "profile": seq.profile.name,
         "operator": seq.operator,
+        **seq.trace.fields(),
+        "labels": dict(seq.trace.labels),
         "state": BATCH_STATE[seq.state],
         "seq_state": seq.state,
         "step_index": seq.step_index,

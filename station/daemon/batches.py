@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 
 from contracts.types import SampleBlock
+from contracts.trace import Trace
+from db import repository as repo
 from db.export import run_log
 from db.repository import segments_of_run
 from station.daemon.dut_run import DutRun, annotate_segment
@@ -60,7 +62,13 @@ def _run(st: Any, seq: Sequencer) -> None:
     seq.start()
 
 
-def start_batch(st: Any, profile: str, slots: list[str] | None = None, operator: str = "") -> int:
+def start_batch(st: Any, profile: str, slots: list[str] | None = None, operator: str = "",
+                trace: Trace | None = None, by: str = "") -> int:
+    """Start `profile` on `slots` (None: every slot) for `operator`, the person who runs it
+    (required). `trace`: work order, part, lot and label serials (contracts/trace.py). `by`: how it
+    was started (a token's name, 'station demo', 'station replay'); the audit's batch.start names
+    the person and this."""
+    trace = trace or Trace()
     _require_running(st)
     if profile not in st.profiles_by_name:
         raise ValueError(f"unknown profile {profile!r} (known: {', '.join(st.profiles_by_name)})")
@@ -76,11 +84,48 @@ def start_batch(st: Any, profile: str, slots: list[str] | None = None, operator:
             raise ValueError("a slot is listed twice")
     if not names:
         raise ValueError("no slots selected")
-    batch_id = int(st.db.create_batch(profile, operator, st.config.snapshot(), replay_of=st.config.replay_of))
-    duts = [DutRun(slot=n, link=st.slots[n].cfg.link) for n in names]
-    _run(st, Sequencer(batch_id, prof, duts, st, st.bus, operator=operator))
+    if not operator.strip():
+        raise ValueError("the operator's name is required: the person who runs the batch is on every record")
+    stray = sorted(set(trace.labels) - set(names))
+    if stray:
+        raise ValueError(f"label serial(s) given for slot(s) not in the batch: {', '.join(stray)}")
+    batch_id = int(st.db.create_batch(profile, operator, st.config.snapshot(), replay_of=st.config.replay_of,
+                                      trace=trace))
+    duts = [DutRun(slot=n, link=st.slots[n].cfg.link, label_serial=trace.labels.get(n)) for n in names]
+    _run(st, Sequencer(batch_id, prof, duts, st, st.bus, operator=operator, trace=trace))
     log.info("batch %d: profile %s on %d slot(s) by %r", batch_id, profile, len(names), operator)
+    _audit_start(st, batch_id, operator, by, {"profile": profile, "slots": slots, **trace.to_json()})
     return batch_id
+
+
+def _audit_start(st: Any, batch_id: int, operator: str, by: str, detail: dict) -> None:
+    """batch.start in the audit trail for every start (REST, demo, replay): the actor is the
+    person; `via` says through what. Logged loudly, never raised: the batch has started."""
+    try:
+        repo.audit_append(st.db, operator, "batch.start", f"batch {batch_id}",
+                          {**detail, "operator": operator, "via": by or "station"})
+    except Exception:  # noqa: BLE001
+        log.critical("audit: could not record the start of batch %d", batch_id, exc_info=True)
+
+
+def retest_batch(st: Any, batch_id: int, operator: str, by: str = "") -> int:
+    """A new batch of only the slots that ended fail or error in `batch_id` (ended), with its
+    profile, work order, part, lot and those slots' label serials; `operator` runs it."""
+    rt = st.batches.get(int(batch_id))
+    if rt is None:
+        raise KeyError(f"unknown batch {batch_id}")
+    seq = rt.seq
+    if seq.state not in TERMINAL:
+        raise ValueError(f"batch {batch_id} is still {seq.state}: retest once it has ended")
+    again = [d.slot for d in seq.duts if (d.verdict or {}).get("verdict") in ("fail", "error")]
+    if not again:
+        raise ValueError(f"batch {batch_id} has no failed or error slot to retest")
+    missing = [n for n in again if n not in st.slots]
+    if missing:
+        raise ValueError(f"slot(s) {', '.join(missing)} are no longer in this config")
+    t = seq.trace
+    trace = Trace(**t.fields(), labels={k: v for k, v in t.labels.items() if k in again})
+    return start_batch(st, seq.profile.name, again, operator, trace, by=f"{by or 'station'} (retest of batch {batch_id})")
 
 
 def resume_batch(st: Any, batch_id: int, operator: str = "") -> int:
@@ -103,14 +148,15 @@ def resume_batch(st: Any, batch_id: int, operator: str = "") -> int:
         raise ValueError(f"batch {batch_id} has no interrupted DUT run to resume")
     duts = [restored_dut(st, r, rp) for r in runs]
     _run(st, Sequencer(batch_id, prof, duts, st, st.bus, operator=operator or rp.operator,
-                       start_step=min(rp.next_step, len(prof.steps))))
+                       start_step=min(rp.next_step, len(prof.steps)), trace=st.db.batch_trace(batch_id)))
     log.info("batch %d: resumed at step %d of %s with %d DUT(s)", batch_id, rp.next_step, rp.profile, len(duts))
     return batch_id
 
 
 def restored_dut(st: Any, r: Any, rp: Any) -> DutRun:
     """A DutRun carrying what the stored run already holds: samples, calibrator state, segments."""
-    d = DutRun(slot=r.slot, link=st.slots[r.slot].cfg.link, run_id=r.run_id, expected_serial=r.serial)
+    d = DutRun(slot=r.slot, link=st.slots[r.slot].cfg.link, run_id=r.run_id, expected_serial=r.serial,
+               label_serial=r.label_serial)
     for step, windows in (rp.step_windows or {}).items():
         w = windows.get(r.slot)
         if w and None not in w:

@@ -48,6 +48,7 @@ class DutRun:
     # Resume of an interrupted batch: the serial the stored run belongs to, the board time its
     # stored stream ended at (the live stream is joined on after it) and the offset applied.
     expected_serial: str | None = None
+    label_serial: str | None = None  # scanned from the part's label at the start; must be the board's serial
     resume_t: float | None = None
     time_offset_s: float = 0.0
     hold_calibrator: bool = False  # resumed: samples are stored but not calibrated until logging
@@ -77,6 +78,7 @@ class DutRun:
             "slot": self.slot,
             "link": self.link,
             "serial": self.serial,
+            "label_serial": self.label_serial,
             "sensor": self.identity.sensor if self.identity else None,
             "state": self.state,
             "fault_reason": self.fault_reason,

@@ -35,7 +35,8 @@ from contracts.events import (
     StepCompleted,
     StepStarted,
 )
-from contracts.positions import FACING_MAX_ANGLE_DEG
+from contracts.positions import FACING_MAX_ANGLE_DEG, direction
+from contracts.trace import Trace
 from station.daemon import batch_view
 from station.daemon.dut_run import DutRun, wall_text
 from station.daemon.states import BATCH_STATE, TERMINAL, TRANSITIONS
@@ -103,6 +104,7 @@ class Sequencer:
         operator: str = "",
         poll_s: float = 0.2,
         start_step: int = 0,
+        trace: Trace | None = None,
     ) -> None:
         """start_step > 0 resumes an interrupted batch after its last completed step."""
         self.batch_id = batch_id
@@ -111,6 +113,7 @@ class Sequencer:
         self.hw = hw
         self.bus = bus
         self.operator = operator
+        self.trace = trace or Trace()  # work order, part, lot, label serials (contracts/trace.py)
         self.poll_s = poll_s
         self.state = "created"
         self.history: list[tuple[float, str, str]] = []  # (wall, from, to)
@@ -205,17 +208,27 @@ class Sequencer:
         if self.task is not None and not self.task.done() and self.ending is None:
             self.task.cancel()
 
-    def answer_prompt(self, prompt_id: int, answer: str = "done", by: str | None = None) -> None:
+    def answer_prompt(self, prompt_id: int, answer: str = "done", by: str | None = None, note: str = "") -> None:
         if self.prompt is None or self._prompt_future is None:
             raise ValueError("no prompt is open for this batch")
         if int(prompt_id) != self.prompt["id"]:
             raise ValueError(f"prompt {prompt_id} is not the open prompt ({self.prompt['id']})")
-        if answer not in ("done", "abort"):
-            raise ValueError("answer must be 'done' or 'abort'")
+        if answer not in ("done", "abort", "cannot"):
+            raise ValueError("answer must be 'done', 'cannot' or 'abort'")
+        if answer == "cannot" and not note.strip():
+            raise ValueError("say why it cannot be done: the words are recorded with the DUTs it ends")
         self.bus.publish(PromptAnswered(self.batch_id, prompt_id=int(prompt_id), answer=answer))
+        who = by or "operator"
         if answer == "abort":
-            who = by or "operator"
             self.stop("aborted", f"aborted by {who} at the prompt at {wall_text(time.time())}", by=who)
+            return
+        if answer == "cannot":
+            # The prompt concerns the plate, so every DUT on it: each ends as error with the
+            # operator's own words (their verdict says why), then the batch ends failed.
+            reason = f"{who} could not {self.prompt['text']}: {note.strip()}"
+            for d in self.live_duts:
+                self.hw.fault_dut(self, d, reason)
+            self.stop("failed", reason, by=who)
             return
         if not self._prompt_future.done():
             self._prompt_future.set_result(answer)
@@ -365,8 +378,10 @@ class Sequencer:
         pid = self.batch_id * 1000 + self._prompt_counter
         self.position = None  # the operator turns the plate: unknown until confirmed (as during a move)
         text = f"turn the plate to {step.position_name}"
-        self.prompt = {"id": pid, "text": text, "position": step.position, "position_name": step.position_name,
-                       "step_index": self.step_index}
+        self.prompt = {"id": pid, "kind": "turn_plate", "text": text, "position": step.position,
+                       "position_name": step.position_name, "step_index": self.step_index,
+                       # the board's static reading there (g, its own frame): the page draws it
+                       "direction": [round(float(v), 6) for v in direction(step.position)]}
         self._prompt_future = asyncio.get_running_loop().create_future()
         self.bus.publish(PromptRaised(self.batch_id, prompt_id=pid, text=text, position=step.position))
         try:

@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from contracts.trace import label_mismatch
 from contracts.events import SegmentLogged, SlotStateChanged
 from drivers.base import BoardDriver, DriverError
 from station.config import SlotConfig
@@ -135,6 +136,10 @@ async def connect_duts(st: Any, seq: Sequencer) -> None:
             d.run_id = int(st.db.create_run(seq.batch_id, d.slot, ident.serial, ident.sensor, identity_dict(ident)))
         if st.writer is not None:
             st.writer.bind_run(seq.batch_id, d.slot, d.run_id)
+        mismatch = label_mismatch(d.label_serial, ident.serial)
+        if mismatch is not None:  # the run is kept (faulted, judged error): the MES sees which board was there
+            fault_dut(st, seq, d, mismatch)
+            return
         publish_dut(st, seq, d)
         for seg, step in d.unstored_segments:
             d.segments.append(seg)

@@ -25,6 +25,7 @@ import time
 from typing import Any, Callable
 
 from contracts.events import EventBus
+from contracts.trace import Trace
 from contracts.types import StationError
 from drivers.base import Chamber, Fixture, Thermometer
 from station.config import StationConfig
@@ -180,8 +181,14 @@ class Station:
         return self.profiles_by_name[name].to_json()
 
     # ================================================================== facade: batches
-    def start_batch(self, profile: str, slots: list[str] | None = None, operator: str = "") -> int:
-        return batches.start_batch(self, profile, slots, operator)
+    def start_batch(self, profile: str, slots: list[str] | None = None, operator: str = "",
+                    trace: Trace | None = None, by: str = "") -> int:
+        """Start a batch for `operator` (required); trace: work order, part, lot, label serials."""
+        return batches.start_batch(self, profile, slots, operator, trace, by)
+
+    def retest_batch(self, batch_id: int, operator: str, by: str = "") -> int:
+        """A new batch of the failed and error slots of an ended batch (same profile and trace)."""
+        return batches.retest_batch(self, batch_id, operator, by)
 
     def resume_batch(self, batch_id: int, operator: str = "") -> int:
         """Resume an interrupted batch (crash, restart) at the step after its last completed one,
@@ -208,8 +215,10 @@ class Station:
     def prompt(self, batch_id: int) -> dict | None:
         return self._batch(batch_id).seq.prompt
 
-    def answer_prompt(self, batch_id: int, prompt_id: int, answer: str = "done", by: str | None = None) -> None:
-        self._batch(batch_id).seq.answer_prompt(prompt_id, answer, by=by)
+    def answer_prompt(self, batch_id: int, prompt_id: int, answer: str = "done", by: str | None = None,
+                      note: str = "") -> None:
+        """done / abort / cannot (with the operator's words: the DUTs on the plate end as error)."""
+        self._batch(batch_id).seq.answer_prompt(prompt_id, answer, by=by, note=note)
 
     def batch_status(self, batch_id: int) -> dict:
         rt = self._batch(batch_id)

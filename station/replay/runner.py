@@ -101,7 +101,7 @@ async def run_replay(recording: Recording, opts: ReplayOptions, on_started: Any 
         station = Station(cfg, db=db)
         try:
             await station.start()
-            batch_id = station.start_batch(recording.profile, None, "replay")
+            batch_id = station.start_batch(recording.profile, None, "replay", by="station replay")
             sim.pace_by(lambda: station.samples_taken(batch_id), opts.max_lead_s)
             director = Director(recording, station, sim, batch_id)
             directing = asyncio.create_task(director.run(), name="replay-director")

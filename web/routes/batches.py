@@ -9,7 +9,10 @@ from fastapi.concurrency import run_in_threadpool
 
 from web import audit
 from web.auth import require_control, require_read
-from web.schemas import Ack, BatchCreate, BatchCreated, BatchStatus, Prompt, PromptAnswer, error_responses
+from contracts.trace import Trace
+from web.schemas import (Ack, BatchCreate, BatchCreated, BatchStatus, Prompt, PromptAnswer, RetestCreate,
+                         error_responses)
+from web.status_etag import Rendered, none_match
 from web.views import batch_view, call, prompt_view
 
 router = APIRouter(prefix="/api/batches", tags=["batches"], responses=error_responses(401, 403, 404, 409))
@@ -17,19 +20,38 @@ FINAL_STATES = frozenset({"finished", "aborted", "failed", "interrupted"})
 BatchId = Path(ge=1, le=2**62, description="batch id")
 
 
-@router.post("", status_code=201, response_model=BatchCreated, dependencies=[Depends(require_control)])
-async def start_batch(body: BatchCreate, request: Request, response: Response):
-    station = request.app.state.station
-    for other in await call(station.batch_ids):  # one plate, one lamp: 409 while a batch runs
+async def _no_batch_running(station) -> None:
+    """One plate, one lamp: 409 while a batch runs."""
+    for other in await call(station.batch_ids):
         st = await call(station.batch_status, other)
         if st.get("state") not in FINAL_STATES:
             raise HTTPException(status_code=409, detail=f"batch {other} is already running on this station "
                                 "(one plate, one lamp): wait for it to end or abort it")
-    batch_id = await call(station.start_batch, body.profile, body.slots, body.operator)
-    await audit.record(request, audit.BATCH_START, f"batch {int(batch_id)}",
-                       {"profile": body.profile, "slots": body.slots, "operator": body.operator})
+
+
+@router.post("", status_code=201, response_model=BatchCreated, dependencies=[Depends(require_control)])
+async def start_batch(body: BatchCreate, request: Request, response: Response):
+    station = request.app.state.station
+    await _no_batch_running(station)
+    # The daemon records batch.start in the audit (every start: REST, demo, replay), naming the person.
+    batch_id = await call(station.start_batch, body.profile, body.slots, body.operator, Trace.of(body.model_dump()),
+                          by=f"REST: {audit.actor_of(request)}")
     response.headers["Location"] = f"/api/batches/{batch_id}"
     return {"id": int(batch_id)}
+
+
+@router.post("/{batch_id}/retest", status_code=201, response_model=BatchCreated,
+             dependencies=[Depends(require_control)])
+async def retest_batch(body: RetestCreate, request: Request, response: Response, batch_id: int = BatchId):
+    """Start a batch of only the slots that ended fail or error in this (ended) batch, with its
+    profile, work order, part number, revision, lot and those slots' label serials. 409 while it
+    runs, when it has no failed/error slot, or when another batch runs."""
+    station = request.app.state.station
+    await _no_batch_running(station)
+    new_id = await call(station.retest_batch, batch_id, body.operator, by=f"REST: {audit.actor_of(request)}",
+                        conflict=True)
+    response.headers["Location"] = f"/api/batches/{new_id}"
+    return {"id": int(new_id)}
 
 
 @router.get("", response_model=list[BatchStatus], dependencies=[Depends(require_read)])
@@ -41,54 +63,88 @@ async def list_batches(request: Request, limit: int = Query(default=20, ge=1, le
 
 
 # Many clients poll the status of the running batch (every page, the MES): the answer of a batch
-# (64 slots, ~25 KiB) is rendered at most once per STATUS_TTL_S and served as bytes meanwhile. Any
-# change made through the API (abort, prompt answer) drops it at once; the live page gets its
-# events by SSE anyway.
-STATUS_TTL_S = 0.1
+# (64 slots, ~40 KiB) is rendered at most once per STATUS_TTL_S for all of them and served as bytes
+# meanwhile, and rendered again at once when the batch's change marker moves (a state, step or DUT
+# state change) or a change is made through the API (abort, prompt answer: their routes drop it).
+# Within the TTL only sample counts and clocks can be older. A render costs the daemon's event
+# loop 3-5 ms (benchmarks/web_load.py); 0.5 s, the page's SSE interval, keeps it at two a second
+# whatever the number of pollers.
+STATUS_TTL_S = 0.5
 
 
-def _status_cache(request: Request) -> dict[int, tuple[float, bytes]]:
+def _status_cache(request: Request) -> dict:
+    """batch id -> web.status_etag.Rendered (the routes that change a batch pop its entry)."""
     cache = getattr(request.app.state, "batch_status_cache", None)
     if cache is None:
         cache = request.app.state.batch_status_cache = {}
     return cache
 
 
-@router.get("/{batch_id}", response_model=BatchStatus, dependencies=[Depends(require_read)])
-async def get_batch(request: Request, batch_id: int = BatchId):
-    """Live status from the daemon; a batch it no longer holds (ended before a restart) from the db."""
+@router.get("/{batch_id}", response_model=BatchStatus, dependencies=[Depends(require_read)],
+            responses={304: {"description": "Not Modified: the If-None-Match tag is the current answer's ETag "
+                                            "(no body)"}})
+async def get_batch(request: Request, batch_id: int = BatchId,
+                    view: str = Query(default="full", pattern="^(full|compact)$",
+                                      description="full: everything; compact: only what the operator page shows "
+                                      "(docs/operator-page.md), a slot's null fields left out")):
+    """Live status from the daemon; a batch it no longer holds (ended before a restart) from the db.
+
+    Pollers revalidate instead of downloading: the answer carries a strong `ETag` of its bytes and
+    `Cache-Control: no-cache`; a request whose `If-None-Match` holds the current tag gets 304 with
+    no body (decided from the kept render, without rendering, while it is fresh). `view=compact`
+    carries only what the operator page shows (about a third of the bytes): state, step and step
+    list, progress, lamp, prompt, error, note, times left, counts, decision, sorting, the trace
+    (work order, part, revision, lot), and per slot its serial and label serial, sensor, state,
+    samples, segments, steps done, waiting for, error, run and plot, program/verify and verdict.
+    """
+    station = request.app.state.station
     cache = _status_cache(request)
     now = time.monotonic()
-    marker_fn = getattr(request.app.state.station, "batch_marker", None)
+    marker_fn = getattr(station, "batch_marker", None)
     try:
         marker = marker_fn(batch_id) if marker_fn is not None else None
     except KeyError:
         marker = None
     hit = cache.get(batch_id)
-    # Served from the cache only while the batch has not changed state (a stale 'paused' after an
-    # abort would otherwise stick on a page that got its last event inside the TTL).
-    if hit is not None and now - hit[0] < STATUS_TTL_S and hit[2] == marker and marker is not None:
-        return Response(hit[1], media_type="application/json")
+    # Served from the kept render only while the batch has not changed state (a stale 'paused' after
+    # an abort would otherwise stick on a page that got its last event inside the TTL, and a client
+    # holding the running batch's ETag would get 304 for a batch that ended).
+    if not (isinstance(hit, Rendered) and hit.fresh(now, marker, STATUS_TTL_S)):
+
+        async def fetch() -> dict:
+            try:
+                return await call(station.batch_status, batch_id)
+            except HTTPException as exc:
+                if exc.status_code != 404:
+                    raise
+                stored = await run_in_threadpool(request.app.state.repo.batch, batch_id)
+                if stored is None:
+                    raise
+                return stored
+
+        hit = Rendered(now, marker)
+        if len(cache) > 64:
+            cache.clear()
+        cache[batch_id] = hit
+        hit.start(fetch, batch_id)
     try:
-        view = batch_view(await call(request.app.state.station.batch_status, batch_id), batch_id)
-    except HTTPException as exc:
-        if exc.status_code != 404:
-            raise
-        stored = await run_in_threadpool(request.app.state.repo.batch, batch_id)
-        if stored is None:
-            raise
-        view = batch_view(stored, batch_id)
-    body = BatchStatus.model_validate(view).model_dump_json().encode()
-    if len(cache) > 64:
-        cache.clear()
-    cache[batch_id] = (now, body, marker)
-    return Response(body, media_type="application/json")
+        await hit.ready()
+    except BaseException:
+        if cache.get(batch_id) is hit:  # a failed render (404) is not kept
+            cache.pop(batch_id, None)
+        raise
+    body, etag = hit.answer(batch_id, view)
+    headers = {"ETag": etag, "Cache-Control": "no-cache"}
+    if none_match(request.headers.get("if-none-match"), etag):
+        return Response(status_code=304, headers=headers)
+    return Response(body, media_type="application/json", headers=headers)
 
 
 @router.post("/{batch_id}/abort", response_model=Ack)
 async def abort_batch(request: Request, batch_id: int = BatchId, principal=Depends(require_control)):
-    """The batch records who aborted it (the token's name) and when: ended_by, ended_at, error."""
-    await call(request.app.state.station.abort, batch_id, by=principal.name, conflict=True)
+    """The batch records who aborted it (the person in X-Operator with the token's name) and when:
+    ended_by, ended_at, error."""
+    await call(request.app.state.station.abort, batch_id, by=audit.actor_of(request), conflict=True)
     await audit.record(request, audit.BATCH_ABORT, f"batch {batch_id}", {"reason": "operator"})
     _status_cache(request).pop(batch_id, None)
     return {"ok": True, "detail": f"batch {batch_id} aborted"}
@@ -103,10 +159,15 @@ async def get_prompt(request: Request, batch_id: int = BatchId):
 @router.post("/{batch_id}/prompt", response_model=Ack)
 async def answer_prompt(body: PromptAnswer, request: Request, batch_id: int = BatchId,
                         principal=Depends(require_control)):
-    await call(request.app.state.station.answer_prompt, batch_id, body.prompt_id, body.answer, by=principal.name,
-               conflict=True)
-    await audit.record(request, audit.PROMPT_ANSWER, f"batch {batch_id}",
-                       {"prompt_id": body.prompt_id, "answer": body.answer})
+    """done: continue; cannot (with the operator's words in `note`): every DUT on the plate ends as
+    error with the words and the batch ends failed; abort: abort the batch."""
+    who = audit.actor_of(request)
+    await call(request.app.state.station.answer_prompt, batch_id, body.prompt_id, body.answer, by=who,
+               note=body.note, conflict=True)
+    detail = {"prompt_id": body.prompt_id, "answer": body.answer}
+    if body.note:
+        detail["note"] = body.note
+    await audit.record(request, audit.PROMPT_ANSWER, f"batch {batch_id}", detail)
     _status_cache(request).pop(batch_id, None)
     return {"ok": True, "detail": f"prompt {body.prompt_id} answered"}
 

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.concurrency import run_in_threadpool
 
 from web.auth import require_read
-from web.schemas import Health, ProfileOut, SlotOut, error_responses
+from web.schemas import Health, Me, ProfileOut, SlotOut, error_responses
 from web.views import call, clean, slot_view
 
 router = APIRouter(prefix="/api", tags=["station"])
@@ -49,7 +49,7 @@ async def profiles(request: Request):
     return [{"name": p} if isinstance(p, str) else clean(dict(p)) for p in listed]
 
 
-@router.get("/me", response_model=dict, responses=AUTHED)
+@router.get("/me", response_model=Me, responses=AUTHED)
 async def me(request: Request, principal=Depends(require_read)):
     """Who the token belongs to (name and role): the page shows it and hides what the role may not do."""
     return {"name": principal.name, "role": principal.role}
