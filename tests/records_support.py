@@ -6,8 +6,15 @@ from __future__ import annotations
 
 import random
 
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta, timezone
+
+from sqlalchemy import update
+
 from db import Database, DbWriter
+from db.models import DutRun
 from contracts.events import DutResult, DutVerdict, SegmentLogged, SlotStateChanged
+from contracts.trace import Trace
 from contracts.types import Segment
 
 LIMITS = {"tdb_mg_per_c": 1.5, "tdsf_ppm_per_c": 500.0}
@@ -21,11 +28,13 @@ def thermal_result(tdb: tuple[float, float, float], tdsf: tuple[float, float, fl
             "streaming": {"method": "streaming", "n_segments": 8, "axes": axes}}
 
 
-def verdict_of(tdb, tdsf, attempt: int = 1) -> dict:
+def verdict_of(tdb, tdsf, attempt: int = 1, limits: dict | None = None, limits_name: str = "LIS3DSH",
+               limits_version: str = "2026-11") -> dict:
+    limits = limits or LIMITS
     checks = []
     worst = "pass"
     for ax, b, s in zip("xyz", tdb, tdsf):
-        for name, v, lim, unit in (("tdb_mg_per_c", b, LIMITS["tdb_mg_per_c"], "mg/C"), ("tdsf_ppm_per_c", s, LIMITS["tdsf_ppm_per_c"], "ppm/C")):
+        for name, v, lim, unit in (("tdb_mg_per_c", b, limits["tdb_mg_per_c"], "mg/C"), ("tdsf_ppm_per_c", s, limits["tdsf_ppm_per_c"], "ppm/C")):
             outcome = "pass" if abs(v) <= lim else "fail"
             if outcome == "fail":
                 worst = "fail"
@@ -34,7 +43,7 @@ def verdict_of(tdb, tdsf, attempt: int = 1) -> dict:
     fails = [c for c in checks if c["outcome"] == "fail"]
     return {"verdict": worst, "grade": "A" if worst == "pass" else "reject", "tray": "T-A" if worst == "pass" else "T-reject",
             "reason": "; ".join(f"{c['axis']} {c['measurement']} {c['value']:.4g} {c['unit']}, limit {c['high']:g}" for c in fails),
-            "attempt": attempt, "limits_name": "LIS3DSH", "limits_version": "2026-11", "checks": checks}
+            "attempt": attempt, "limits_name": limits_name, "limits_version": limits_version, "checks": checks}
 
 
 def segments_for(tdb, tdsf, temps=(25.0, 32.0, 39.0, 46.0)) -> list[Segment]:
@@ -88,4 +97,112 @@ def write_unjudged(db: Database, serial: str = "NORESULT1") -> int:
     return db.create_run(batch, "s01", serial, "LIS3DSH", {"serial": serial})
 
 
-__all__ = ["write_batches", "write_unjudged", "segments_for", "verdict_of", "thermal_result", "DutVerdict"]
+@dataclass
+class Lot:
+    """One batch of judged runs for the SPC/Pareto tests: a product (trace), the limits set it was
+    judged by, and the TDB x values in order (the other axes and TDSF are quiet). `error_slots`:
+    extra runs that end in error, each (state, reason): state 'faulted' (no checks) or 'done'
+    (TDB y not measured)."""
+
+    trace: Trace
+    tdb_x: list[float]
+    limits_version: str = "1"
+    limits_name: str = "LIS3DSH"
+    tdb_limit: float = 1.5
+    judged_day: str = "2026-11-20"  # every run of the lot judged that day (UTC), a minute apart
+    error_slots: list[tuple[str, str]] = field(default_factory=list)
+
+
+def write_lots(db: Database, lots: list[Lot], serial_prefix: str = "P", seed: int = 7) -> list[dict]:
+    """Each lot as one finished batch (db.create_batch(..., trace=...)), through the real DbWriter;
+    then each run's judged_at set to its lot's day (the writer stamps 'now'). Returns per run:
+    batch, run, serial, slot, tdb (x, y, z), verdict, lot index, judged_at (datetime)."""
+    rng = random.Random(seed)
+    written: list[dict] = []
+    w = DbWriter(db, interval_s=0.02)
+    limits = dict(LIMITS)
+    for k, lot in enumerate(lots):
+        batch = db.create_batch("fast-thermal", "carla", {"name": db.station}, state="running", trace=lot.trace)
+        lim = {**limits, "tdb_mg_per_c": lot.tdb_limit}
+        day = datetime.fromisoformat(lot.judged_day).replace(tzinfo=timezone.utc)
+        mine = []
+        for i, x in enumerate(lot.tdb_x):
+            slot, serial = f"s{i + 1:02d}", f"{serial_prefix}{k:02d}{i:03d}"
+            run = db.create_run(batch, slot, serial, "LIS3DSH", {"serial": serial, "sensor": "LIS3DSH"})
+            w.bind_run(batch, slot, run)
+            tdb = (x, round(rng.gauss(0.1, 0.05), 4), round(rng.gauss(0.1, 0.05), 4))
+            tdsf = tuple(round(rng.gauss(-120.0, 20.0), 1) for _ in range(3))
+            v = verdict_of(tdb, tdsf, limits=lim, limits_name=lot.limits_name, limits_version=lot.limits_version)
+            w.submit(SlotStateChanged(batch, slot, serial, "done"))
+            w.submit(DutVerdict(batch, slot, serial, verdict=v))
+            mine.append({"batch": batch, "run": run, "serial": serial, "slot": slot, "tdb": tdb,
+                         "verdict": v["verdict"], "lot": k})
+        for j, (state, reason) in enumerate(lot.error_slots):
+            slot, serial = f"e{j + 1:02d}", f"{serial_prefix}{k:02d}E{j:02d}"
+            run = db.create_run(batch, slot, serial, "LIS3DSH", {"serial": serial, "sensor": "LIS3DSH"})
+            w.bind_run(batch, slot, run)
+            if state == "done":  # finished, but TDB y was not measured: an error check, value None
+                tdb = (0.1, 0.1, 0.1)
+                v = verdict_of(tdb, (-100.0,) * 3, limits=lim, limits_name=lot.limits_name,
+                               limits_version=lot.limits_version)
+                for c in v["checks"]:
+                    if c["measurement"] == "tdb_mg_per_c" and c["axis"] == "y":
+                        c.update(value=None, outcome="error", reason="y TDB not measured")
+                v.update(verdict="error", reason="y TDB not measured", reasons=["y TDB not measured"])
+            else:
+                v = {"verdict": "error", "grade": "retest", "tray": "retest", "reason": reason, "reasons": [reason],
+                     "attempt": 1, "limits_name": lot.limits_name, "limits_version": lot.limits_version, "checks": []}
+            w.submit(SlotStateChanged(batch, slot, serial, state, fault_reason="" if state == "done" else reason))
+            w.submit(DutVerdict(batch, slot, serial, verdict=v))
+            mine.append({"batch": batch, "run": run, "serial": serial, "slot": slot, "verdict": "error", "lot": k,
+                         "tdb": (0.1, None, 0.1) if state == "done" else None})
+        w.flush()
+        db.set_batch_state(batch, "finished")
+        for i, m in enumerate(mine):  # a minute apart, in the order written
+            m["judged_at"] = day.replace(hour=8) + timedelta(minutes=i)
+            with db.session() as s:
+                s.execute(update(DutRun).where(DutRun.id == m["run"]).values(judged_at=m["judged_at"]))
+        written += mine
+    w.close()
+    return written
+
+
+def spc_line_lots() -> list[Lot]:
+    """A line's month in four batches, for the SPC/Pareto tests (REST and browser):
+
+    A  ACC-100 rev A, WO-1, limits LIS3DSH v1 (TDB ±1.5), 2026-11-18: 15 parts near 0.2 mg/C, then
+       a shift to 0.6 (rule 2 fires on the 9th after it), then 1.2, 1.6 (above its USL), 1.2; and
+       three runs in error: two faulted, one with TDB y not measured (its TDB x 0.1 is a point).
+    B  ACC-100 rev A, WO-2, limits LIS3DSH v2 (TDB ±1.0), 2026-11-19: 12 parts near 0.7, two at 1.1
+       (out of ITS spec, inside v1's): n=12, no Cpk.
+    C  ACC-200 rev B, WO-3, limits ADXL355 v1 (TDB ±1.5), 2026-11-20: 28 parts spread wide
+       (Cpk about 0.7, highlighted).
+    D  no product (an old batch), limits LIS3DSH v1, 2026-11-20, 6 parts: write it through a
+       second Database of station 'line-9' (write_lots(db9, [lots[3]])).
+    """
+    rng = random.Random(24)
+    a = ([round(0.2 + rng.uniform(-0.05, 0.05), 4) for _ in range(15)]
+         + [round(0.6 + rng.uniform(-0.05, 0.05), 4) for _ in range(12)] + [1.2, 1.6, 1.2])
+    b = [round(0.7 + rng.uniform(-0.05, 0.05), 4) for _ in range(10)] + [1.1, 1.1]
+    c = [round(0.55 + rng.gauss(0.0, 0.45), 4) for _ in range(28)]
+    d = [round(0.3 + rng.uniform(-0.05, 0.05), 4) for _ in range(6)]
+    return [
+        Lot(Trace(work_order="WO-1", part_number="ACC-100", part_revision="A"), a, "1", judged_day="2026-11-18",
+            error_slots=[("faulted", "s31: board stopped answering after 12 s"),
+                         ("faulted", "s32: board stopped answering after 15 s"), ("done", "")]),
+        Lot(Trace(work_order="WO-2", part_number="ACC-100", part_revision="A"), b, "2", tdb_limit=1.0,
+            judged_day="2026-11-19"),
+        Lot(Trace(work_order="WO-3", part_number="ACC-200", part_revision="B"), c, "1", limits_name="ADXL355",
+            judged_day="2026-11-20"),
+        Lot(Trace(), d, "1", judged_day="2026-11-20"),
+    ]
+
+
+def write_spc_line(db: Database, db_other_station: Database) -> list[dict]:
+    """spc_line_lots() into the database: A, B, C by `db`, D by `db_other_station` (same file)."""
+    lots = spc_line_lots()
+    return write_lots(db, lots[:3]) + [dict(w, lot=3) for w in write_lots(db_other_station, lots[3:], serial_prefix="Q")]
+
+
+__all__ = ["write_batches", "write_unjudged", "write_lots", "Lot", "spc_line_lots", "write_spc_line", "segments_for", "verdict_of", "thermal_result",
+           "DutVerdict"]

@@ -1,16 +1,20 @@
-"""Records of the station (issues 13, 16): the audit trail (admin), yield and SPC, replays. Thin:
-the repository reads, station/records/spc.py computes, station/replay compared."""
+"""Records of the station (issues 13, 16, 24): the audit trail (admin), yield, SPC and the failure
+Pareto with their filters and CSVs, replays. Thin: the repository reads, station/records/spc.py and
+pareto.py compute, station/replay compared."""
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
+from datetime import date, datetime, time, timedelta, timezone
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from web.auth import require_admin, require_read
-from web.schemas import AuditEntry, ReplayEntry, ReplayOut, SpcOut, error_responses
+from station.records.spc_rules import RULE_NAMES
+from web.schemas import error_responses
+from web.schemas_records import AuditEntry, ParetoOut, ReplayEntry, ReplayOut, SpcOut
 from web.views import clean
 from contracts.filenames import safe_name
 
@@ -28,50 +32,166 @@ async def audit_trail(
     return clean(await run_in_threadpool(request.app.state.repo.audit_list, limit, before_id, station))
 
 
-# ---- yield and SPC (station/records/spc.py) -----------------------------------------------------------------
-SPC_LIMIT = 5000  # the newest judged runs an SPC answer covers
+# ---- yield, SPC and failure Pareto (station/records/spc.py, pareto.py) ------------------------------------
+SPC_LIMIT = 5000  # the newest judged runs an answer covers (after the filters)
+UNSPECIFIED = "(unspecified)"  # filter value: runs whose batch carried no part number / work order
 
 
-async def _report(request: Request, parameter: str | None, station: str | None, limit: int):
-    from station.records import spc
-    runs = await run_in_threadpool(request.app.state.repo.judged_runs, limit, station)
-    params = spc.parameters(runs)
-    if parameter is None:
-        parameter = params[0] if params else ""
-    elif parameter not in params:
-        raise HTTPException(status_code=404, detail=f"parameter {parameter!r} not found in the judged runs; "
-                            f"known: {', '.join(params) or 'none'}")
-    return runs, params, spc.spc_report(runs, parameter)
+@dataclass(frozen=True)
+class Filters:
+    date_from: date | None
+    date_to: date | None
+    product: str | None
+    station: str | None
+    work_order: str | None
+    limit: int
+
+    def to_json(self) -> dict:
+        return {"from": self.date_from and self.date_from.isoformat(), "to": self.date_to and self.date_to.isoformat(),
+                "product": self.product, "station": self.station, "work_order": self.work_order, "limit": self.limit}
+
+    def query(self) -> dict:
+        return {k: v for k, v in self.to_json().items() if v is not None and k != "limit"}
 
 
+DAY = r"^\d{4}-\d{2}-\d{2}$"  # an ISO day only: pydantic's lax `date` would take 0 as 1970-01-01
+
+
+def _day(value: str | None, name: str) -> date | None:
+    if not value:
+        return None
+    try:
+        return date.fromisoformat(value)
+    except ValueError:
+        raise HTTPException(status_code=422, detail=f"{name} {value!r} is no calendar day (YYYY-MM-DD)") from None
+
+
+def filters(
+    day_from: str | None = Query(default=None, alias="from", pattern=DAY, description="judged on or after this day "
+                                 "(UTC, ISO date YYYY-MM-DD)"),
+    day_to: str | None = Query(default=None, alias="to", pattern=DAY, description="judged on or before this day "
+                               "(UTC, ISO date YYYY-MM-DD, inclusive)"),
+    product: str | None = Query(default=None, max_length=140, description="part number and revision as listed in "
+                                "options.products ('PN rev R'); '(unspecified)' = runs without a part number"),
+    station: str | None = Query(default=None, max_length=64, description="only this station's runs"),
+    work_order: str | None = Query(default=None, max_length=64, description="only this work order's runs; "
+                                   "'(unspecified)' = runs without one"),
+    limit: int = Query(default=SPC_LIMIT, ge=2, le=100_000, description="the newest N judged runs under the filters"),
+) -> Filters:
+    """The filters of every records answer (SPC, Pareto, their CSV): one definition, so the CSV is
+    computed under exactly the filters of the page."""
+    date_from, to = _day(day_from, "from"), _day(day_to, "to")
+    if date_from and to and date_from > to:
+        raise HTTPException(status_code=422, detail=f"from {date_from.isoformat()} is after to {to.isoformat()}")
+    return Filters(date_from, to, product or None, station or None, work_order or None, limit)
+
+
+def _utc_day(d: date) -> datetime:
+    return datetime.combine(d, time(), tzinfo=timezone.utc)
+
+
+def _options(facets: list[dict]) -> dict:
+    def opts(key: str, empty: str) -> list[dict]:
+        runs: dict[str, int] = {}
+        for f in facets:
+            runs[f[key]] = runs.get(f[key], 0) + f["runs"]
+        return [{"value": v or UNSPECIFIED, "label": v or empty, "runs": n} for v, n in sorted(runs.items())]
+    return {"products": opts("product", "unspecified product"), "stations": opts("station", "unnamed station"),
+            "work_orders": opts("work_order", "no work order")}
+
+
+async def _runs(request: Request, f: Filters) -> tuple[list[dict], dict]:
+    """The judged runs under the filters (oldest first) and the filter choices of the date range."""
+    repo = request.app.state.repo
+    day_from = _utc_day(f.date_from) if f.date_from else None
+    day_to = _utc_day(f.date_to + timedelta(days=1)) if f.date_to else None
+    facets = await run_in_threadpool(repo.judged_facets, day_from, day_to)
+    kw: dict = {"judged_from": day_from, "judged_to": day_to}
+    if f.product == UNSPECIFIED:
+        kw["part_number"] = ""
+    elif f.product:  # the listed product's own part number and revision (a ' rev ' inside a part number is fine)
+        pn, rev = next(((x["part_number"], x["part_revision"]) for x in facets if x["product"] == f.product),
+                       (f.product, None))
+        kw.update(part_number=pn, part_revision=rev)
+    if f.work_order:
+        kw["work_order"] = "" if f.work_order == UNSPECIFIED else f.work_order
+    runs = await run_in_threadpool(repo.judged_runs, f.limit, f.station, **kw)
+    if f.product and f.product != UNSPECIFIED:
+        runs = [r for r in runs if r.get("product") == f.product]
+    return runs, _options(facets)
+
+
+GROUP = Query(default=None, max_length=600, description="the group (product x limits version) to chart, a `key` "
+              "from `groups` (default: the group with the newest run)")
 PARAM = Query(default=None, max_length=80, pattern=r"^[A-Za-z0-9_]+(:[a-z])?$",
               description="a judged measurement, 'measurement' or 'measurement:axis', e.g. tdb_mg_per_c:z "
-                          "(default: the first one)")
-STATION = Query(default=None, max_length=64, description="only this station's runs")
-LIMIT = Query(default=SPC_LIMIT, ge=2, le=100_000, description="the newest N judged runs")
+                          "(default: the group's first one)")
 
 
-@router.get("/spc", response_model=SpcOut, dependencies=[Depends(require_read)])
-async def spc_chart(request: Request, parameter: str | None = PARAM, station: str | None = STATION,
-                    limit: int = LIMIT):
-    """Individuals/moving-range chart, Cpk/Ppk against the spec limits the runs were judged by,
-    histogram, per-slot trend of one parameter; yield per batch, day, product and station."""
+async def _spc(request: Request, f: Filters, group: str | None, parameter: str | None):
     from station.records import spc
-    runs, params, report = await _report(request, parameter, station, limit)
-    out = report.to_json()
-    out["parameters"] = params
-    out["yield"] = {by: [asdict(y) for y in spc.yields(runs, by)] for by in ("batch", "day", "product", "station")}
+    runs, options = await _runs(request, f)
+    try:
+        view = spc.spc_view(runs, group, parameter)
+    except LookupError as e:
+        raise HTTPException(status_code=404, detail=str(e)) from None
+    return runs, options, view
+
+
+@router.get("/records/spc", response_model=SpcOut, dependencies=[Depends(require_read)])
+@router.get("/spc", response_model=SpcOut, dependencies=[Depends(require_read)], deprecated=True,
+            summary="Spc Chart (old address of /api/records/spc, same answer)")
+async def spc_chart(request: Request, f: Filters = Depends(filters), group: str | None = GROUP,
+                    parameter: str | None = PARAM):
+    """Individuals/moving-range chart of ONE parameter in ONE group (product x limits version):
+    each point judged by its own run's limits and named by the run rules it breaks; Cpk/Ppk from
+    n >= 25 with a 95 % interval; histogram, per-slot trend; the groups under the filters, the
+    filter choices, and yield per batch, day, product, limits set and station."""
+    from station.records import spc
+    runs, options, view = await _spc(request, f, group, parameter)
+    out = view.report.to_json()
+    out.update(parameters=view.parameters, parameter_labels=view.labels, groups=[asdict(g) for g in view.groups],
+               rules=dict(RULE_NAMES), columns=spc.csv_columns(view.report), filters=f.to_json(), options=options,
+               **{"yield": {by: [asdict(y) for y in spc.yields(runs, by)] for by in spc.YIELD_BY}})
     return clean(out)
 
 
-@router.get("/spc.csv", dependencies=[Depends(require_read)], response_class=Response,
-            responses={200: {"content": {"text/csv": {}}, "description": "one row per judged run"}})
-async def spc_csv(request: Request, parameter: str | None = PARAM, station: str | None = STATION, limit: int = LIMIT):
+CSV_OK = {200: {"content": {"text/csv": {}}, "description": "the rows and columns of the table the Records view shows"}}
+
+
+@router.get("/records/spc.csv", dependencies=[Depends(require_read)], response_class=Response, responses=CSV_OK)
+@router.get("/spc.csv", dependencies=[Depends(require_read)], response_class=Response, responses=CSV_OK,
+            deprecated=True, summary="Spc Csv (old address of /api/records/spc.csv)")
+async def spc_csv(request: Request, f: Filters = Depends(filters), group: str | None = GROUP,
+                  parameter: str | None = PARAM):
+    """The points table of /api/records/spc under the same query: one row per judged run."""
     from station.records import spc
-    _runs, _params, report = await _report(request, parameter, station, limit)
-    name = safe_name(report.parameter or "none")
-    return Response(spc.csv_text(report), media_type="text/csv",
-                             headers={"Content-Disposition": f'attachment; filename="spc-{name}.csv"'})
+    _runs_, _options_, view = await _spc(request, f, group, parameter)
+    g = view.report.group
+    name = safe_name("-".join(x for x in (view.report.parameter or "none", g.product if g else "",
+                                          g.limits_version if g else "") if x))
+    return Response(spc.csv_text(view.report), media_type="text/csv",
+                    headers={"Content-Disposition": f'attachment; filename="spc-{name}.csv"'})
+
+
+@router.get("/records/pareto", response_model=ParetoOut, dependencies=[Depends(require_read)])
+async def failure_pareto(request: Request, f: Filters = Depends(filters)):
+    """Failure Pareto under the filters: fail/error checks per parameter, and the causes of runs
+    judged error (faulted, not measured, ...), each most frequent first with cumulative percent."""
+    from station.records import pareto
+    runs, options = await _runs(request, f)
+    out = pareto.pareto(runs).to_json()
+    out.update(columns=list(pareto.CSV_COLUMNS), filters=f.to_json(), options=options)
+    return clean(out)
+
+
+@router.get("/records/pareto.csv", dependencies=[Depends(require_read)], response_class=Response, responses=CSV_OK)
+async def failure_pareto_csv(request: Request, f: Filters = Depends(filters)):
+    """The Pareto table of /api/records/pareto under the same query (checks, then error causes)."""
+    from station.records import pareto
+    runs, _options_ = await _runs(request, f)
+    return Response(pareto.csv_text(pareto.pareto(runs)), media_type="text/csv",
+                    headers={"Content-Disposition": 'attachment; filename="failure-pareto.csv"'})
 
 
 # ---- replays (station/replay) -------------------------------------------------------------------
