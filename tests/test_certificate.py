@@ -67,6 +67,13 @@ def test_pure_core_from_rows():
     text = " ".join(" ".join(r.cells) for page in layout(c) for r in page)
     assert "Issued by not configured" in text and "Authorised by: not configured" in text
     assert "No plate reference thermometer was configured" in text
+    assert "Work order / lot not recorded / not recorded" in text and "Label serial not scanned" in text
+    # the trace of the batch and the run's label serial are printed (issue 24)
+    c = build_certificate({**run, "label_serial": "X1"}, {"station": "s9", "operator": "op", "profile": "fast-thermal",
+                                                          "work_order": "WO-7", "part_number": "ACC-1",
+                                                          "part_revision": "B", "lot": "L3"}, segs)
+    text = " ".join(" ".join(r.cells) for page in layout(c) for r in page)
+    assert "Part / revision ACC-1 / B" in text and "Work order / lot WO-7 / L3" in text and "Label serial X1" in text
 
 
 def test_certificate_id_names_station_run_and_revision():

@@ -123,6 +123,12 @@ class Certificate:
     issued_at: str = ""
     revision: int | None = None  # of the verdict record (1 = first final verdict; None: not judged)
     certificate_id: str = ""
+    # traceability (contracts/trace.py): '' when the batch was started without them
+    work_order: str = ""
+    part_number: str = ""
+    part_revision: str = ""
+    lot: str = ""
+    label_serial: str = ""
     issuer: Issuer = field(default_factory=Issuer)
     guard_sigma: float = DEFAULT_GUARD_SIGMA
     guard_sigma_stored: bool = False  # False: the limits set is not in the stored config (default used)
@@ -267,6 +273,11 @@ def build_certificate(run: dict, batch: dict, segments: list[dict], issued_at: d
         station=station,
         operator=str(batch.get("operator") or "") or "not recorded",
         profile=str(batch.get("profile") or run.get("profile") or ""),
+        work_order=str(batch.get("work_order") or run.get("work_order") or ""),
+        part_number=str(batch.get("part_number") or run.get("part_number") or ""),
+        part_revision=str(batch.get("part_revision") or run.get("part_revision") or ""),
+        lot=str(batch.get("lot") or run.get("lot") or ""),
+        label_serial=str(run.get("label_serial") or ""),
         limits_name=run.get("limits_name"),
         limits_version=run.get("limits_version"),
         started_at=run.get("started_at"),

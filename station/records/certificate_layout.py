@@ -328,6 +328,9 @@ def certificate_rows(cert: Certificate) -> list[Row]:
     ver = (f"verdict record revision {cert.revision}" if cert.revision else "no verdict record (not judged)")
     for k, v in (
         ("Item", f"{cert.sensor or '-'} accelerometer, serial {cert.serial}, firmware {cert.firmware}"),
+        ("Part / revision", f"{cert.part_number or 'not recorded'} / {cert.part_revision or '-'}"),
+        ("Work order / lot", f"{cert.work_order or 'not recorded'} / {cert.lot or 'not recorded'}"),
+        ("Label serial", cert.label_serial or "not scanned"),
         ("Station / operator", f"{cert.station} / {cert.operator}"),
         ("Method (profile)", f"{cert.profile or '-'}; coefficients by the {cert.thermal_method or '-'} fit "
                              "(martinez2022)" if cert.thermal_method else f"{cert.profile or '-'}"),
