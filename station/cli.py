@@ -22,6 +22,7 @@ COMMANDS: dict[str, str] = {
     "diagnose": "compare the thermal model with a log, rank missing effects, add them",
     "replay": "run a recorded batch (or logs) again through simulated boards and diff the outcome",
     "certificate": "calibration certificate (PDF) of a DUT by serial number",
+    "export": "a stored batch or run as STDF V4 or OCP Test & Validation JSON for yield tools",
     "db": "database maintenance: upgrade, export and prune sample streams",
 }
 

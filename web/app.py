@@ -27,6 +27,7 @@ from web.repo import NoRepository, WebRepository
 from web.routes import batches, duts, events, results, runs, station as station_routes
 from web.routes import diagnostics as diagnostics_routes
 from web.routes import records as records_routes
+from web.routes import exports as exports_routes
 from web.schemas import install_openapi
 from web.sse import DEFAULT_MAX_EVENT_STREAMS
 
@@ -174,6 +175,7 @@ def create_app(
         app.include_router(module.router)
     app.include_router(diagnostics_routes.router)  # model diagnostics of stored runs (issue 6)
     app.include_router(records_routes.router)  # audit trail, yield and SPC (issue 13)
+    app.include_router(exports_routes.router)  # STDF and OCPTV exports for yield tools
     results.register_webhooks(app)  # the MES webhook payload in the OpenAPI (issue 12)
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

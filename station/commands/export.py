@@ -1,0 +1,71 @@
+"""`station export {stdf,ocptv} (--batch ID | --run ID) [--db PATH|URL] [--config FILE] --out FILE`:
+a stored batch (every DUT run) or one run, with every verdict and every judged measurement, as
+STDF V4 or OCP Test & Validation JSON lines for a factory's yield and traceability tools
+(docs/exports.md).
+
+--db takes a SQLite file path or any SQLAlchemy URL; without it the URL comes from --config
+(`database_url`), $STATION_DB_URL or the station default, as for `station db`. A batch still
+running is refused (its verdicts are not final), as is an unknown id.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from contracts.types import StationError
+
+FORMATS = ("stdf", "ocptv")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("format", choices=FORMATS, help="stdf: STDF V4 (binary); ocptv: OCP Test & Validation "
+                        "JSON lines (one testRun per DUT run)")
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--batch", type=int, metavar="ID", help="every DUT run of this batch")
+    which.add_argument("--run", type=int, metavar="ID", help="this DUT run only")
+    parser.add_argument("--db", metavar="PATH", help="SQLite file or database URL (default: the config's, "
+                        "$STATION_DB_URL or sqlite:///var/station.db)")
+    parser.add_argument("--config", metavar="FILE", help="station config to take database_url from")
+    parser.add_argument("--out", metavar="FILE", required=True, help="file to write")
+
+
+def _url(args: argparse.Namespace) -> str:
+    from station.commands.certificate import db_url
+    from station.commands.db import database_url
+
+    if args.db:
+        return db_url(args.db)
+    return database_url(argparse.Namespace(config=getattr(args, "config", None)))
+
+
+def run(args: argparse.Namespace) -> int:
+    from db.database import Database
+    from station.records.export_model import ExportNotFound, ExportNotReady, load_report
+    from station.records.export_ocptv import write_ocptv
+    from station.records.export_stdf import write_stdf
+
+    for ident in (args.batch, args.run):
+        if ident is not None and ident < 1:
+            raise StationError(f"an id is a positive number, not {ident}")
+    db = Database(_url(args))
+    try:
+        db.check()
+        try:
+            report = load_report(db, batch_id=args.batch, run_id=args.run)
+        except (ExportNotFound, ExportNotReady) as exc:
+            raise StationError(str(exc).strip("'\"")) from None
+    finally:
+        db.dispose()
+    data = write_stdf(report) if args.format == "stdf" else write_ocptv(report)
+    out = Path(args.out)
+    try:
+        out.write_bytes(data)
+    except OSError as exc:
+        raise StationError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    counts = {v: sum(1 for p in report.parts if p.verdict == v) for v in ("pass", "marginal", "fail", "error")}
+    what = f"batch {report.batch_id}" if args.batch is not None else f"run {args.run} of batch {report.batch_id}"
+    n_tests = sum(len(p.tests) for p in report.parts)
+    print(f"{out}: {'STDF V4' if args.format == 'stdf' else 'OCPTV JSON'} of {what}: {len(report.parts)} parts ("
+          + ", ".join(f"{n} {v}" for v, n in counts.items() if n) + f"), {n_tests} measurements, {len(data)} bytes")
+    return 0
