@@ -12,7 +12,8 @@ it). Documented exceptions: POST /api/batches may answer 422 to schema-valid inp
 which profile and slot names exist is configuration the schema does not list; and the run routes
 `/api/runs/{run_id}/...` may answer 422 in the stateful phase, whose inferred links copy a slot's
 `run_id` from GET /api/batches into the path even when it is null (no run yet): the request
-becomes `/api/runs/None/diagnosis`, which is not an integer (seen in CI; the API is right).
+becomes `/api/runs/None/diagnosis`, which is not an integer (seen in CI; the API is right). The
+records routes (SPC, Pareto) answer 422 to a `from` day after the `to` day, each valid alone.
 """
 
 from __future__ import annotations
@@ -38,6 +39,10 @@ checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "403", "404",
 [[operations]]
 include-path-regex = '^/api/runs/'
 checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "403", "404", "409", "422", "429"]
+
+[[operations]]
+include-path-regex = '^/api/(records/)?(spc|pareto)'
+checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "403", "404", "422"]
 """
 
 

@@ -1,8 +1,22 @@
 """Pydantic models of the REST API (design 5.3): they validate input (422 with a message) and make
-the OpenAPI document (/openapi.json, rendered at /docs) describe every route.
+the OpenAPI document (/openapi.json, rendered at /docs) describe every route and every field it sends.
 
-Response models allow extra fields so that the daemon and the database may add information without
-breaking the contract; the fields named here are the ones clients may rely on.
+Response models allow extra fields at runtime (`extra="allow"`, web/schemas_common.py `_Out`): the
+daemon or the database may add a field and no client breaks, and no route answers 500 because of
+it. That is forward compatibility, not licence: every field a route sends must be declared here,
+typed and described (units in the description), so that a client generated from /openapi.json sees
+all of it. tests/test_openapi_truth.py enforces this: it validates the live answers of every GET
+route against the document with undeclared fields forbidden, and fails on an object schema that
+says nothing of its keys unless it is a documented free-form map (FREE_FORM). The big objects the
+daemon computes for each slot of the polled batch status (its calibration result, its verification)
+are documented by models but passed through unvalidated at runtime (schemas_common.passed_through:
+cheaper on the daemon's event loop); the same test holds them to their models.
+
+The response models live by subject: web/schemas_common.py (shared parts), schemas_live.py (the
+daemon's batches and slots), schemas_thermal.py (a DUT's calibration result), schemas_history.py
+(DUTs, runs, the MES feed), schemas_diagnosis.py, schemas_records.py (audit, SPC, replays); this
+module holds the request models, the small answers, the error models and the document's fix-ups,
+and re-exports the rest so routes import from one place.
 """
 
 from __future__ import annotations
@@ -10,64 +24,45 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from web.schemas_records import AuditEntry, ReplayEntry, ReplayOut, ReplaySummary, SpcOut  # noqa: F401  (moved there)
+from web.schemas_common import (  # noqa: F401  (re-exported)
+    DOCUMENTED_ONLY, FREE_FORM, AxisThermalOut, DecisionFields, DecisionOut, ProgramVerifyOut, ThermalAxes,
+    VerdictName, _Out,
+)
+from web.schemas_diagnosis import DiagnosisOut, DiagnosticModelOut  # noqa: F401
+from web.schemas_history import (  # noqa: F401
+    DutOut, DutSummary, MesResultPayload, OutboxEntry, ResultOut, ResultsPage, RunOut, SegmentOut, YieldOut,
+)
+from web.schemas_live import (  # noqa: F401
+    BatchStatus, DecisionSummary, Health, Prompt, SlotOut, SlotStatus, SortingEntry, StepInfo, StepRow, TimeLeft,
+)
 
 SLOT_PATTERN = r"^[A-Za-z0-9_.:\-/]{1,64}$"
 
 
-class _Out(BaseModel):
-    model_config = ConfigDict(extra="allow")
+class Me(_Out):
+    """Who the token belongs to (web/auth.py Principal)."""
+
+    name: str = Field(description="the token's name from the config (never the token)")
+    role: Literal["operator", "mes", "admin"] = Field(description="what the token may do: operator starts and "
+                                                      "aborts batches and answers prompts, mes reads results, admin all")
 
 
-VerdictName = Literal["pass", "marginal", "fail", "error"]
+class ProfileOut(_Out):
+    """A profile the station can run (station/daemon/supervisor.py profiles_info)."""
+
+    name: str = Field(description="profile name (POST /api/batches `profile`)")
+    description: str | None = Field(default=None, description="what it does, for the operator")
+    analysis: str | None = Field(default=None, description="what runs at the end: thermal (TDB/TDSF), sfem, or "
+                                 "none (logs data only: no calibration result)")
+    n_steps: int | None = Field(default=None, description="number of steps")
+    builtin: bool | None = Field(default=None, description="built into the station (not from the config)")
+    program_verify: bool | None = Field(default=None, description="it ends with program and verify (the "
+                                        "coefficients are written into the board and checked)")
 
 
-class DecisionFields(_Out):
-    """The station's decision on a DUT run (station/decisions/verdicts.py); null while it is not judged."""
-
-    verdict: VerdictName | None = Field(
-        default=None, description="pass | marginal (an uncertainty interval crosses a limit, or a value is in a "
-        "marginal band) | fail | error (faulted, incomplete or not measured: never pass)")
-    grade: str | None = Field(default=None, description="bin from the product's config: e.g. A, B; "
-                              "'hold' for marginal, 'reject' for fail, 'retest' for error")
-    tray: str | None = Field(default=None, description="where the operator puts the board")
-    reason: str | None = Field(default=None, description="plain words, e.g. 'z TDSF -612 ppm/C, limit -500'")
-    attempt: int | None = Field(default=None, description="the serial's attempt number (retest: 2, 3, ...)")
-    limits_name: str | None = Field(default=None, description="limits set the DUT was judged by")
-    limits_version: str | None = Field(default=None, description="version of that limits set")
-
-
-class DecisionSummary(_Out):
-    judged: int = 0
-    verdicts: dict[str, int] = Field(default_factory=dict, description="count per verdict")
-    grades: dict[str, int] = Field(default_factory=dict, description="count per grade")
-
-
-class SortingEntry(_Out):
-    slot: str
-    serial: str | None = None
-    verdict: VerdictName | None = None
-    grade: str | None = None
-    tray: str | None = None
-    reason: str | None = None
-    attempt: int | None = None
-
-
-class TimeLeft(_Out):
-    step_s: float | None = Field(default=None, description="sample seconds left in the step (estimate)")
-    batch_s: float | None = Field(default=None, description="sample seconds left in the batch (estimate)")
-    step_wall_s: float | None = Field(default=None, description="wall seconds left in the step")
-    batch_wall_s: float | None = Field(default=None, description="wall seconds left in the batch")
-
-
-class YieldOut(BaseModel):
-    batch_id: int | None = None
-    duts: int = Field(description="DUTs judged at least once")
-    attempts: int
-    retested: int = Field(description="DUTs with more than one judged attempt")
-    first_pass: int = Field(description="DUTs whose first judged attempt passed")
-    final_pass: int = Field(description="DUTs whose latest valid (non-error) attempt passed")
-    first_pass_yield: float | None
-    final_yield: float | None
+class BatchCreated(_Out):
+    id: int = Field(description="the new batch's id")
 
 
 class BatchCreate(BaseModel):
@@ -77,7 +72,15 @@ class BatchCreate(BaseModel):
     slots: list[Annotated[str, Field(min_length=1, max_length=64, pattern=r"\S")]] | None = Field(
         default=None, description="slots to test; null = every connected slot", min_length=1, max_length=1024
     )
-    operator: str = Field(min_length=1, max_length=100, description="operator name or badge id")
+    operator: str = Field(min_length=1, max_length=100, description="operator name or badge id (required: the "
+                          "person who runs the batch, recorded on every run and in the audit trail)")
+    work_order: str = Field(default="", max_length=64, description="work order (typed or scanned)")
+    part_number: str = Field(default="", max_length=64, description="part number of the boards")
+    part_revision: str = Field(default="", max_length=32, description="revision of that part")
+    lot: str = Field(default="", max_length=64, description="lot of the boards")
+    labels: dict[Annotated[str, Field(min_length=1, max_length=64)], Annotated[str, Field(max_length=64)]] | None = Field(
+        default=None, description="slot -> serial on the part's label (scanned or typed; optional per slot): a slot "
+        "whose board reports another serial is stopped with the reason")
 
     @model_validator(mode="before")
     @classmethod
@@ -108,287 +111,55 @@ class BatchCreate(BaseModel):
             raise ValueError("must not be blank")
         return v.strip()
 
+    @field_validator("work_order", "part_number", "part_revision", "lot")
+    @classmethod
+    def _trimmed(cls, v: str) -> str:
+        return v.strip()
 
-class BatchCreated(BaseModel):
-    id: int
-
-
-class StepInfo(_Out):
-    index: int | None = None
-    name: str | None = None
-    count: int | None = Field(default=None, description="number of steps of the profile")
-
-
-class SlotStatus(DecisionFields):
-    slot: str
-    serial: str | None = None
-    state: str | None = None
-    segments: int = Field(default=0, description="segments logged in this batch")
-    error: str | None = Field(default=None, description="fault reason, when faulted")
-    temp_c: float | None = None
-    samples: int | None = None
-    program: dict[str, Any] | None = Field(default=None, description="program and verify: written, read back "
-                                           "(crc, readback_crc, readback_identical), comp, attempts, retries; or error_kind/error")
-    verification: dict[str, Any] | None = Field(default=None, description="program and verify: passed, e_before_mg, "
-                                                "e_after_mg per axis, flags (named residual drift), per-axis detail")
-    run_id: int | None = Field(default=None, description="this DUT's run in this batch")
-    plot_url: str | None = Field(default=None, description="the plot of THIS run (/api/runs/{run_id}/plot.png): "
-                                 "never the serial's latest run, so an interrupted DUT shows its own data")
-    steps_done: int = Field(default=0, description="profile steps this DUT completed (progress dots)")
-    waiting_for: str | None = Field(default=None, description="what this DUT's current step waits for; "
-                                    "'other DUTs' once it has what the step needs; null when not live")
+    @model_validator(mode="after")
+    def _labels_of_chosen_slots(self) -> "BatchCreate":
+        if self.labels and self.slots is not None:
+            extra = sorted(set(self.labels) - set(self.slots))
+            if extra:
+                raise ValueError(f"labels given for slot(s) not in the batch: {', '.join(extra)}")
+        return self
 
 
-class BatchStatus(_Out):
-    id: int
-    profile: str | None = None
-    operator: str | None = None
-    state: str
-    step: StepInfo | None = None
-    slots: list[SlotStatus] = []
-    error: str | None = None
-    prompt: dict[str, Any] | None = None
-    lamp_on: bool | None = Field(default=None, description="what the station last commanded")
-    lamp_state: Literal["on", "off", "unknown"] | None = Field(
-        default=None, description="'unknown' while the lamp relay does not answer reads or writes")
-    decision: DecisionSummary | None = Field(default=None, description="verdict and grade counts")
-    sorting: list[SortingEntry] = Field(default=[], description="which slot goes to which tray")
-    time_left: TimeLeft | None = None
-    elapsed_s: float | None = Field(default=None, description="wall seconds since the batch started (to its end)")
-    waiting_for: str | None = Field(
-        default=None, description="what the current step waits for: boards, fixture, operator, chamber, "
-        "temperature rise, static dwell, segment, dwell, programming, analysis; null once ended")
-    ended_by: str | None = Field(default=None, description="who ended the batch: the token's name for an abort, "
-                                 "'station' for an end it reached itself, 'daemon' for a shutdown; null while running")
-    ended_at: str | None = Field(default=None, description="when the batch ended (RFC 3339 UTC); null while running")
-    analysis: str | None = Field(default=None, description="the profile's analysis: thermal, sfem or none")
-    note: str | None = Field(default=None, description="what the profile does not give, e.g. no calibration result "
-                             "for analysis 'none' (validation)")
-    counts: dict[str, int] | None = Field(default=None, description="DUTs per state: running (live), done, "
-                                          "faulted, interrupted")
+class RetestCreate(BaseModel):
+    """Retest the failed and error slots of an ended batch: same profile, work order, part, lot and
+    labels; the operator who starts it."""
+    model_config = ConfigDict(extra="forbid")
 
+    operator: str = Field(min_length=1, max_length=100, description="operator name or badge id (required)")
 
-class Prompt(_Out):
-    prompt_id: int
-    text: str
-    position: int | None = None
+    @field_validator("operator")
+    @classmethod
+    def _not_blank(cls, v: str) -> str:
+        if not v.strip():
+            raise ValueError("must not be blank")
+        return v.strip()
 
 
 class PromptAnswer(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     prompt_id: int = Field(ge=0, description="the id of the prompt being answered (GET .../prompt)")
-    answer: str = Field(default="done", min_length=1, max_length=64)
+    answer: Literal["done", "abort", "cannot"] = Field(
+        default="done", description="done: the operator did what the prompt asks; cannot: the operator cannot do it "
+        "(the DUTs it concerns end as error with the note); abort: abort the batch")
+    note: str = Field(default="", max_length=500, description="the operator's words (required for 'cannot')")
+
+    @model_validator(mode="after")
+    def _note_for_cannot(self) -> "PromptAnswer":
+        self.note = self.note.strip()
+        if self.answer == "cannot" and not self.note:
+            raise ValueError("say why it cannot be done (note): it is recorded with the DUTs it ends")
+        return self
 
 
-class Ack(BaseModel):
-    ok: bool = True
-    detail: str = ""
-
-
-class AxisThermalOut(_Out):
-    tdb_mg_per_c: float | None = None
-    tdsf_ppm_per_c: float | None = None
-
-
-class DutOut(DecisionFields):
-    serial: str
-    sensor: str | None = None
-    run_id: int | None = Field(default=None, description="run the results come from (latest with results)")
-    batch_id: int | None = None
-    finished_at: str | None = None
-    thermal: dict[str, AxisThermalOut] | None = Field(
-        default=None, description="per axis x/y/z: TDB (mg/C) and TDSF (ppm/C), the station's chosen method"
-    )
-    streaming: dict[str, Any] | None = Field(default=None, description="streaming algorithm result")
-    offline: dict[str, Any] | None = Field(default=None, description="offline fit result")
-    sfem: dict[str, Any] | None = None
-    program_verify: dict[str, Any] | None = Field(default=None, description="latest run's program and verify: "
-                                                  "programmed, crc, comp_on, verified, e_before_mg, e_after_mg, flags")
-
-
-class DutSummary(_Out):
-    serial: str
-    sensor: str | None = None
-    runs: int = 0
-    last_run_id: int | None = None
-    last_state: str | None = None
-    last_at: str | None = None
-
-
-class RunOut(DecisionFields):
-    id: int
-    station: str | None = None
-    verdict_detail: dict[str, Any] | None = Field(
-        default=None, description="the decision with every check (measurement, axis, value, sigma, low, high, "
-        "outcome, reason)")
-    batch_id: int | None = None
-    slot: str | None = None
-    serial: str | None = None
-    sensor: str | None = None
-    profile: str | None = None
-    state: str | None = None
-    fault_reason: str | None = None
-    started_at: str | None = None
-    finished_at: str | None = None
-    thermal: dict[str, Any] | None = None
-    sfem: dict[str, Any] | None = None
-
-
-class SegmentOut(_Out):
-    index: int
-    orientation: int | None = None
-    n_samples: int | None = None
-    t_start_s: float | None = None
-    t_end_s: float | None = None
-    acc_mean_g: list[float] | None = None
-    acc_std_g: list[float] | None = None
-    temp_mean_c: float | None = None
-    temp_std_c: float | None = None
-    position: int | None = None
-    step_index: int | None = None
-
-
-REVISION_HELP = ("1 for a run's first final verdict; N + 1 for a later verdict of the same run that supersedes "
-                 "revision N (a resumed batch judged again, a re-judge). Keep the latest revision per run_id")
-SUPERSEDES_HELP = "idempotency_key of the record this one replaces; null for revision 1"
-
-
-class ResultOut(DecisionFields):
-    """One MES record: a run's final verdict with its results (design 8)."""
-
-    id: int = Field(description="the record's cursor (result_seq), increasing in commit order")
-    idempotency_key: str
-    revision: int | None = Field(default=None, description=REVISION_HELP)
-    supersedes: str | None = Field(default=None, description=SUPERSEDES_HELP)
-    serial: str
-    run_id: int | None = None
-    batch_id: int | None = None
-    station: str | None = Field(default=None, description="the station that measured it (config `name`)")
-    slot: str | None = None
-    created_at: str | None = None
-    thermal: dict[str, Any] | None = None
-    sfem: dict[str, Any] | None = None
-    program_verify: dict[str, Any] | None = None
-
-
-class ResultsPage(BaseModel):
-    results: list[ResultOut]
-    next: str = Field(description="cursor to go on with (pass as since=), never null: the last id of this page, or, "
-                      "when the page is empty, the since that was given ('0' when none). Poll with it: each "
-                      "record is read once")
-
-
-class MesResultPayload(DecisionFields):
-    """The body of each MES webhook POST (one per verdict record: a run's final verdict, and each
-    later one that supersedes it; the same Idempotency-Key header on every retry)."""
-
-    idempotency_key: str
-    station: str
-    result_id: int | None = Field(default=None, description="the results feed cursor of this record")
-    revision: int | None = Field(default=None, description=REVISION_HELP)
-    supersedes: str | None = Field(default=None, description=SUPERSEDES_HELP)
-    serial: str
-    run_id: int | None = None
-    batch_id: int | None = None
-    slot: str | None = None
-    created_at: str | None = None
-    thermal: dict[str, AxisThermalOut] | None = Field(default=None, description="per axis: TDB mg/C, TDSF ppm/C")
-    streaming: dict[str, Any] | None = None
-    offline: dict[str, Any] | None = None
-    sfem: dict[str, Any] | None = None
-
-
-class Health(BaseModel):
-    status: str
-    version: str
-    time: float
-    db: str | None = None
-
-
-class SlotOut(_Out):
-    slot: str
-    serial: str | None = None
-    state: str | None = None
-    kind: str | None = Field(default=None, description="serial or can")
-    batch_id: int | None = None
-
-
-class ProfileOut(_Out):
-    name: str
-    description: str | None = None
-    analysis: str | None = Field(default=None, description="what runs at the end: thermal (TDB/TDSF), sfem, or "
-                                 "none (logs data only: no calibration result)")
-    n_steps: int | None = Field(default=None, description="number of steps")
-    builtin: bool | None = Field(default=None, description="built into the station (not from the config)")
-
-
-class OutboxEntry(_Out):
-    id: int | None = None
-    idempotency_key: str
-    state: str | None = None
-    attempts: int = 0
-    last_error: str | None = None
-
-
-class AuditEntry(_Out):
-    id: int
-    at: str = Field(description="when (UTC, ISO 8601)")
-    station: str = Field(description="the station that handled the request (config `name`)")
-    actor: str = Field(description="the token's name (never the token)")
-    action: str = Field(description="batch.start | batch.abort | prompt.answer | batch.resume | limits.change")
-    target: str = Field(description="what it acted on, e.g. 'batch 12'")
-    detail: dict[str, Any] = Field(default_factory=dict, description="what the request carried")
-
-
-class ReplaySummary(_Out):
-    duts: int = 0
-    unchanged: int = 0
-    changed: int = 0
-    verdicts_changed: list[dict[str, Any]] = Field(default=[], description="serial, before, after")
-    largest_change: dict[str, Any] | None = Field(default=None, description="serial, key, before, after, delta")
-
-
-class ReplayEntry(_Out):
-    """A replay batch (station replay): recorded data re-run through the station, never sent to the MES."""
-
-    batch_id: int
-    station: str = ""
-    profile: str = ""
-    state: str = ""
-    replay_of: str = Field(description="the source: 'batch 12 of line-A (...)' or '3 CSV logs'")
-    created_at: str | None = None
-    ended_at: str | None = None
-    summary: ReplaySummary | None = Field(default=None, description="null while the replay runs")
-    plate_agrees: bool | None = Field(default=None, description="lamp and fixture agreed with the recording")
-
-
-class ReplayOut(_Out):
-    batch_id: int
-    replay_of: str
-    state: str = ""
-    created_at: str | None = None
-    diff: dict[str, Any] | None = Field(default=None, description="station/replay/compare.py ReplayDiff.to_json(): "
-                                        "source, before, rtol, atol, summary, agreement, per-DUT changes")
-
-
-class SpcOut(_Out):
-    """station/records/spc.py SpcReport plus the parameters available and the yield tables."""
-
-    parameter: str
-    unit: str = ""
-    parameters: list[str] = Field(default_factory=list, description="every judged measurement with values")
-    points: list[dict[str, Any]] = Field(default_factory=list, description="run_id, batch_id, station, slot, serial, "
-                                         "at, value, low, high, verdict; oldest first")
-    chart: dict[str, Any] = Field(description="individuals chart: mean, mr_bar, sigma_within, ucl, lcl, mr_ucl, "
-                                  "moving_ranges, out_of_control (point indices)")
-    capability: dict[str, Any] = Field(description="n, low, high, mean, sigma_within, sigma_overall, cpk, ppk, "
-                                       "out_of_spec")
-    histogram: dict[str, Any]
-    slots: list[dict[str, Any]] = Field(default_factory=list, description="per slot: n, mean, values")
-    yield_: dict[str, list[dict[str, Any]]] = Field(default_factory=dict, alias="yield",
-                                                     description="per batch, day (UTC), product and station: judged, "
-                                                     "passed, marginal, failed, errors, yield_pct")
+class Ack(_Out):
+    ok: bool = Field(default=True, description="the request was carried out")
+    detail: str = Field(default="", description="what was done, in words")
 
 
 class ErrorOut(BaseModel):
@@ -397,8 +168,8 @@ class ErrorOut(BaseModel):
 
 class ValidationIssue(BaseModel):
     loc: list[str] = Field(description="where: 'body', 'query', 'path' then the field")
-    msg: str
-    type: str
+    msg: str = Field(description="what is wrong, in words")
+    type: str = Field(description="pydantic's error type, e.g. missing, string_too_long")
 
 
 class ValidationErrorOut(BaseModel):
@@ -433,7 +204,8 @@ def install_openapi(app) -> None:
     - every 422 is a `ValidationErrorOut` (FastAPI documents its own list-shaped default, which the
       app's handler replaces with {"detail": "...", "errors": [...]});
     - an operation with a request body can also answer 413 (web/guard.py) and 401 (the token is
-      checked before the body is read)."""
+      checked before the body is read);
+    - the models of fields passed through at runtime (DOCUMENTED_ONLY) are components too."""
     from fastapi.openapi.utils import get_openapi
 
     def openapi() -> dict:
@@ -448,6 +220,11 @@ def install_openapi(app) -> None:
         main = ValidationErrorOut.model_json_schema(ref_template="#/components/schemas/{model}")
         main.pop("$defs", None)
         comps["ValidationErrorOut"] = main
+        for model in DOCUMENTED_ONLY:  # fields passed through at runtime, documented as these models
+            sch = model.model_json_schema(ref_template="#/components/schemas/{model}", mode="serialization")
+            for name, sub in sch.pop("$defs", {}).items():
+                comps.setdefault(name, sub)
+            comps.setdefault(model.__name__, sch)
         err_ref = {"$ref": "#/components/schemas/ErrorOut"}
         comps.setdefault("ErrorOut", ErrorOut.model_json_schema())
         for item in doc.get("paths", {}).values():

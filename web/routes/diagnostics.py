@@ -14,7 +14,7 @@ from station.diagnostics.effects import REGISTRY
 from contracts.types import StationError
 from web.auth import require_read
 from web.diag_plots import PLOTS, Busy, DiagnosisCache, check_effects, report_json
-from web.schemas import error_responses
+from web.schemas import DiagnosisOut, DiagnosticModelOut, error_responses
 from web.views import not_found
 from contracts.filenames import safe_name
 
@@ -55,13 +55,13 @@ async def _report(request: Request, run_id: int, add: list[str]):
     return rep
 
 
-@router.get("/{run_id}/diagnosis", dependencies=[Depends(require_read)])
+@router.get("/{run_id}/diagnosis", response_model=DiagnosisOut, dependencies=[Depends(require_read)])
 async def run_diagnosis(request: Request, run_id: int = RunId, add: list[str] = Add):
     rep = await _report(request, run_id, add)
     return await run_in_threadpool(report_json, rep)
 
 
-@router.get("/{run_id}/diagnosis/model.json", dependencies=[Depends(require_read)])
+@router.get("/{run_id}/diagnosis/model.json", response_model=DiagnosticModelOut, dependencies=[Depends(require_read)])
 async def run_diagnosis_model(request: Request, run_id: int = RunId, add: list[str] = Add):
     rep = await _report(request, run_id, add)
     model = rep.models()[0]

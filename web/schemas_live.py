@@ -1,0 +1,352 @@
+"""Response models of what the daemon holds live: a batch's status (GET /api/batches/{id}), its
+slots, steps, time left and operator prompt, and the slots of the station (GET /api/slots).
+
+Producers: station/daemon/batch_view.py `status`, station/daemon/progress.py `batch_extras`,
+station/daemon/dut_run.py `DutRun.status`, station/daemon/slots.py, web/views.py (batch_view,
+slot_view, prompt_view); a batch the daemon no longer holds comes from web/db_repo.py `batch`.
+"""
+
+from __future__ import annotations
+
+from pydantic import ConfigDict, Field
+
+from web.schemas_common import (
+    DecisionFields, DecisionOut, PerAxis, ProgramVerifyOut, TraceFields, _Out, free_form, one_of, passed_through,
+)
+from web.schemas_thermal import CalibrationResultJson
+
+
+class LinkStats(_Out):
+    """Counters of one board link (drivers/base.py LinkStats)."""
+
+    frames_ok: int = Field(default=0, description="frames received and parsed")
+    frames_bad_checksum: int = Field(default=0, description="frames dropped for a bad checksum")
+    frames_malformed: int = Field(default=0, description="short line, unknown type, unparsable field")
+    bytes_skipped: int = Field(default=0, description="garbage bytes skipped between frames")
+    samples_lost: int = Field(default=0, description="samples missing by sequence gaps")
+    errors_reported: int = Field(default=0, description="error frames the board sent")
+
+
+class StepInfo(_Out):
+    """The batch's current profile step (station/profiles.py Step.to_json + index and count)."""
+
+    index: int | None = Field(default=None, description="index of the step in the profile (-1 before the first)")
+    name: str | None = Field(default=None, description="the step's name")
+    count: int | None = Field(default=None, description="number of steps of the profile")
+    position: int | None = Field(default=None, description="plate position index (contracts/positions.py)")
+    position_name: str | None = Field(default=None, description="plate position name, e.g. P, N, +z")
+    lamp: bool | None = Field(default=None, description="the lamp is on during the step")
+    chamber_setpoint_c: float | None = Field(default=None, description="chamber set point, C (null: no chamber)")
+    require: str | None = one_of(("segment", "static", "none", "program", "heat"), "what every DUT must log before "
+                                 "the step ends (station/profiles.py)", default=None)
+    dwell_s: float | None = Field(default=None, description="sample seconds to log (static/none)")
+    settle_s: float | None = Field(default=None, description="sample seconds not judged at the start")
+    timeout_s: float | None = Field(default=None, description="step timeout, sample seconds")
+    heat_c: float | None = Field(default=None, description="heat step: temperature rise that ends it, C")
+
+
+class TimeLeft(_Out):
+    """Time left (station/daemon/progress.py time_left); {"error": ...} alone when it cannot be estimated."""
+
+    step_s: float | None = Field(default=None, description="sample seconds left in the step (estimate)")
+    batch_s: float | None = Field(default=None, description="sample seconds left in the batch (estimate)")
+    step_wall_s: float | None = Field(default=None, description="wall seconds left in the step (estimate)")
+    batch_wall_s: float | None = Field(default=None, description="wall seconds left in the batch as the operator "
+                                       "sees it: a countdown that never increases")
+    raw_batch_wall_s: float | None = Field(default=None, description="the raw estimate of wall seconds left in the "
+                                           "batch (may jump up and down)")
+    estimated_at: float | None = Field(default=None, description="when estimated, Unix time s")
+    n_steps: int | None = Field(default=None, description="number of steps of the profile")
+    error: str | None = Field(default=None, description="why no estimate could be made (the status still answers)")
+
+
+class StepRow(_Out):
+    """One line of the batch's step list (station/daemon/progress.py step_rows)."""
+
+    index: int = Field(description="step index; the last row is the end-of-batch analysis")
+    name: str = Field(description="the step's name ('analysis' for the last row)")
+    kind: str = one_of(("step", "program", "verify", "analysis"), "what the row is", nullable=False)
+    position_name: str | None = Field(default=None, description="plate position of the step (null: analysis)")
+    state: str = one_of(("pending", "running", "done", "skipped", "failed"), "where the step is", nullable=False)
+    duration_s: float | None = Field(default=None, description="wall seconds it took (so far, when running); "
+                                     "null when it did not start")
+    expected_s: float | None = Field(default=None, description="wall seconds it is expected to take (estimate)")
+
+
+class Prompt(_Out):
+    """An open operator prompt (station/daemon/sequencer.py, web/views.py prompt_view)."""
+
+    prompt_id: int = Field(description="the id to answer with (POST .../prompt)")
+    id: int | None = Field(default=None, description="the same id, as the sequencer names it")
+    kind: str | None = one_of(("turn_plate",), "what the operator is asked to do", default=None)
+    text: str = Field(description="what to do, in words")
+    position: int | None = Field(default=None, description="plate position index to turn to")
+    position_name: str | None = Field(default=None, description="plate position name to turn to, e.g. N")
+    step_index: int | None = Field(default=None, description="the profile step that waits for it")
+    direction: list[float] | None = Field(default=None, min_length=3, max_length=3, description="the board's static "
+                                          "reading at that position, in g, in its own frame (unit vector x, y, z; "
+                                          "contracts/positions.py): the axis that reads +1 g points up")
+
+
+class Transition(_Out):
+    """One state change of the batch's sequencer."""
+
+    model_config = ConfigDict(extra="allow", serialize_by_alias=True, validate_by_name=True, validate_by_alias=True)
+
+    time: float = Field(description="when, Unix time s")
+    from_: str = Field(alias="from", description="state before (sequencer state, e.g. logging)")
+    to: str = Field(description="state after")
+
+
+class LiveProgram(_Out):
+    """What the program step did to one board (station/daemon/program_verify.py, drivers/base.py
+    ProgramReport.to_json); on a failure only programmed=false, error_kind, error (and what was tried)."""
+
+    programmed: bool | None = Field(default=None, description="written, read back identical, compensation on")
+    tdb_mg_per_c: list[float] | None = Field(default=None, description="TDB written x, y, z, mg/C")
+    tdsf_ppm_per_c: list[float] | None = Field(default=None, description="TDSF written x, y, z, ppm/C")
+    method: str | None = Field(default=None, description="which thermal result was written (offline, streaming)")
+    crc: str | None = Field(default=None, description="CRC-32 of the written float32 values (8 hex digits)")
+    readback_crc: str | None = Field(default=None, description="CRC-32 the board reports (8 hex digits)")
+    readback_values: list[float] | None = Field(default=None, description="values read back (TDB x y z mg/C, TDSF "
+                                                "x y z ppm/C, as float32)")
+    readback_identical: bool | None = Field(default=None, description="crc == readback_crc")
+    comp: bool | None = Field(default=None, description="the board's compensation is on")
+    attempts: int | None = Field(default=None, description="write attempts used (1 = first try)")
+    retries: list[str] | None = Field(default=None, description="why each failed attempt failed")
+    comp_from_t: float | None = Field(default=None, description="board time, s, from which samples are compensated")
+    error_kind: str | None = Field(default=None, description="why programming failed (refused, crc_mismatch, link, "
+                                   "no_result, ...)")
+    error: str | None = Field(default=None, description="the failure in words")
+
+
+class AxisVerificationOut(_Out):
+    """The verified drift of one axis (station/science/verify.py AxisVerification)."""
+
+    axis: str = Field(description="x, y or z")
+    e_before_mg: float | None = Field(default=None, description="drift error E before compensation, mg")
+    e_after_mg: float | None = Field(default=None, description="drift error E with compensation, mg")
+    ratio: float | None = Field(default=None, description="e_after / e_before")
+    residual_range_mg: float | None = Field(default=None, description="max - min of the compensated section means, mg")
+    curvature_mg_per_c2: float | None = Field(default=None, description="residual curvature, mg/C^2")
+    curvature_sigma_mg_per_c2: float | None = Field(default=None, description="its 1-sigma, mg/C^2")
+    curvature_bow_mg: float | None = Field(default=None, description="residual bow over the full range, mg")
+    curved: bool | None = Field(default=None, description="the bow is over its limit and significant")
+    passed: bool | None = Field(default=None, description="this axis passed")
+    reason: str = Field(default="", description="why not, in words")
+    e_after_sigma_mg: float | None = Field(default=None, description="1-sigma of e_after_mg, mg")
+
+
+class VerifyCriteriaOut(_Out):
+    """The pass rule of the verification (station/science/verify.py VerifyCriteria)."""
+
+    e_ratio_max: float | None = Field(default=None, description="E after at most this fraction of E before ...")
+    e_floor_mg: float | None = Field(default=None, description="... or at most this, mg")
+    full_range_c: float | None = Field(default=None, description="temperature range E is scaled to, C")
+    section_c: float | None = Field(default=None, description="width of a thermal section of the ramp, C")
+    min_section_samples: int | None = Field(default=None, description="samples a section needs")
+    curvature_limit_mg: float | None = Field(default=None, description="residual bow that flags a part, mg")
+    curvature_sigma: float | None = Field(default=None, description="... when this many sigmas from zero")
+    min_rise_c: float | None = Field(default=None, description="a verification heating less cannot judge, C")
+    range_centre_c: float | None = Field(default=None, description="centre of the judged range, C")
+    block_s: float | None = Field(default=None, description="batch-means block of the fit, s")
+    e_sigma_k: float | None = Field(default=None, description="an axis fails when E - k sigma is over its limit")
+    odr_hz: float | None = Field(default=None, description="sample rate assumed without sample times, Hz")
+
+
+class LiveVerification(_Out):
+    """The verification of one programmed board (station/science/verify.py VerificationResult.to_json
+    + step_index, duration_s, before_source); when it cannot be computed: passed=false, flags, null E."""
+
+    passed: bool = Field(description="the compensation works on this part")
+    flags: list[str] = Field(default_factory=list, description="named problems, or why it was not verified")
+    rise_c: float | None = Field(default=None, description="temperature rise of the verification heat, C")
+    temp_from_c: float | None = Field(default=None, description="temperature at its start, C")
+    temp_to_c: float | None = Field(default=None, description="temperature at its end, C")
+    n_samples: int | None = Field(default=None, description="compensated samples judged")
+    n_sections: int | None = Field(default=None, description="thermal sections of the ramp")
+    e_before_mg: PerAxis | None = Field(default=None, description="E before compensation per axis, mg")
+    e_after_mg: PerAxis | None = Field(default=None, description="E with compensation per axis, mg")
+    e_after_sigma_mg: PerAxis | None = Field(default=None, description="1-sigma of E after per axis, mg")
+    e_after_fs_pct: PerAxis | None = Field(default=None, description="E after per axis, % of full scale")
+    e_after_fs_sigma_pct: PerAxis | None = Field(default=None, description="its 1-sigma, % of full scale")
+    range_c: list[float] | None = Field(default=None, description="judged temperature range [low, high], C")
+    axes: dict[str, AxisVerificationOut] = Field(default_factory=dict, description="per axis (x, y, z) detail; "
+                                                 "empty when not computed")
+    criteria: VerifyCriteriaOut | None = Field(default=None, description="the pass rule applied")
+    step_index: int | None = Field(default=None, description="the heat step verified")
+    duration_s: float | None = Field(default=None, description="sample seconds of that step")
+    before_source: str | None = Field(default=None, description="where E before comes from, in words")
+
+
+LiveVerificationJson = passed_through(LiveVerification)  # documented, not validated at runtime (passed_through)
+
+
+class SlotStatus(DecisionFields):
+    """One DUT of a batch: live (DutRun.status + web/views.py slot_view) or stored (web/db_repo.py)."""
+
+    slot: str = Field(description="slot name from the config")
+    link: str | None = Field(default=None, description="the board link, e.g. 'serial /dev/ttyUSB0'")
+    serial: str | None = Field(default=None, description="the board's serial (null until identified)")
+    label_serial: str | None = Field(default=None, description="serial scanned from the part's label at the start")
+    sensor: str | None = Field(default=None, description="sensor type, e.g. LIS3DSH")
+    state: str | None = Field(default=None, description="connecting, identified, running, done, faulted, interrupted")
+    fault_reason: str | None = Field(default=None, description="the daemon's fault reason ('' when none)")
+    segments: int = Field(default=0, description="segments logged in this batch")
+    error: str | None = Field(default=None, description="fault reason, when faulted")
+    temp_c: float | None = Field(default=None, description="not sent at present (always null): see the plot")
+    samples: int | None = Field(default=None, description="samples received in this batch")
+    sample_time_s: float | None = Field(default=None, description="board seconds logged in this batch")
+    calibrator_state: str | None = Field(default=None, description="the live streaming calibrator's state "
+                                         "(settling, discarding, averaging, waiting, ...)")
+    link_stats: LinkStats | None = Field(default=None, description="the link's counters")
+    result: CalibrationResultJson = Field(default=None, description="the calibration result (thermal or SFEM, "
+                                          "per the profile's analysis); null until analysed")
+    decision: DecisionOut | None = Field(default=None, description="the station's decision (without the passing "
+                                         "checks); its fields are also given flat on the slot")
+    program: LiveProgram | None = Field(default=None, description="program and verify: what the program step did")
+    verification: LiveVerificationJson = Field(default=None, description="program and verify: verified E")
+    program_verify: ProgramVerifyOut | None = Field(default=None, description="stored batch only: the stored "
+                                                    "program-and-verify record")
+    run_id: int | None = Field(default=None, description="this DUT's run in this batch")
+    plot_url: str | None = Field(default=None, description="the plot of THIS run (/api/runs/{run_id}/plot.png): "
+                                 "never the serial's latest run, so an interrupted DUT shows its own data")
+    steps_done: int = Field(default=0, description="profile steps this DUT completed (progress dots)")
+    waiting_for: str | None = Field(default=None, description="what this DUT's current step waits for; "
+                                    "'other DUTs' once it has what the step needs; null when not live")
+
+
+class DecisionSummary(_Out):
+    """Verdict and grade counts of a batch (station/decisions/verdicts.py summarize)."""
+
+    judged: int = Field(default=0, description="DUTs judged")
+    verdicts: dict[str, int] = Field(default_factory=dict, description="count per verdict (pass, marginal, fail, error)")
+    grades: dict[str, int] = Field(default_factory=dict, description="count per grade")
+
+
+class SortingEntry(_Out):
+    """Which slot's board goes to which tray."""
+
+    slot: str = Field(description="slot name")
+    serial: str | None = Field(default=None, description="the board's serial")
+    verdict: str | None = Field(default=None, description="pass | marginal | fail | error")
+    grade: str | None = Field(default=None, description="bin")
+    tray: str | None = Field(default=None, description="the tray to put the board in")
+    reason: str | None = Field(default=None, description="plain words")
+    attempt: int | None = Field(default=None, description="the serial's attempt number")
+
+
+class DutCounts(_Out):
+    """DUTs per state: live ones as running."""
+
+    running: int = Field(default=0, description="live DUTs (connecting, identified, running)")
+    done: int = Field(default=0, description="DUTs that completed")
+    faulted: int = Field(default=0, description="DUTs that faulted")
+    interrupted: int = Field(default=0, description="DUTs the batch's end interrupted")
+
+
+class BatchStatus(TraceFields):
+    """A batch: live from the daemon (station/daemon/batch_view.py status + progress.py batch_extras,
+    through web/views.py batch_view), or, once the daemon no longer holds it, from the database
+    (web/db_repo.py batch: `stored` true, no live fields)."""
+
+    id: int = Field(description="batch id")
+    profile: str | None = Field(default=None, description="profile name")
+    operator: str | None = Field(default=None, description="the person who runs the batch")
+    labels: dict[str, str] = Field(default_factory=dict, description="slot -> serial scanned from the part's label")
+    state: str = Field(description="created | running | paused (waiting for the operator) | finished | aborted | "
+                       "failed | interrupted")
+    seq_state: str | None = Field(default=None, description="the sequencer's own state (connecting, step_setup, "
+                                  "positioning, moving, waiting_operator, logging, programming, step_done, "
+                                  "analysing, or an end state); live only")
+    step_index: int | None = Field(default=None, description="index of the current step (-1 before the first)")
+    step: StepInfo | None = Field(default=None, description="the current step")
+    n_steps: int | None = Field(default=None, description="number of steps of the profile; live only")
+    steps: list[StepRow] = Field(default_factory=list, description="every step and the analysis with its state and "
+                                 "wall durations; live only")
+    progress: float | None = Field(default=None, description="fraction of the batch done by wall "
+                                   "time (0..1, never decreases); 1 once finished, null after another end")
+    position: int | None = Field(default=None, description="plate position index now (null: moving or unknown)")
+    position_name: str | None = Field(default=None, description="plate position name now")
+    sample_time_s: float | None = Field(default=None, description="the boards' sample clock in this batch, s")
+    step_elapsed_s: float | None = Field(default=None, description="sample seconds the current step has logged")
+    slots: list[SlotStatus] = Field(default_factory=list, description="every DUT of the batch")
+    error: str | None = Field(default=None, description="why the batch failed or was aborted")
+    prompt: Prompt | None = Field(default=None, description="the open operator prompt, if any")
+    lamp_on: bool | None = Field(default=None, description="what the station last commanded")
+    lamp_state: str | None = one_of(("on", "off", "unknown"), "'unknown' while the lamp relay does not answer reads "
+                                    "or writes", default=None)
+    lamp_relay_error: str | None = Field(default=None, description="the relay's last error, while it fails")
+    lamp_on_time_s: float | None = Field(default=None, description="wall seconds the lamp has been on in this batch")
+    decision: DecisionSummary | None = Field(default=None, description="verdict and grade counts")
+    sorting: list[SortingEntry] = Field(default=[], description="which slot goes to which tray")
+    time_left: TimeLeft | None = Field(default=None, description="estimated time left; live only")
+    started: float | None = Field(default=None, description="when the batch started, Unix time s; live only")
+    ended: float | None = Field(default=None, description="when it ended, Unix time s (null while running); live only")
+    elapsed_s: float | None = Field(default=None, description="wall seconds since the batch started (to its end)")
+    waiting_for: str | None = Field(
+        default=None, description="what the current step waits for: boards, fixture, operator, chamber, "
+        "temperature rise, static dwell, segment, dwell, programming, analysis; null once ended")
+    ended_by: str | None = Field(default=None, description="who ended the batch: the token's name for an abort, "
+                                 "'station' for an end it reached itself, 'daemon' for a shutdown; null while running")
+    ended_at: str | None = Field(default=None, description="when the batch ended (RFC 3339 UTC); null while running")
+    analysis: str | None = Field(default=None, description="the profile's analysis: thermal, sfem or none")
+    note: str | None = Field(default=None, description="what the profile does not give, e.g. no calibration result "
+                             "for analysis 'none' (validation)")
+    counts: DutCounts | None = Field(default=None, description="DUTs per state")
+    transitions: list[Transition] = Field(default_factory=list, description="the sequencer's state changes; live only")
+    # a batch the daemon no longer holds, from the database (web/db_repo.py batch)
+    stored: bool | None = Field(default=None, description="true: read from the database (the daemon no longer "
+                                "holds the batch, e.g. after a restart); absent for a live batch")
+    station: str | None = Field(default=None, description="stored only: the station that ran it (config `name`)")
+    reason: str | None = Field(default=None, description="stored only: the stored end reason ('' when none)")
+    last_completed_step: int | None = Field(default=None, description="stored only: what a resume restarts after")
+    schema_version: str | None = Field(default=None, description="stored only: database schema revision it was "
+                                       "written with")
+    created_at: str | None = Field(default=None, description="stored only: when it was created (ISO 8601 UTC)")
+    replay_of: str | None = Field(default=None, description="stored only: the source of a replay batch; null for "
+                                  "real parts")
+    replay_diff: dict | None = free_form(
+        "stored only: a replay's comparison with its recording, as GET /api/replays/{batch_id} `diff`", default=None)
+    step_windows: dict[str, dict[str, list[float | None]]] = Field(
+        default_factory=dict, description="stored only: {step index: {slot: [from, to]}} board seconds of every "
+        "completed step (resume, SFEM windows)")
+
+
+class SlotOut(_Out):
+    """A slot of the station (station/daemon/slots.py slots_status + web/views.py slot_view)."""
+
+    slot: str = Field(description="slot name from the config")
+    name: str | None = Field(default=None, description="the same name")
+    link: str | None = Field(default=None, description="the board link, e.g. 'serial /dev/ttyUSB0'")
+    kind: str | None = Field(default=None, description="not sent at present (always null): see `link`")
+    state: str | None = Field(default=None, description="the slot: idle, identified, busy, faulted, ...")
+    serial: str | None = Field(default=None, description="the board's serial once identified")
+    sensor: str | None = Field(default=None, description="sensor type")
+    batch_id: int | None = Field(default=None, description="the batch it belongs to (null: none)")
+    run_state: str | None = Field(default=None, description="its DUT run's state in that batch")
+    run_id: int | None = Field(default=None, description="its DUT run in that batch")
+    plot_url: str | None = Field(default=None, description="the plot of that run")
+    segments: int = Field(default=0, description="segments logged (0 outside a batch's status)")
+    fault_reason: str | None = Field(default=None, description="the daemon's fault reason ('' when none)")
+    error: str | None = Field(default=None, description="fault reason, when faulted")
+    link_stats: LinkStats | None = Field(default=None, description="the link's counters")
+    label_serial: str | None = Field(default=None, description="serial scanned from the part's label for this slot")
+
+
+class LampHealth(_Out):
+    """The lamp as the station sees it (station/daemon/supervisor.py lamp_status)."""
+
+    state: str | None = one_of(("on", "off", "unknown"), "the relay's real state", default=None)
+    on_commanded: bool | None = Field(default=None, description="what the station last commanded")
+    relay_error: str | None = Field(default=None, description="the relay's last error, while it fails")
+    watchdog_s: float | None = Field(default=None, description="lamp watchdog, s (0: not armed)")
+    trip: str | None = Field(default=None, description="why the safety tripped, if it did")
+
+
+class Health(_Out):
+    status: str = Field(description="'ok' while the web app answers")
+    version: str = Field(description="station software version")
+    time: float = Field(description="the station's clock, Unix time s")
+    db: str | None = Field(default=None, description="'ok', 'none' (no database), or 'error: ...'")
+    lamp: LampHealth | None = Field(default=None, description="the lamp; null without a station")
