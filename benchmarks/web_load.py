@@ -1,7 +1,8 @@
 """Latency of GET /api/batches/{id} at a fixed request rate while 64 simulated DUTs stream.
 
     .venv/bin/python benchmarks/web_load.py [--rate 100] [--requests 3000] [--serial 48] [--can 16]
-                                            [--speed 60] [--sse 1]
+                                            [--speed 60] [--sse 1] [--view full|compact] [--no-etag]
+                                            [--no-gc-freeze]
 
 A whole simulated station (48 serial boards on pseudo-terminals + 16 CAN boards behind an slcan
 adapter, lamp relay and fixture on Modbus TCP, all on this machine), the real daemon with SQLite
@@ -12,8 +13,15 @@ share the daemon's GIL) sends GET /api/batches/{id} open-loop at --rate requests
 on keep-alive connections (each request is due at its scheduled time; "scheduled -> answer" also
 counts any wait for a free client thread) while --sse clients
 listen to /api/events like an open operator page. Prints p50/p90/p99/max latency, the achieved
-rate, errors, and the samples/s the daemon ingested meanwhile. No assertion: a figure, not a test.
-Loopback only.
+rate, errors, bytes per answer, and the samples/s the daemon ingested meanwhile.
+
+Two passes, each on a fresh station and batch, measured from the moment every DUT streams (the
+same part of the batch): first the plain client (no If-None-Match, the figures this benchmark
+always printed), then (unless --no-etag) a revalidating client like a browser: each worker thread
+sends the ETag of the last answer it got in If-None-Match and counts 200s and 304s (a 304 has no
+body). --view compact asks both passes for GET /api/batches/{id}?view=compact. Once the station
+is up, its start-up heap is frozen as the daemon does (station/daemon/heap.py; --no-gc-freeze: not).
+No assertion: a figure, not a test. Loopback only.
 """
 
 from __future__ import annotations
@@ -35,7 +43,8 @@ sys.path.insert(0, str(ROOT))
 
 # --- client process -------------------------------------------------------------------------------
 
-def client_main(url: str, batch_id: int, token: str, rate: float, n: int, sse: int) -> None:
+def client_main(url: str, batch_id: int, token: str, rate: float, n: int, sse: int, etag: bool = False,
+                view: str = "full") -> None:
     import httpx
 
     stop = threading.Event()
@@ -63,15 +72,16 @@ def client_main(url: str, batch_id: int, token: str, rate: float, n: int, sse: i
         from urllib.parse import urlsplit
 
         u = urlsplit(url)
-        path = f"/api/batches/{batch_id}"
-        headers = {"Authorization": f"Bearer {token}"}
+        path = f"/api/batches/{batch_id}" + ("?view=compact" if view == "compact" else "")
         workers = 16
         lat, late, starts, errors, sizes = [], [], [], [], []
+        statuses: dict[str, int] = {}
         lock = threading.Lock()
         t0 = time.perf_counter() + 0.2
 
         def worker(k: int) -> None:
             conn = http.client.HTTPConnection(u.hostname, u.port, timeout=30)
+            headers = {"Authorization": f"Bearer {token}"}  # per worker: its own last ETag, like a browser
             for i in range(k, n, workers):
                 sched = t0 + i / rate
                 delay = sched - time.perf_counter()
@@ -83,9 +93,12 @@ def client_main(url: str, batch_id: int, token: str, rate: float, n: int, sse: i
                     resp = conn.getresponse()
                     body = resp.read()
                     end = time.perf_counter()
+                    if etag and resp.status == 200 and resp.getheader("ETag"):
+                        headers["If-None-Match"] = resp.getheader("ETag")
                     with lock:
                         starts.append(start - sched)
-                        if resp.status != 200:
+                        statuses[str(resp.status)] = statuses.get(str(resp.status), 0) + 1
+                        if resp.status not in (200, 304) or (resp.status == 304 and not etag):
                             errors.append(f"HTTP {resp.status}")
                         else:
                             lat.append(end - start)
@@ -105,7 +118,7 @@ def client_main(url: str, batch_id: int, token: str, rate: float, n: int, sse: i
             t.join()
         wall = time.perf_counter() - t0
         return {"lat": lat, "late": late, "errors": errors, "wall": wall, "bytes": sum(sizes) / max(1, len(sizes)),
-                "start_delay": starts}
+                "start_delay": starts, "statuses": statuses, "sizes": sizes}
 
     out = run()
     stop.set()
@@ -132,20 +145,48 @@ def main() -> None:
     ap.add_argument("--sim-in-daemon", action="store_true",
                     help="run the simulated boards in the daemon's own event loop (default: a child process, "
                          "like real boards outside the daemon)")
+    ap.add_argument("--view", choices=("full", "compact"), default="full",
+                    help="ask for GET /api/batches/{id}?view=compact (what the operator page shows) instead of "
+                         "the full status (default full)")
+    ap.add_argument("--no-etag", dest="etag", action="store_false",
+                    help="skip the second pass (a client that revalidates with If-None-Match)")
+    ap.add_argument("--no-gc-freeze", dest="gc_freeze", action="store_false",
+                    help="do not freeze the start-up heap once the station is up, as the daemon does when it "
+                         "serves the web (station/daemon/heap.py)")
     ap.add_argument("--client", nargs=3, metavar=("URL", "BATCH", "N"), help=argparse.SUPPRESS)
+    ap.add_argument("--client-etag", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.client:
         url, batch, n = args.client
-        client_main(url, int(batch), os.environ["STATION_TOKEN"], args.rate, int(n), args.sse)
+        client_main(url, int(batch), os.environ["STATION_TOKEN"], args.rate, int(n), args.sse, etag=args.client_etag,
+                    view=args.view)
         return
+
+    n_duts = args.serial + args.can
+    print(f"web_load: {args.serial} serial + {args.can} CAN simulated DUTs, speed x{args.speed:g}, "
+          f"{args.requests} x GET /api/batches/{{id}} at {args.rate:g}/s, {args.sse} SSE client(s)"
+          + ("" if args.gc_freeze else ", start-up heap NOT frozen"), flush=True)
+    passes = [("plain", run_pass(args, etag=False))]
+    if args.etag:
+        passes.append(("etag", run_pass(args, etag=True)))
+    for name, (bid, res, odr_hz) in passes:
+        if name == "etag":
+            print(f"--- the same with If-None-Match, on a fresh station at the same point of its batch: each "
+                  f"client thread sends the ETag of its last answer (like a browser)"
+                  f"{' [view=compact]' if args.view == 'compact' else ''}")
+        report(bid, res, n_duts, n_duts * odr_hz * args.speed)
+
+
+def run_pass(args: argparse.Namespace, etag: bool) -> tuple[int, dict, float]:
+    """One client pass on a fresh station, once every DUT of its batch streams (so that both passes
+    measure the same part of the batch): its answers, the daemon's loop lag, the samples ingested
+    meanwhile; (batch id, results, the boards' ODR)."""
+    import asyncio
 
     import httpx
 
     from web_support import TOKENS, LiveStation, auth, wait_for
 
-    n_duts = args.serial + args.can
-    print(f"web_load: {args.serial} serial + {args.can} CAN simulated DUTs, speed x{args.speed:g}, "
-          f"{args.requests} x GET /api/batches/{{id}} at {args.rate:g}/s, {args.sse} SSE client(s)", flush=True)
     with tempfile.TemporaryDirectory() as tmp, \
             LiveStation(Path(tmp), n_serial=args.serial, n_can=args.can, speed=args.speed, fixture=True,
                         sse_interval_s=0.5, sim_process=not args.sim_in_daemon) as live:
@@ -153,6 +194,10 @@ def main() -> None:
             slots = c.get("/api/slots", headers=auth("operator")).json()
             ok = [s for s in slots if s["state"] == "identified"]
             print(f"web_load: {len(ok)}/{len(slots)} slots identified", flush=True)
+            if args.gc_freeze:  # what `station serve` / `station demo` do once they serve the web
+                from station.daemon.heap import freeze_startup_heap
+
+                live.call(freeze_startup_heap)
             r = c.post("/api/batches", json={"profile": "fast-thermal", "operator": "bench"}, headers=auth("operator"))
             r.raise_for_status()
             bid = r.json()["id"]
@@ -161,29 +206,30 @@ def main() -> None:
                 st = c.get(f"/api/batches/{bid}", headers=auth("operator")).json()
                 return st if all((s.get("samples") or 0) > 0 for s in st["slots"]) else None
 
-            st0 = wait_for(streaming, 120, interval_s=0.5, what="every DUT streaming")
+            wait_for(streaming, 120, interval_s=0.5, what="every DUT streaming")
+
+            def samples_now() -> int:  # from the daemon itself: the HTTP answer may be a render 0.5 s old
+                return live.call(lambda: sum(s["samples"] or 0 for s in live.station.batch_status(bid)["slots"]))
+
             lags: list[float] = []
             lag_stop = threading.Event()
 
             async def lag_monitor():  # how late the daemon's event loop wakes a 10 ms sleep
-                import asyncio
-
                 loop = asyncio.get_running_loop()
                 while not lag_stop.is_set():
                     t = loop.time()
                     await asyncio.sleep(0.01)
                     lags.append(loop.time() - t - 0.01)
 
-            import asyncio
-
             asyncio.run_coroutine_threadsafe(lag_monitor(), live.loop)
-            s0, t_start = sum(s["samples"] for s in st0["slots"]), time.monotonic()
+            s0, t_start = samples_now(), time.monotonic()
             env = {**os.environ, "STATION_TOKEN": TOKENS["operator"]}
             proc = subprocess.run(
                 [sys.executable, __file__, "--client", live.url, str(bid), str(args.requests),
-                 "--rate", str(args.rate), "--sse", str(args.sse)],
+                 "--rate", str(args.rate), "--sse", str(args.sse), "--view", args.view]
+                + (["--client-etag"] if etag else []),
                 env=env, capture_output=True, text=True, timeout=args.requests / args.rate + 120)
-            elapsed = time.monotonic() - t_start
+            s1, elapsed = samples_now(), time.monotonic() - t_start
             lag_stop.set()
             st1 = c.get(f"/api/batches/{bid}", headers=auth("operator")).json()
         if proc.returncode != 0:
@@ -191,24 +237,33 @@ def main() -> None:
             raise SystemExit(f"web_load: client failed ({proc.returncode})")
         res = json.loads(proc.stdout.strip().splitlines()[-1])
         odr_hz = float(live.sim.odr_hz) if hasattr(live.sim, "odr_hz") else float(live.sim.world.odr_hz)
-    s1 = sum(s["samples"] for s in st1["slots"])
+    return bid, {**res, "lags": lags, "st": st1, "samples_per_s": (s1 - s0) / elapsed}, odr_hz
+
+
+def report(bid: int, res: dict, n_duts: int, expected: float) -> None:
+    """The figures of one pass; the plain pass prints exactly the lines this benchmark always did."""
+    st1 = res["st"]
     faulted = [s["slot"] for s in st1["slots"] if s["state"] == "faulted"]
     lat_ms = [x * 1000 for x in res["lat"]]
     late_ms = [x * 1000 for x in res["late"]]
     print(f"batch {bid}: state {st1['state']}, step {st1['step'].get('name')}, faulted slots: {len(faulted)} {faulted[:8]}")
     print(f"requests: {len(lat_ms)} ok, {len(res['errors'])} errors {sorted(set(res['errors']))[:5]}, "
           f"achieved {len(lat_ms) / res['wall']:.1f} req/s over {res['wall']:.1f} s, {res['bytes'] / 1024:.1f} KiB per answer")
+    statuses = res.get("statuses") or {}
+    full = [b for b in res.get("sizes") or [] if b > 0]
+    if "304" in statuses:
+        print(f"answers: {statuses.get('200', 0)} x 200 ({sum(full) / max(1, len(full)) / 1024:.1f} KiB each), "
+              f"{statuses['304']} x 304 (no body); {sum(full) / max(1, len(lat_ms)) / 1024:.1f} KiB per request")
     print(f"latency ms (send -> answer):     p50 {pct(lat_ms, 50):6.1f}  p90 {pct(lat_ms, 90):6.1f}  "
           f"p99 {pct(lat_ms, 99):6.1f}  max {max(lat_ms):6.1f}")
     print(f"latency ms (scheduled -> answer): p50 {pct(late_ms, 50):6.1f}  p90 {pct(late_ms, 90):6.1f}  "
           f"p99 {pct(late_ms, 99):6.1f}  max {max(late_ms):6.1f}")
-    lag_ms = [x * 1000 for x in lags] or [float("nan")]
+    lag_ms = [x * 1000 for x in res["lags"]] or [float("nan")]
     sd_ms = [x * 1000 for x in res["start_delay"]]
     print(f"daemon event-loop lag ms:         p50 {pct(lag_ms, 50):6.1f}  p90 {pct(lag_ms, 90):6.1f}  "
           f"p99 {pct(lag_ms, 99):6.1f}  max {max(lag_ms):6.1f}")
     print(f"client start delay ms (its own CPU): p50 {pct(sd_ms, 50):6.1f}  p99 {pct(sd_ms, 99):6.1f}  max {max(sd_ms):6.1f}")
-    expected = n_duts * odr_hz * args.speed
-    print(f"daemon meanwhile: {(s1 - s0) / elapsed:.0f} samples/s ingested over {n_duts} DUTs "
+    print(f"daemon meanwhile: {res['samples_per_s']:.0f} samples/s ingested over {n_duts} DUTs "
           f"(simulated rate {expected:.0f}/s), SSE events received: {res['sse_events']}")
 
 

@@ -127,8 +127,14 @@ def quantize(
 
 
 def _shuffle(a: np.ndarray) -> bytes:
-    """Delta code, then group bytes by significance (what blosc/HDF5 call 'shuffle')."""
-    d = np.diff(a, prepend=a.dtype.type(0)).astype(a.dtype)
+    """Delta code (first value as is, then the wrapping difference to the one before), then group
+    bytes by significance (what blosc/HDF5 call 'shuffle'). The subtraction in place of np.diff
+    gives the same integers at a fraction of the cost: the database writer encodes every run's
+    new samples several times a second, on the thread that shares the daemon's GIL."""
+    d = np.empty_like(a)
+    if len(a):
+        d[0] = a[0]
+        np.subtract(a[1:], a[:-1], out=d[1:])
     return d.view(np.uint8).reshape(-1, a.dtype.itemsize).T.tobytes()
 
 

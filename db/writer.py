@@ -10,7 +10,7 @@ Samples: every transaction appends each run's new samples as one small chunk (du
 once a run has `seal_samples` samples in small chunks, the writer replaces them, in the same
 transaction, by one sealed chunk, which compresses far better. A crash at any point leaves either
 the small chunks or the sealed one, never both and never neither. After a restart the writer picks
-up a run's unsealed chunks and goes on compacting them.
+up a run's unsealed chunks and goes on compacting them (db/sample_chunks.py).
 
 Storage failures (disk full, an I/O error, a read-only file, a lost PostgreSQL connection) drop
 nothing: the writer keeps the events and retries with backoff for as long as it takes, reports the
@@ -46,14 +46,14 @@ import math
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
-from sqlalchemy import delete, func, insert, select, update
+from sqlalchemy import func, insert, select, update
 from sqlalchemy.engine import Connection
 from sqlalchemy.exc import OperationalError
 
-from db import codec
+from db.sample_chunks import SampleChunks
 from contracts.json_safe import finite_or_none as _num, plain_json
 from db.database import BATCH_END_STATES, RUN_END_STATES, Database
 from db.models import (
@@ -62,7 +62,6 @@ from db.models import (
     Outbox,
     ProgramVerifyRow,
     ResultCounter,
-    SampleChunk,
     SegmentRow,
     SfemResultRow,
     ThermalResultRow,
@@ -221,22 +220,6 @@ class CommitInfo:
     results: list[tuple[int, int]]  # (run_id, result_seq)
 
 
-@dataclass
-class _RunBuf:
-    next_seq: int
-    pending: list[codec.Quantized] = field(default_factory=list)
-    pending_ids: list[int] = field(default_factory=list)
-    pending_first_seq: int | None = None
-    pending_n: int = 0
-    pending_lost: int = 0
-
-    def copy(self) -> "_RunBuf":
-        return _RunBuf(
-            self.next_seq, list(self.pending), list(self.pending_ids), self.pending_first_seq, self.pending_n,
-            self.pending_lost,
-        )
-
-
 class _Marker:
     def __init__(self, stop: bool = False) -> None:
         self.done = threading.Event()
@@ -280,7 +263,7 @@ class DbWriter:
         self._runs: dict[tuple[int, str], int] = {}
         self._replay: dict[int, bool] = {}  # batch id -> is a replay (its results get no result_seq)
         self._runs_lock = threading.Lock()
-        self._bufs: dict[int, _RunBuf] = {}
+        self._chunks = SampleChunks(seal_samples)  # db/sample_chunks.py
         self._closed = False
         self.stats: dict[str, Any] = {
             "submitted": 0, "committed_events": 0, "committed_samples": 0, "commits": 0,
@@ -470,7 +453,7 @@ class DbWriter:
                 log.error("db writer: final sealing failed: %r", exc)
 
     def _commit(self, events: list[Event], seal_all: bool) -> None:
-        saved = {k: v.copy() for k, v in self._bufs.items()}
+        saved = self._chunks.snapshot()
         info = CommitInfo(len(events), 0, [], [])
         try:
             with self.db.engine.begin() as conn:
@@ -511,11 +494,9 @@ class DbWriter:
                         conn.execute(update(Batch).where(Batch.id == ev.batch_id).values(step_index=ev.step_index))
                     elif isinstance(ev, StepCompleted):
                         self._step_completed(conn, ev)
-                for run_id, evs in samples.items():
-                    info.n_samples += self._samples(conn, run_id, evs, force_seal=run_id in seal)
-                    seal.discard(run_id)
-                for run_id in sorted(seal | (set(self._bufs) if seal_all else set())):
-                    self._seal(conn, run_id)
+                if samples:
+                    info.n_samples += self._chunks.store(conn, samples, seal)
+                self._chunks.seal(conn, sorted(seal | (set(self._chunks.bufs) if seal_all else set())))
                 for batch_id, run_id, finish in numbered:
                     if self._is_replay(conn, batch_id):  # a replay's verdicts never reach the MES
                         finish(conn, None)
@@ -524,7 +505,7 @@ class DbWriter:
                     finish(conn, seq)
                     info.results.append((run_id, seq))
         except BaseException:
-            self._bufs = saved
+            self._chunks.restore(saved)
             raise
         self.stats["commits"] += 1
         self.stats["committed_events"] += len(events)
@@ -701,104 +682,6 @@ class DbWriter:
         if ev.state not in BATCH_END_STATES:
             return set()
         return set(conn.execute(select(DutRun.id).where(DutRun.batch_id == ev.batch_id)).scalars())
-
-    # ---- samples ----------------------------------------------------------------------------
-    def _buf(self, conn: Connection, run_id: int) -> _RunBuf:
-        buf = self._bufs.get(run_id)
-        if buf is None:
-            # First time this process sees the run (fresh or resumed): continue its chunk sequence
-            # and take over any unsealed chunks a previous process left.
-            rows = conn.execute(
-                select(SampleChunk.id, SampleChunk.seq, SampleChunk.sealed, SampleChunk.lost_samples)
-                .where(SampleChunk.run_id == run_id)
-                .order_by(SampleChunk.seq)
-            ).all()
-            buf = _RunBuf(next_seq=(rows[-1].seq + 1) if rows else 0)
-            tail = []
-            for r in reversed(rows):
-                if r.sealed:
-                    break
-                tail.append(r)
-            data = dict(
-                conn.execute(select(SampleChunk.id, SampleChunk.data).where(SampleChunk.id.in_([r.id for r in tail]))).all()
-            ) if tail else {}
-            for r in reversed(tail):
-                q = codec.decode(data[r.id])
-                buf.pending.append(q)
-                buf.pending_ids.append(r.id)
-                buf.pending_n += len(q)
-                buf.pending_lost += r.lost_samples
-                if buf.pending_first_seq is None:
-                    buf.pending_first_seq = r.seq
-            self._bufs[run_id] = buf
-        return buf
-
-    def _samples(self, conn: Connection, run_id: int, evs: list[SamplesReceived], force_seal: bool) -> int:
-        parts = []
-        lost = 0
-        for ev in evs:
-            b = ev.block
-            if len(b) == 0:
-                lost += b.lost_samples
-                continue
-            parts.append(codec.quantize(b.time_s, b.acc_g, b.temp_c, 1 if ev.lamp_on else 0, ev.position))
-            lost += b.lost_samples
-        n = sum(len(p) for p in parts)
-        if n:
-            conn.execute(
-                update(DutRun)
-                .where(DutRun.id == run_id)
-                .values(n_samples=DutRun.n_samples + n, lost_samples=DutRun.lost_samples + lost)
-            )
-        buf = self._buf(conn, run_id)
-        if not n:
-            if force_seal:
-                self._seal(conn, run_id)
-            return 0
-        q = codec.Quantized.concat(parts) if len(parts) > 1 else parts[0]
-        buf.pending.append(q)
-        buf.pending_n += n
-        buf.pending_lost += lost
-        if force_seal or buf.pending_n >= self.seal_samples:
-            self._seal(conn, run_id)
-        else:
-            seq = buf.next_seq
-            buf.next_seq += 1
-            cid = self._insert_chunk(conn, run_id, seq, q, lost, sealed=False)
-            buf.pending_ids.append(cid)
-            if buf.pending_first_seq is None:
-                buf.pending_first_seq = seq
-        return n
-
-    def _seal(self, conn: Connection, run_id: int) -> None:
-        """Replace the run's small chunks (plus unwritten samples) by one sealed chunk."""
-        buf = self._buf(conn, run_id)
-        if not buf.pending:
-            return
-        if buf.pending_ids:
-            conn.execute(delete(SampleChunk).where(SampleChunk.id.in_(buf.pending_ids)))
-            seq = buf.pending_first_seq
-        else:
-            seq = buf.next_seq
-            buf.next_seq += 1
-        q = codec.Quantized.concat(buf.pending) if len(buf.pending) > 1 else buf.pending[0]
-        self._insert_chunk(conn, run_id, int(seq), q, buf.pending_lost, sealed=True)
-        buf.pending, buf.pending_ids, buf.pending_first_seq, buf.pending_n, buf.pending_lost = [], [], None, 0, 0
-
-    def _insert_chunk(self, conn: Connection, run_id: int, seq: int, q: codec.Quantized, lost: int, sealed: bool) -> int:
-        res = conn.execute(
-            insert(SampleChunk).values(
-                run_id=run_id,
-                seq=seq,
-                t_first_s=float(q.time[0]) / codec.TIME_SCALE,
-                t_last_s=float(q.time[-1]) / codec.TIME_SCALE,
-                n=len(q),
-                lost_samples=int(lost),
-                sealed=sealed,
-                data=codec.encode(q),
-            )
-        )
-        return int(res.inserted_primary_key[0])
 
 
 __all__ = ["DbWriter", "CommitInfo", "thermal_rows", "sfem_rows", "plain_json", "verdict_columns", "VERDICT_FIELDS", "take_result_seq",

@@ -245,11 +245,21 @@ def test_upgrade_from_0006_keeps_every_record_in_the_feed(tmp_path):
     db = Database(f"sqlite:///{tmp_path / 'old.db'}")
     with db.engine.begin() as conn:
         command.upgrade(db._alembic_config(conn), "0006")
-    batch = db.create_batch("fast-thermal", "op", {})
-    runs = [db.create_run(batch, f"s{i}", f"OLD{i}", "LIS3DSH", {}) for i in range(3)]
+    # rows written as a 0006 station wrote them (the ORM of this software knows later columns)
     with db.engine.begin() as conn:
+        conn.execute(text("INSERT INTO batch (id, profile, station, operator, state, reason, config_snapshot, step_windows, "
+                          "schema_version, created_at) VALUES (1, 'fast-thermal', '', 'op', 'finished', '', '{}', '{}', "
+                          "'0006', '2026-11-01 10:00:00')"))
+        for i in range(3):
+            conn.execute(text("INSERT INTO dut (id, serial, sensor, first_seen, last_seen) VALUES "
+                              "(:i, :s, 'LIS3DSH', '2026-11-01 10:00:00', '2026-11-01 10:00:00')"), {"i": i + 1, "s": f"OLD{i}"})
+            conn.execute(text("INSERT INTO dut_run (id, batch_id, slot, station, dut_id, state, fault_reason, identity, "
+                              "n_samples, lost_samples, started_at, attempt, verdict_reason) VALUES "
+                              "(:i, 1, :slot, '', :i, 'done', '', '{}', 0, 0, '2026-11-01 10:00:00', 1, '')"),
+                         {"i": i + 1, "slot": f"s{i}"})
+        runs = [1, 2, 3]
         conn.execute(text("UPDATE dut_run SET result_seq = 7, verdict = 'pass', grade = 'A' WHERE id = :r"), {"r": runs[0]})
         conn.execute(text("UPDATE dut_run SET result_seq = 9 WHERE id = :r"), {"r": runs[2]})  # a result, no verdict
-    assert db.upgrade() == "0007"
+    assert db.upgrade() == db.head_revision()
     got = [(r["id"], r["run_id"], r["revision"], r["supersedes"], r["verdict"]) for r in repo.results_since(db, 0)]
     assert got == [(7, runs[0], 1, None, "pass"), (9, runs[2], 1, None, None)]
