@@ -170,7 +170,9 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
             assert st2["state"] == "aborted" and st2["lamp_on"] is False
             # after the abort nothing runs, the error says who and when, and each interrupted DUT
             # shows the plot of its own run of this batch (by run id)
-            page.wait_for_function("() => /aborted by test-operator at \\d{4}-/.test(document.querySelector('#batch-error').textContent)")
+            # the person at the page (X-Operator) and the kiosk's token
+            page.wait_for_function("() => /aborted by Ana \\(token test-operator\\) at \\d{4}-/.test("
+                                   "document.querySelector('#batch-error').textContent)")
             page.wait_for_function(f"() => document.querySelector('#batch-counts').textContent"
                                    f" === '0 running · 0 done · 0 faulted · {len(st2['slots'])} interrupted'")
             for s in st2["slots"]:
@@ -182,12 +184,13 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
                 alt = card(page, s["slot"]).locator("img.plot-thumb").get_attribute("alt")
                 assert alt == f"plot of {s['serial']} run {s['run_id']} (interrupted)", alt
             page.screenshot(path=str(ARTIFACTS / "browser-aborted.png"), full_page=True)
-            assert page.is_visible("#start")  # ready for the next batch
+            # the ended batch stays on top; the start form is one tap away ("New batch")
+            assert page.is_visible("#new-batch") and page.is_hidden("#start")
             # the same page on the line's small panel PC screen (800x480): nothing wider than it
             page.set_viewport_size({"width": 800, "height": 480})
             page.wait_for_timeout(200)
             assert page.evaluate("() => document.documentElement.scrollWidth") <= 800
-            assert page.is_visible("#batch-counts") and page.is_visible("#start")
+            assert page.is_visible("#batch-counts") and page.is_visible("#new-batch")
             page.screenshot(path=str(ARTIFACTS / "browser-aborted-800x480.png"))
             page.set_viewport_size({"width": 1280, "height": 800})
             page.screenshot(path=str(ARTIFACTS / "browser-aborted-1280x800.png"))

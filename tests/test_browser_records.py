@@ -38,7 +38,7 @@ def test_records_view_spc_yield_audit_and_certificate(tmp_path):
                      tokens=TokenStore([(ADMIN, "admin", "lead")]))
     url, stop_server = serve_in_thread(app)
     try:
-        expected = httpx.get(f"{url}/api/spc", params={"parameter": "tdb_mg_per_c:x"},
+        expected = httpx.get(f"{url}/api/records/spc", params={"parameter": "tdb_mg_per_c:x"},
                              headers={"Authorization": f"Bearer {ADMIN}"}, timeout=30).json()
         with chromium_page(1400, 1500) as (page, errors):
             page.goto(url + "/")
@@ -54,14 +54,15 @@ def test_records_view_spc_yield_audit_and_certificate(tmp_path):
             assert page.locator("#spc-charts svg.spc-chart").count() == 4
             first = page.input_value("#spc-parameter")
             assert first == "tdb_mg_per_c:x"
-            # the page shows the server's Cpk; the failing boards are out of spec on TDB x
-            cpk_text = page.text_content("[data-fig=cpk]")
-            assert cpk_text == f"Cpk {float(expected['capability']['cpk']):.3g}" or \
-                cpk_text.replace("Cpk ", "") == str(float(f"{expected['capability']['cpk']:.3g}"))
-            n_points = page.locator("#spc-charts svg.spc-chart >> nth=0").locator("circle").count()
+            assert page.text_content("#spc-parameter option:checked") == "TDB x (mg/°C)"  # in words, with unit
+            # 24 runs: below the minimum n, so no Cpk, and the page says so (issue 24; was a number)
+            assert expected["capability"]["cpk"] is None and expected["capability"]["n"] == 24
+            assert page.text_content("[data-fig=cpk]") == "Cpk n=24 < 25: not computed"
+            n_points = page.locator("#spc-charts svg.spc-chart >> nth=0").locator("g.spc-pt").count()
             assert n_points == len(written) == 24
-            assert page.locator("#spc-charts svg.spc-chart >> nth=0").locator("circle.ooc").count() == \
-                len(expected["chart"]["out_of_control"])
+            beyond = page.evaluate("[...document.querySelectorAll('#spc-charts g.spc-pt')]"
+                                   ".filter((g) => g.dataset.rules.split(',').includes('1')).length")
+            assert beyond == len(expected["chart"]["out_of_control"])
             yield_rows = page.locator("#yield-table tr[data-by=batch]")
             assert yield_rows.count() == 4
             assert page.text_content("#yield-table tr[data-by=batch] >> nth=1").endswith("66.7 %")  # batch 2: 4 of 6 pass
@@ -71,7 +72,7 @@ def test_records_view_spc_yield_audit_and_certificate(tmp_path):
             page.screenshot(path=str(ARTIFACTS / "records-spc.png"), full_page=True)
             # another parameter
             page.select_option("#spc-parameter", "tdsf_ppm_per_c:z")
-            page.wait_for_selector("#spc-charts .spc-title >> text=Individuals: tdsf_ppm_per_c:z")
+            page.wait_for_selector("#spc-charts .spc-title >> text=Individuals: TDSF z (ppm/°C)")
             # certificate from the DUT history
             page.click("#tab-history")
             page.fill("#search", written[0]["serial"])

@@ -79,8 +79,10 @@ def test_verdicts_reasons_and_sorting_on_the_page(tmp_path):
             page.wait_for_selector("#batch-panel:not(.hidden)")
             batch_id = int(page.inner_text("#batch-id"))
 
-            # during the batch: time left in the step and the batch
-            page.wait_for_function("() => /\\d+:\\d\\d/.test(document.querySelector('#batch-left').textContent)")
+            # during the batch: time left in the step and the batch (the batch's shows from the start,
+            # while the boards connect; the step's once a step runs)
+            page.wait_for_function("() => /\\d+:\\d\\d/.test(document.querySelector('#batch-left').textContent)"
+                                   " && /\\d+:\\d\\d/.test(document.querySelector('#step-left').textContent)")
             assert re.fullmatch(r"(\d+:)?\d+:\d\d", page.inner_text("#step-left"))
             with httpx.Client(base_url=live.url, timeout=10) as api:
                 st = api.get(f"/api/batches/{batch_id}", headers=auth("operator")).json()

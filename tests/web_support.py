@@ -368,7 +368,7 @@ def chromium_page(width: int = 1400, height: int = 1000, timeout_ms: int = 20_00
         try:
             page = browser.new_page(viewport={"width": width, "height": height})
             errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("pageerror", lambda e: errors.append(f"{e} at {getattr(e, 'stack', '')}"))
             page.set_default_timeout(timeout_ms)
             yield page, errors
         finally:

@@ -1,5 +1,7 @@
 // Operator page: plain JavaScript, no framework, no CDN. Live state comes from server-sent events
-// (/api/events); the authoritative batch state is also polled from /api/batches/{id}.
+// (/api/events); the authoritative batch state is also polled from /api/batches/{id}. The other
+// parts: cards.js (slot cards, sorting, steps, progress), start.js (start form, retest, abort),
+// prompt.js and orientation.js (the prompt and its picture), attention.js (tone, title flash, mute).
 "use strict";
 
 const S = {
@@ -15,6 +17,10 @@ const S = {
   pollTimer: null,
   finalBatch: true,
   sorting: [],             // [{slot, serial, verdict, grade, tray, reason, attempt}] of the batch
+  operator: "",            // the person at the station: memory and sessionStorage only (start.js)
+  formOpen: false,         // the start form opened over an ended batch ("New batch")
+  lastState: null,         // the batch state last shown: an end seen live calls for attention
+  retestable: false,       // the ended batch has fail/error slots
 };
 
 const VERDICT_FIELDS = ["verdict", "grade", "tray", "reason", "attempt", "limits_name", "limits_version"];
@@ -49,6 +55,9 @@ function message(text) { $("message").textContent = text || ""; }
 async function api(path, opts = {}) {
   const headers = Object.assign({}, opts.headers || {});
   if (S.token) headers["Authorization"] = "Bearer " + S.token;
+  // who acts (the audit names the person, not only the kiosk's token); percent-encoded: a header
+  // carries Latin-1 only, names do not
+  if (opts.method && opts.method !== "GET" && S.operator) headers["X-Operator"] = encodeURIComponent(S.operator);
   if (opts.body !== undefined) headers["Content-Type"] = "application/json";
   const resp = await fetch(path, {
     method: opts.method || "GET",
@@ -86,168 +95,43 @@ function signOut() {
   S.token = "";
   S.role = null;
   localStorage.removeItem("station.token");
+  forgetOperator();  // start.js: the next person starts with an empty Operator field
+  hidePrompt();
   if (S.es) S.es.close();
   clearInterval(S.pollTimer);
   boot();
 }
 
-// ---- slots -----------------------------------------------------------------------------------
-function slotState(name) {
-  if (!S.slots.has(name)) S.slots.set(name, { slot: name, segments: 0 });
-  return S.slots.get(name);
+// ---- batch -----------------------------------------------------------------------------------
+function setBatch(id) {
+  S.batchId = id;
+  if (id) localStorage.setItem("station.batch", String(id)); else localStorage.removeItem("station.batch");
+  if (!id) { S.batchSlots = null; S.finalBatch = true; S.retestable = false; }
+  $("batch-panel").classList.toggle("hidden", !id);
+  $("batch-id").textContent = id || "";
+  showControls();
 }
 
-function inBatch(name) { return !S.batchSlots || S.batchSlots.includes(name); }
-
-function renderSlots() {
-  const box = $("slots");
-  const rank = (n) => (S.order.includes(n) ? S.order.indexOf(n) : 1e6);
-  const names = [...S.slots.keys()].sort((a, b) => rank(a) - rank(b) || a.localeCompare(b, undefined, { numeric: true }));
-  for (const name of names) {
-    const s = S.slots.get(name);
-    let card = box.querySelector(`.slot-card[data-slot="${CSS.escape(name)}"]`);
-    if (!card) {
-      card = el("article", { class: "slot-card", "data-slot": name });
-      box.append(card);
-    }
-    const state = s.state || "idle";
-    card.className = "slot-card st-" + state + (s.verdict && inBatch(name) ? " has-verdict v-" + s.verdict : "");
-    card.dataset.state = state;
-    if (s.verdict && inBatch(name)) card.dataset.verdict = s.verdict; else delete card.dataset.verdict;
-    const active = inBatch(name) && S.batchId;
-    const acc = Array.isArray(s.acc_g) ? s.acc_g.map((v) => fmt(v, 3)).join("  ") : "–";
-    // one dot per profile step, lit for the steps this DUT has actually completed (not segments)
-    const need = S.stepCount || 4;
-    const done = s.steps_done ?? 0;
-    const dots = el("span", { class: "dots", "aria-hidden": "true", title: `${done} of ${need} steps done` });
-    for (let i = 0; i < Math.min(need, 40); i++) dots.append(el("span", { class: i < done ? "dot on" : "dot" }));
-    card.replaceChildren(...[
-      el("header", {}, el("h2", {}, name), el("span", { class: "st" }, STATE_LABEL[state] || state)),
-      el("div", { class: "serial" }, s.serial || "no DUT", s.sensor ? el("span", { class: "muted" }, " · " + s.sensor) : null),
-      active ? el("div", { class: "live" },
-        el("span", { class: "temp" }, s.temp_c === undefined || s.temp_c === null ? "– °C" : fmt(s.temp_c, 1) + " °C"),
-        el("span", { class: "segbox" }, "Segments ", el("b", { class: "segments" }, String(s.segments || 0)), " · Steps ", dots)) : null,
-      active ? el("dl", {},
-        el("dt", {}, "Acc x y z (g)"), el("dd", { class: "acc" }, acc),
-        el("dt", {}, "Samples"), el("dd", { class: "samples" }, String(s.samples ?? 0)),
-      ) : el("div", { class: "muted" }, S.batchId && !S.finalBatch ? "not in this batch" : ""),
-      active && s.verdict ? verdictBlock(s) : null,
-      active && !s.verdict && s.tempHist && s.tempHist.length > 1 ? sparkline(s.tempHist) : null,
-      active && s.waiting_for && !S.finalBatch ? el("div", { class: "waiting muted" }, "waiting for ", el("b", { class: "waiting-for" }, s.waiting_for)) : null,
-      s.error && !s.verdict ? el("div", { class: "fault" }, "Fault: " + s.error) : null,
-      active && s.result ? resultTable(s.result) : null,
-      active && (s.program || s.verification) ? programVerifyTable(s.program, s.verification) : null,
-      active && s.plotUrl ? el("img", { class: "plot-thumb", src: s.plotUrl, alt: s.plotAlt || "plot of " + (s.serial || name), onclick: () => showPlot(s.plotUrl) }) : null,
-    ].filter((c) => c !== null && c !== undefined && c !== false));
-  }
+// At the end of a batch its verdicts and the sorting view stay on top: the start form collapses to
+// "New batch" (and "Retest failed" when some slot failed) until the operator opens it.
+function showControls() {
+  const ctl = canControl();
+  const ended = !!S.batchId && S.finalBatch;
+  $("start-panel").classList.toggle("hidden", !ctl || !(!S.batchId || (ended && S.formOpen)));
+  $("start-cancel").classList.toggle("hidden", !ended);
+  $("abort").classList.toggle("hidden", !S.batchId || S.finalBatch || !ctl);
+  $("new-batch").classList.toggle("hidden", !ended || S.formOpen || !ctl);
+  $("retest").classList.toggle("hidden", !ended || !S.retestable || !ctl);
+  $("batch-panel").classList.toggle("ended", ended);
 }
 
-// The decision, big enough to read from two metres: verdict word, grade, tray, reason.
-function verdictBlock(s) {
-  return el("div", { class: "verdict v-" + s.verdict, "data-verdict": s.verdict },
-    el("div", { class: "verdict-head" },
-      el("span", { class: "verdict-word" }, VERDICT_WORD[s.verdict] || s.verdict),
-      s.grade ? el("span", { class: "grade" + (s.grade.length > 2 ? " long" : ""), title: "grade" }, s.grade) : null),
-    el("div", { class: "reason" }, s.reason || ""),
-    el("div", { class: "tray-line" }, "→ ", el("b", { class: "tray" }, s.tray || "–"),
-      s.attempt > 1 ? el("span", { class: "attempt" }, ` · attempt ${s.attempt}`) : null));
-}
-
-// Live temperature of one slot (the last few minutes), an SVG line with its range.
-function sparkline(hist) {
-  const w = 360, h = 60;
-  const ts = hist.map((p) => p[1]);
-  const lo = Math.min(...ts), hi = Math.max(...ts);
-  const span = Math.max(hi - lo, 1);
-  const t0 = hist[0][0], t1 = hist[hist.length - 1][0] || t0 + 1;
-  const pts = hist.map(([t, v]) => `${((t - t0) / Math.max(t1 - t0, 1e-9) * w).toFixed(1)},${(h - 4 - (v - lo) / span * (h - 8)).toFixed(1)}`).join(" ");
-  // numbers only go into the markup; the HTML parser puts <svg> in the SVG namespace by itself
-  const box = el("div", { class: "spark-box" });
-  box.innerHTML = `<svg viewBox="0 0 ${w} ${h}" class="spark" role="img" aria-label="temperature ${fmt(lo, 1)} to ${fmt(hi, 1)} °C">`
-    + `<polyline points="${pts}"></polyline></svg>`;
-  box.append(el("span", { class: "muted" }, `${fmt(lo, 1)}–${fmt(hi, 1)} °C`));
-  return box;
-}
-
-function clock(sec) {
-  if (sec === null || sec === undefined || Number.isNaN(Number(sec))) return "–";
-  const s = Math.max(0, Math.round(Number(sec)));
-  const h = Math.floor(s / 3600), m = Math.floor((s % 3600) / 60), r = s % 60;
-  return (h ? h + ":" + String(m).padStart(2, "0") : String(m)) + ":" + String(r).padStart(2, "0");
-}
-
-// Which slot goes to which tray: one row per tray, the slots in it.
-function renderSorting(b) {
-  const box = $("sorting");
-  const list = S.sorting || [];
-  box.classList.toggle("hidden", !list.length);
-  if (!list.length) return;
-  const trays = new Map();
-  for (const e of list) {
-    const key = e.tray || e.grade || e.verdict;
-    if (!trays.has(key)) trays.set(key, []);
-    trays.get(key).push(e);
-  }
-  const rank = { pass: 0, marginal: 1, fail: 2, error: 3 };
-  const rows = [...trays.entries()].sort((a, b2) => (rank[a[1][0].verdict] - rank[b2[1][0].verdict]) || a[0].localeCompare(b2[0]));
-  $("trays").replaceChildren(...rows.map(([tray, es]) => el("div", { class: "tray-row v-" + es[0].verdict, "data-tray": tray },
-    el("div", { class: "tray-name" }, tray),
-    el("div", { class: "tray-slots" }, ...es.map((e) => el("span", { class: "tray-slot", "data-slot": e.slot, title: e.reason || "" },
-      e.slot, el("small", {}, " " + (e.serial || ""))))))));
-  const d = (b && b.decision && b.decision.verdicts) || {};
-  $("yield-line").textContent = `${d.pass || 0} pass · ${d.marginal || 0} marginal · ${d.fail || 0} fail · ${d.error || 0} error`;
-}
-
-function axesOf(o) {
-  if (!o || typeof o !== "object") return null;
-  if (o.axes && o.axes.x) return o.axes;
-  if (o.x) return o;
-  return null;
-}
-
-// A result in one shape: {axes: {x,y,z}, method, streaming: {x,y,z} | null, sfem}
-function liveResult(ev) {
-  const th = ev.thermal || {};
-  return { axes: axesOf(th), method: th.axes_method || "offline", streaming: axesOf(th.streaming), sfem: ev.sfem };
-}
-
-function storedResult(run) {
-  const by = run.thermal_by_method || {};
-  return { axes: axesOf(run.thermal), method: run.thermal_method, streaming: axesOf(by.streaming), sfem: run.sfem };
-}
-
-// A positive TDSF is clamped to 0 by the method (martinez2022): it was not observable in this run.
-// A bare "0.0" would read as a measured zero, so the cell says so, as the API (tdsf_clamped) and
-// the certificate do.
-function tdsfCell(a) {
-  if (!a.tdsf_clamped) return el("td", { class: "tdsf" }, fmt(a.tdsf_ppm_per_c, 1));
-  return el("td", { class: "tdsf clamped", title: "positive TDSF clamped to 0: not observable in this run" },
-    fmt(a.tdsf_ppm_per_c, 1) + " ", el("span", { class: "clamped-flag" }, "(clamped: not observable)"));
-}
-
-function resultTable(result) {
-  const wrap = el("div", { class: "result" });
-  if (result.axes) {
-    const rows = ["x", "y", "z"].map((ax) => {
-      const a = result.axes[ax] || {};
-      return el("tr", { "data-axis": ax }, el("td", {}, ax), el("td", { class: "tdb" }, fmt(a.tdb_mg_per_c, 3)),
-        tdsfCell(a));
-    });
-    wrap.append(el("table", { class: "results" },
-      el("thead", {}, el("tr", {}, el("th", {}, "axis"), el("th", {}, "TDB mg/°C"), el("th", {}, "TDSF ppm/°C"))),
-      el("tbody", {}, ...rows)));
-    let note = (result.method || "") + (result.method === "offline" ? " fit" : "");
-    if (result.streaming && result.method !== "streaming") {
-      note += " · streaming TDB " + ["x", "y", "z"].map((ax) => fmt((result.streaming[ax] || {}).tdb_mg_per_c, 3)).join(" / ");
-    }
-    wrap.append(el("div", { class: "method" }, note));
-  }
-  if (result.sfem) {
-    const sf = result.sfem;
-    const t = (sf.temperatures && sf.temperatures[0] && sf.temperatures[0].fit) || sf.fit || sf;
-    wrap.append(el("div", { class: "sfem" }, `SFEM: RMSE ${fmt(t.rmse_before_mg, 2)} → ${fmt(t.rmse_after_mg, 2)} mg`));
-  }
-  return wrap;
+function setLamp(on, state) {
+  // state 'unknown': the relay does not answer, the lamp may be on whatever was commanded.
+  const unknown = state === "unknown";
+  $("lamp").textContent = unknown ? "UNKNOWN" : (on ? "ON" : "OFF");
+  $("lamp").className = "chip " + (unknown ? "lamp-unknown" : (on ? "lamp-on" : "lamp-off"));
+  $("lamp").title = unknown ? "lamp relay not answering: lamp state unknown" : "";
+  $("batch-panel").classList.toggle("lamp-alert", unknown || !!on);  // still shown after the end
 }
 
 // Program and verify (design 4): programmed (CRC read back), compensation on, verified E per axis.
@@ -274,69 +158,14 @@ function programVerifyTable(p, v) {
   return wrap;
 }
 
-function showPlot(url) {
-  $("plot-img").src = url;
-  $("plot-dialog").showModal();
-}
-
-// The plot of THIS slot's run in this batch (by run id, from the batch status): never the serial's
-// latest run, so an interrupted or faulted DUT shows its own data.
-async function loadPlot(slot) {
-  const s = slotState(slot);
-  if (!s.runId || s.plotUrl || s.plotLoading) return;
-  s.plotLoading = true;
-  try {
-    const run = await api(`/api/runs/${s.runId}`);
-    // Not stored to its end yet (samples, state, result still being written): the next poll retries,
-    // so the card never keeps a plot of half a run. A run's end is stored after its result.
-    if (!run.finished_at) return;
-    if (run.thermal || run.sfem) s.result = storedResult(run);
-    s.plotAlt = `plot of ${s.serial || slot} run ${s.runId} (${run.state})`;
-    s.plotUrl = await blobUrl(s.plotPath || `/api/runs/${s.runId}/plot.png`);
-    renderSlots();
-  } catch (e) { /* retried on the next poll */ } finally { s.plotLoading = false; }
-}
-
-// The chosen profile in words: its description, step count, and what it yields.
-function describeProfile() {
-  const p = S.profiles && S.profiles.get($("profile").value);
-  const box = $("profile-desc");
-  if (!box) return;
-  if (!p) { box.textContent = ""; return; }
-  const yields = { thermal: "TDB/TDSF calibration result", sfem: "SFEM result", none: "no calibration result (logs data only)" };
-  box.textContent = `${p.description || p.name} · ${p.n_steps ?? "?"} steps · ${yields[p.analysis] || p.analysis || ""}`;
-}
-
-// ---- batch -----------------------------------------------------------------------------------
-function setBatch(id) {
-  S.batchId = id;
-  if (id) localStorage.setItem("station.batch", String(id)); else localStorage.removeItem("station.batch");
-  if (!id) { S.batchSlots = null; S.finalBatch = true; }
-  $("batch-panel").classList.toggle("hidden", !id);
-  $("batch-id").textContent = id || "";
-  showControls();
-}
-
-function showControls() {
-  $("start-panel").classList.toggle("hidden", !(S.finalBatch && canControl()));
-  $("abort").classList.toggle("hidden", S.finalBatch || !canControl());
-  $("new-batch").classList.toggle("hidden", !S.finalBatch || !S.batchId || !canControl());
-}
-
-function setLamp(on, state) {
-  // state 'unknown': the relay does not answer, the lamp may be on whatever was commanded.
-  const unknown = state === "unknown";
-  $("lamp").textContent = unknown ? "UNKNOWN" : (on ? "ON" : "OFF");
-  $("lamp").className = "chip " + (unknown ? "lamp-unknown" : (on ? "lamp-on" : "lamp-off"));
-  $("lamp").title = unknown ? "lamp relay not answering: lamp state unknown" : "";
-}
-
-function applyBatch(b) {
+function applyBatch(b, askedAt = Infinity) {
   $("batch-profile").textContent = b.profile || "";
   $("batch-state").textContent = b.state;
   $("batch-state").dataset.state = b.state;
-  S.stepCount = (b.step && b.step.count) || S.stepCount;
-  if (b.step && b.step.index !== null && b.step.index !== undefined) {
+  $("batch-trace-text").textContent = traceText(b);
+  $("batch-trace").classList.toggle("hidden", !traceText(b));
+  S.stepCount = (b.step && b.step.count) || (Array.isArray(b.steps) && b.steps.length) || S.stepCount;
+  if (b.step && b.step.index !== null && b.step.index !== undefined && b.step.index >= 0) {  // -1: boards still connecting
     $("batch-step").textContent = `${b.step.index + 1} / ${b.step.count ?? "?"} · ${b.step.name ?? ""}`;
   }
   if (b.lamp_on !== undefined) setLamp(b.lamp_on, b.lamp_state);
@@ -349,7 +178,9 @@ function applyBatch(b) {
   const counts = { running: 0, done: 0, faulted: 0 };
   for (const sl of b.slots || []) {
     const s = slotState(sl.slot);
-    for (const k of ["serial", "state", "segments", "samples", "sensor", "program", "verification", "steps_done"]) if (sl[k] !== null && sl[k] !== undefined) s[k] = sl[k];
+    for (const k of ["serial", "state", "segments", "samples", "sensor", "program", "verification", "steps_done", "label_serial"]) {
+      if (sl[k] !== null && sl[k] !== undefined) s[k] = sl[k];
+    }
     s.waiting_for = sl.waiting_for || null;
     if (sl.run_id && sl.run_id !== s.runId) { s.runId = sl.run_id; delete s.plotUrl; delete s.result; }
     s.plotPath = sl.plot_url || null;
@@ -372,118 +203,45 @@ function applyBatch(b) {
   $("batch-counts").textContent = `${c.running || 0} running · ${c.done || 0} done · ${c.faulted || 0} faulted`
     + (c.interrupted ? ` · ${c.interrupted} interrupted` : "");
   S.finalBatch = FINAL.has(b.state);
+  S.retestable = S.finalBatch && (b.slots || []).some((sl) => sl.verdict === "fail" || sl.verdict === "error");
   const left = b.time_left || {};
   $("step-left").textContent = S.finalBatch ? "–" : clock(left.step_wall_s);
   $("batch-left").textContent = S.finalBatch ? "–" : clock(left.batch_wall_s);
   for (const id of ["time-left-step", "time-left-batch"]) $(id).classList.toggle("hidden", S.finalBatch);
+  renderSteps(b);
+  renderProgress(b, S.finalBatch);
   S.sorting = b.sorting || [];
   renderSorting(b);
   showControls();
-  if (b.prompt && b.prompt.prompt_id !== undefined) showPrompt(b.prompt);
-  else hidePrompt();
+  if (b.prompt && promptId(b.prompt) !== undefined) showPrompt(b.prompt);
+  else if (!S.prompt || askedAt > S.promptShownAt) hidePrompt();  // a status asked before the prompt came says nothing of it
+  if (S.lastState && !FINAL.has(S.lastState) && S.finalBatch) attention("end");  // seen ending, not an old batch
+  S.lastState = b.state;
   renderSlots();
 }
 
 async function pollBatch() {
   if (!S.batchId) return;
+  const id = S.batchId;
   try {
-    applyBatch(await api(`/api/batches/${S.batchId}`));
+    const askedAt = performance.now();
+    const b = await api(`/api/batches/${id}`);
+    if (id === S.batchId) applyBatch(b, askedAt);  // a batch started meanwhile wins
   } catch (e) {
     if (e.status === 404) setBatch(null);
     else message(e.message);
   }
 }
 
-function pickAll(on) { for (const i of document.querySelectorAll("#slot-picks input")) i.checked = on; }
-
-async function startBatch() {
-  const picks = [...document.querySelectorAll("#slot-picks input:checked")].map((i) => i.value);
-  const all = document.querySelectorAll("#slot-picks input").length;
-  const body = {
-    profile: $("profile").value,
-    operator: $("operator").value.trim() || "operator",
-    slots: picks.length === all ? null : picks,
-  };
-  if (body.slots && !body.slots.length) { message("Choose at least one slot."); return; }
-  localStorage.setItem("station.operator", body.operator);
-  $("start").disabled = true;
-  try {
-    const r = await api("/api/batches", { method: "POST", body });
-    for (const s of S.slots.values()) {
-      delete s.result; delete s.plotUrl; delete s.temp_c; delete s.acc_g; delete s.tempHist; delete s.program; delete s.verification;
-      delete s.runId; delete s.plotPath; delete s.waiting_for; s.steps_done = 0;
-      for (const k of VERDICT_FIELDS) s[k] = null;
-      s.segments = 0; s.samples = 0; s.error = "";
-    }
-    S.batchSlots = body.slots || [...S.slots.keys()];
-    S.finalBatch = false;
-    setBatch(r.id);
-    message("");
-    await pollBatch();
-  } catch (e) {
-    message("Could not start: " + e.message);
-  } finally {
-    $("start").disabled = false;
-  }
-}
-
-// Abort takes two taps (no blocking browser dialog on a kiosk): the first arms the button for 4 s.
-let abortArmed = null;
-
-function disarmAbort() {
-  clearTimeout(abortArmed);
-  abortArmed = null;
-  $("abort").classList.remove("armed");
-  $("abort").textContent = "Abort";
-}
-
-async function abortBatch() {
-  if (!S.batchId) return;
-  if (!abortArmed) {
-    $("abort").classList.add("armed");
-    $("abort").textContent = "Tap again to abort";
-    abortArmed = setTimeout(disarmAbort, 4000);
-    return;
-  }
-  disarmAbort();
-  try {
-    await api(`/api/batches/${S.batchId}/abort`, { method: "POST" });
-    message(`Batch ${S.batchId} aborted.`);
-    await pollBatch();
-  } catch (e) { message("Abort failed: " + e.message); }
-}
-
-// ---- prompts ---------------------------------------------------------------------------------
-function showPrompt(p) {
-  if (S.prompt && S.prompt.prompt_id === p.prompt_id && !$("prompt-banner").classList.contains("hidden")) return;
-  S.prompt = p;
-  $("prompt-text").textContent = p.text;
-  $("prompt-banner").classList.remove("hidden");
-  $("prompt-confirm").disabled = !canControl();
-}
-
-function hidePrompt() {
-  S.prompt = null;
-  $("prompt-banner").classList.add("hidden");
-}
-
-async function confirmPrompt() {
-  if (!S.prompt || !S.batchId) return;
-  $("prompt-confirm").disabled = true;
-  try {
-    await api(`/api/batches/${S.batchId}/prompt`, {
-      method: "POST", body: { prompt_id: S.prompt.prompt_id, answer: "done" },
-    });
-    hidePrompt();
-  } catch (e) {
-    message("Confirm failed: " + e.message);
-    $("prompt-confirm").disabled = false;
-  }
-}
-
 // ---- live events -----------------------------------------------------------------------------
 function onEvent(ev) {
-  if (ev.kind === "BatchStateChanged" && ev.state === "running" && !S.batchId) { setBatch(ev.batch_id); S.finalBatch = false; pollBatch(); }
+  // a batch that starts (here, elsewhere, a retest) takes the page over from an ended one
+  if (ev.kind === "BatchStateChanged" && ev.state === "running" && ev.batch_id !== S.batchId
+      && (!S.batchId || (S.finalBatch && ev.batch_id > S.batchId))) {
+    if (S.batchId) clearSlotsForNewBatch();
+    S.formOpen = false; S.lastState = null;
+    setBatch(ev.batch_id); S.finalBatch = false; pollBatch();
+  }
   if (ev.batch_id !== undefined && ev.batch_id !== S.batchId && ev.kind !== "LiveSummary" && ev.kind !== "Snapshot") return;
   switch (ev.kind) {
     case "Snapshot":
@@ -520,6 +278,7 @@ function onEvent(ev) {
     }
     case "StepStarted":
       $("batch-step").textContent = `${ev.step_index + 1} / ${S.stepCount ?? "?"} · ${ev.step_name}`;
+      pollBatch();  // the step list and progress move on now, not at the next poll
       break;
     case "DutResult": {
       const s = slotState(ev.slot);
@@ -532,7 +291,7 @@ function onEvent(ev) {
     case "DutProgrammed": slotState(ev.slot).program = ev.program; break;
     case "DutVerified": slotState(ev.slot).verification = ev.verification; break;
     case "PromptRaised": showPrompt(ev); break;
-    case "PromptAnswered": if (S.prompt && S.prompt.prompt_id === ev.prompt_id) hidePrompt(); break;
+    case "PromptAnswered": if (S.prompt && promptId(S.prompt) === ev.prompt_id) hidePrompt(); break;
     case "LampChanged": setLamp(ev.on); break;
     case "BatchStateChanged":
       $("batch-state").textContent = ev.state;
@@ -575,7 +334,7 @@ async function search() {
   } catch (e) { list.append(el("p", { class: "error" }, e.message)); }
 }
 
-function when(iso) { return iso ? new Date(iso).toLocaleString() : "–"; }
+function localTime(iso) { return iso ? new Date(iso).toLocaleString() : "–"; }
 
 let showDutSeq = 0;
 
@@ -605,7 +364,7 @@ async function showDut(serial) {
       const info = el("div", {},
         el("h3", {}, `Run ${r.id} · ${r.state ?? ""}`),
         el("div", { class: "muted" }, `batch ${r.batch_id ?? "–"} · slot ${r.slot ?? "–"} · ${r.profile ?? ""}`),
-        el("div", { class: "muted" }, `${when(r.started_at)} → ${when(r.finished_at)}`),
+        el("div", { class: "muted" }, `${localTime(r.started_at)} → ${localTime(r.finished_at)}`),
         r.verdict ? el("div", { class: "run-verdict v-" + r.verdict, "data-verdict": r.verdict },
           `${VERDICT_WORD[r.verdict] || r.verdict}${r.grade ? " · grade " + r.grade : ""} · attempt ${r.attempt ?? "?"}`
           + (r.reason ? " · " + r.reason : "") + (r.limits_name ? ` · limits ${r.limits_name} v${r.limits_version}` : "")) : null,
@@ -637,20 +396,23 @@ function showView(name) {
 async function boot() {
   $("auth").classList.toggle("hidden", !!S.token);
   $("whoami").replaceChildren();
-  if (!S.token) { $("auth-msg").textContent = "Sign in with your token to operate the station."; return; }
+  if (!S.token) {
+    $("auth-msg").textContent = "Sign in with your token to operate the station.";
+    setBatch(null);
+    $("batch-panel").classList.add("hidden");
+    return;
+  }
   try {
     const me = await api("/api/me");
     S.role = me.role;
-    $("whoami").replaceChildren(`${me.name} (${me.role})`,
-      el("button", { type: "button", class: "btn small", onclick: signOut }, "Sign out"));
+    $("whoami").replaceChildren(el("span", { class: "who-name", title: `${me.name} (${me.role})` }, `${me.name} (${me.role})`),
+      el("button", { type: "button", class: "btn small", id: "sign-out", onclick: signOut }, "Sign out"));
     const [profiles, slots, batches] = await Promise.all([api("/api/profiles"), api("/api/slots"), api("/api/batches?limit=1")]);
     const sel = $("profile");
     sel.replaceChildren(...profiles.map((p) => el("option", { value: p.name }, p.description ? `${p.name} — ${p.description}` : p.name)));
     S.profiles = new Map(profiles.map((p) => [p.name, p]));
     describeProfile();
-    const picks = $("slot-picks");
-    picks.replaceChildren(...slots.map((s) => el("label", { class: "slot-pick" },
-      el("input", { type: "checkbox", value: s.slot, checked: s.state !== "faulted" && s.state !== "disconnected" ? "checked" : null }), s.slot)));
+    renderSlotPicks(slots);
     S.order = slots.map((s) => s.slot);
     for (const s of slots) {
       const st = slotState(s.slot);
@@ -659,7 +421,8 @@ async function boot() {
       st.state = s.state;
       st.error = s.fault_reason || "";
     }
-    if (!S.batchId && batches.length && !FINAL.has(batches[0].state)) S.batchId = batches[0].id;
+    // the newest batch, ended ones too: after a reload its verdicts and sorting are still on top
+    if (batches.length) S.batchId = batches[0].id;
     message("");
   } catch (e) {
     if (e.status === 401) {
@@ -681,26 +444,8 @@ async function boot() {
 document.addEventListener("DOMContentLoaded", () => {
   $("save-token").addEventListener("click", saveToken);
   $("token").addEventListener("keydown", (e) => { if (e.key === "Enter") saveToken(); });
-  $("start").addEventListener("click", startBatch);
-  $("profile").addEventListener("change", describeProfile);
-  $("abort").addEventListener("click", abortBatch);
-  $("pick-all").addEventListener("click", () => pickAll(true));
-  $("pick-none").addEventListener("click", () => pickAll(false));
-  $("new-batch").addEventListener("click", () => {
-    setBatch(null);
-    for (const s of S.slots.values()) {
-      delete s.result; delete s.plotUrl; delete s.tempHist; s.segments = 0; s.error = "";
-      delete s.runId; delete s.plotPath; delete s.waiting_for; s.steps_done = 0;
-      for (const k of VERDICT_FIELDS) s[k] = null;
-    }
-    S.sorting = [];
-    renderSorting(null);
-    api("/api/slots").then((slots) => { for (const s of slots) slotState(s.slot).state = s.state; renderSlots(); }).catch(() => {});
-  });
-  $("prompt-confirm").addEventListener("click", confirmPrompt);
   $("search-go").addEventListener("click", search);
   $("search").addEventListener("keydown", (e) => { if (e.key === "Enter") search(); });
   for (const t of document.querySelectorAll(".tab")) t.addEventListener("click", () => showView(t.dataset.view));
-  $("operator").value = localStorage.getItem("station.operator") || "";
   boot();
 });

@@ -1,0 +1,213 @@
+// Starting a batch: who runs it, what is tested (work order, part, revision, lot) and the serial on
+// each part's label, typed or scanned. Barcode scanners type like a keyboard and end with Enter, so
+// Enter in a field moves to the next field and never starts a batch by accident; only the Start
+// button does. The operator's name is required and is a person's, not the station's: it lives in
+// memory and sessionStorage only and is forgotten on sign-out (a shared kiosk must not hand the last
+// name to the next person). Also Retest failed and Abort. Uses app.js (S, el, $, api, message,
+// setBatch, pollBatch, showControls).
+"use strict";
+
+const TRACE_FIELDS = [["work-order", "work_order"], ["part-number", "part_number"], ["part-revision", "part_revision"], ["lot", "lot"]];
+
+function operatorName() { return (S.operator || "").trim(); }
+
+function setOperator(name, typing = false) {
+  S.operator = (name || "").trim();
+  if (S.operator) sessionStorage.setItem("station.operator", S.operator);
+  else sessionStorage.removeItem("station.operator");
+  if (!typing && $("operator").value.trim() !== S.operator) $("operator").value = S.operator;
+  $("operator").classList.remove("invalid");
+  $("operator").removeAttribute("aria-invalid");
+  if (S.operator && $("message").textContent.startsWith("Operator name required")) message("");
+}
+
+// Sign-out (and an old page's stored name): nothing of the person stays in the browser.
+function forgetOperator() {
+  S.operator = "";
+  sessionStorage.removeItem("station.operator");
+  localStorage.removeItem("station.operator");  // the old page kept the last name here for the next person
+  $("operator").value = "";
+}
+
+function requireOperator(what) {
+  const name = operatorName() || $("operator").value.trim();
+  if (name) { setOperator(name); return name; }
+  $("operator").classList.add("invalid");
+  $("operator").setAttribute("aria-invalid", "true");
+  message(`Operator name required to ${what}: type your name or scan your badge in the Operator field.`);
+  return "";
+}
+
+// The chosen profile in words: its description, step count, and what it yields.
+function describeProfile() {
+  const p = S.profiles && S.profiles.get($("profile").value);
+  const box = $("profile-desc");
+  if (!box) return;
+  if (!p) { box.textContent = ""; return; }
+  const yields = { thermal: "TDB/TDSF calibration result", sfem: "SFEM result", none: "no calibration result (logs data only)" };
+  box.textContent = `${p.description || p.name} · ${p.n_steps ?? "?"} steps · ${yields[p.analysis] || p.analysis || ""}`;
+}
+
+// One row per slot: the tick box and the label serial of the part in it.
+function renderSlotPicks(slots) {
+  $("slot-picks").replaceChildren(...slots.map((s) => {
+    const on = s.state !== "faulted" && s.state !== "disconnected";
+    const label = el("input", { type: "text", class: "label-serial scan", "data-slot": s.slot, maxlength: "64", autocomplete: "off",
+      placeholder: "label serial", "aria-label": `label serial of the part in ${s.slot}`, disabled: on ? null : "disabled" });
+    const box = el("input", { type: "checkbox", value: s.slot, checked: on ? "checked" : null,
+      onchange: () => { label.disabled = !box.checked; } });
+    return el("div", { class: "slot-row" }, el("label", { class: "slot-pick" }, box, s.slot), label);
+  }));
+}
+
+function pickAll(on) {
+  for (const i of document.querySelectorAll("#slot-picks input[type=checkbox]")) {
+    i.checked = on;
+    i.dispatchEvent(new Event("change"));
+  }
+}
+
+// The scan order: operator, work order, part, revision, lot, then the chosen slots' labels, then Start.
+function scanOrder() {
+  return [$("operator"), ...TRACE_FIELDS.map(([id]) => $(id)),
+    ...document.querySelectorAll("#slot-picks input.label-serial:not(:disabled)"), $("start")];
+}
+
+function onScanKey(e) {
+  if (e.key !== "Enter" || !e.target.classList.contains("scan")) return;
+  e.preventDefault();  // a scanner's Enter is the end of a code, never "start the batch"
+  if (e.target.id === "operator") setOperator(e.target.value);
+  const order = scanOrder();
+  const next = order[order.indexOf(e.target) + 1];
+  if (next) { next.focus(); if (next.select) next.select(); }
+}
+
+function startBody(picks, all) {
+  const body = { profile: $("profile").value, operator: operatorName(), slots: picks.length === all ? null : picks };
+  for (const [id, key] of TRACE_FIELDS) body[key] = $(id).value.trim();
+  const labels = {};
+  for (const i of document.querySelectorAll("#slot-picks input.label-serial:not(:disabled)")) {
+    if (i.value.trim()) labels[i.dataset.slot] = i.value.trim();
+  }
+  body.labels = labels;
+  return body;
+}
+
+// What the page forgets of the last batch when a new one starts on the same slots.
+function clearSlotsForNewBatch() {
+  for (const s of S.slots.values()) {
+    delete s.result; delete s.plotUrl; delete s.temp_c; delete s.acc_g; delete s.tempHist; delete s.program; delete s.verification;
+    delete s.runId; delete s.plotPath; delete s.waiting_for; delete s.label_serial; s.steps_done = 0;
+    for (const k of VERDICT_FIELDS) s[k] = null;
+    s.segments = 0; s.samples = 0; s.error = "";
+  }
+}
+
+async function began(id, slots) {
+  clearSlotsForNewBatch();
+  S.batchSlots = slots;
+  S.finalBatch = false;
+  S.formOpen = false;
+  S.lastState = null;
+  setBatch(id);
+  message("");
+  await pollBatch();
+  refreshSlotStates();  // a slot left out of this batch shows its own state, not the last batch's
+}
+
+function refreshSlotStates() {
+  return api("/api/slots").then((slots) => {
+    for (const s of slots) if (!inBatch(s.slot)) slotState(s.slot).state = s.state;
+    renderSlots();
+  }).catch(() => {});
+}
+
+async function startBatch() {
+  const picks = [...document.querySelectorAll("#slot-picks input[type=checkbox]:checked")].map((i) => i.value);
+  const all = document.querySelectorAll("#slot-picks input[type=checkbox]").length;
+  if (!requireOperator("start a batch")) { $("operator").focus(); return; }
+  const body = startBody(picks, all);
+  if (body.slots && !body.slots.length) { message("Choose at least one slot."); return; }
+  $("start").disabled = true;
+  try {
+    const r = await api("/api/batches", { method: "POST", body });
+    for (const i of document.querySelectorAll("#slot-picks input.label-serial")) i.value = "";  // the next parts have other labels
+    await began(r.id, body.slots || [...S.slots.keys()]);
+  } catch (e) {
+    message("Could not start: " + e.message);
+  } finally {
+    $("start").disabled = false;
+  }
+}
+
+// Retest only the failed and error slots of the ended batch (same profile, work order, part, lot,
+// labels): the station builds it from the stored batch (POST /api/batches/{id}/retest).
+async function retestFailed() {
+  if (!S.batchId || !S.finalBatch) return;
+  if (!requireOperator("retest")) { openStartForm(); $("operator").focus(); return; }
+  $("retest").disabled = true;
+  try {
+    const r = await api(`/api/batches/${S.batchId}/retest`, { method: "POST", body: { operator: operatorName() } });
+    await began(r.id, null);
+  } catch (e) {
+    message("Could not retest: " + e.message);
+  } finally {
+    $("retest").disabled = false;
+  }
+}
+
+// "New batch": the form opens above the ended batch, whose verdicts stay below until Start.
+function openStartForm() {
+  S.formOpen = true;
+  showControls();
+  refreshSlotStates();
+  window.scrollTo(0, 0);
+  (operatorName() ? $("work-order") : $("operator")).focus();
+}
+
+function closeStartForm() {
+  S.formOpen = false;
+  showControls();
+}
+
+// Abort takes two taps (no blocking browser dialog on a kiosk): the first arms the button for 4 s.
+let abortArmed = null;
+
+function disarmAbort() {
+  clearTimeout(abortArmed);
+  abortArmed = null;
+  $("abort").classList.remove("armed");
+  $("abort").textContent = "Abort";
+}
+
+async function abortBatch() {
+  if (!S.batchId) return;
+  if (!abortArmed) {
+    $("abort").classList.add("armed");
+    $("abort").textContent = "Tap again to abort";
+    abortArmed = setTimeout(disarmAbort, 4000);
+    return;
+  }
+  disarmAbort();
+  try {
+    await api(`/api/batches/${S.batchId}/abort`, { method: "POST" });
+    message(`Batch ${S.batchId} aborted.`);
+    await pollBatch();
+  } catch (e) { message("Abort failed: " + e.message); }
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  localStorage.removeItem("station.operator");
+  S.operator = sessionStorage.getItem("station.operator") || "";
+  $("operator").value = S.operator;
+  $("operator").addEventListener("input", () => setOperator($("operator").value, true));
+  $("start-panel").addEventListener("keydown", onScanKey);
+  $("start").addEventListener("click", startBatch);
+  $("profile").addEventListener("change", describeProfile);
+  $("pick-all").addEventListener("click", () => pickAll(true));
+  $("pick-none").addEventListener("click", () => pickAll(false));
+  $("new-batch").addEventListener("click", openStartForm);
+  $("start-cancel").addEventListener("click", closeStartForm);
+  $("retest").addEventListener("click", retestFailed);
+  $("abort").addEventListener("click", abortBatch);
+});
