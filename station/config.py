@@ -105,7 +105,8 @@ class Timing(_Model):
     """Wall-clock supervision of the links (not the science, which runs on sample time)."""
 
     speed: float = Field(default=1.0, gt=0, description="plant time per wall second: 1 on real hardware")
-    stall_timeout_s: float = Field(default=10.0, gt=0, description="wall seconds without samples -> slot faulted")
+    stall_timeout_s: float = Field(default=10.0, gt=0, description="wall seconds the station listened without a sample -> slot faulted "
+                                   "(not while the program step has the streams stopped; a held-up loop counts as one read)")
     identify_timeout_s: float = Field(default=3.0, gt=0)
     fixture_timeout_s: float = Field(default=120.0, gt=0, description="wall seconds for a fixture move")
     read_period_s: float = Field(default=0.1, gt=0, le=5, description="wall seconds between block reads")

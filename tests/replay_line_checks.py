@@ -55,9 +55,10 @@ def assert_tight_limits_name_the_changed_verdicts(url: str, batch: int, folder: 
     judged = {s["serial"]: s["verdict"] for s in recorded["slots"].values()}
     expect = sorted(s for s, v in judged.items() if v in ("pass", "marginal"))
     assert expect, judged
-    assert p.returncode == 1, p.stdout + p.stderr
+    notes = "\n".join(f"{d['slot']}: {d['note']}" for d in (diff or {}).get("duts", []))
+    assert p.returncode == 1, p.stdout + p.stderr + notes
     for serial in expect:
-        assert f"verdict changed: {serial} {judged[serial]} -> fail" in p.stdout, p.stdout
+        assert f"verdict changed: {serial} {judged[serial]} -> fail" in p.stdout, p.stdout + notes
     named = sorted(v["serial"] for v in diff["summary"]["verdicts_changed"])
     assert named == expect, (named, judged)
     return diff

@@ -37,7 +37,6 @@ class DutRun:
     segment_steps: list[int] = field(default_factory=list)
     t0: float | None = None  # board time of the first sample in this batch
     last_t: float | None = None  # board time of the latest sample
-    last_wall: float = field(default_factory=time.monotonic)
     n_samples: int = 0
     step_t_start: float = -math.inf  # board time when the current step began logging
     step_facing: bool = True  # a static step's samples show its position (contracts.positions.first_facing)

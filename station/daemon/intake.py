@@ -3,7 +3,11 @@
 `pump` is one task per DUT: it reads blocks at a steady pace (big enough that the calibrator's
 batch update is cheap) until the batch releases its DUTs, and turns every link problem into a
 fault of this DUT alone, with the reason the operator reads: link lost, no samples for N s, only
-garbage (bad frames, no good one), a driver bug. `ingest` is what one block does: publish it (the
+garbage (bad frames, no good one), a driver bug. "No samples" counts only the time the board had
+the chance to send: not while the station itself has stopped the streams to program the boards,
+and not the time the station's own loop was held up (a slow database call, a long collection):
+each read adds at most `listen_cap_s` to the silence, so a host hiccup never faults a good board,
+and a dead board is still faulted after stall_timeout_s of listening. `ingest` is what one block does: publish it (the
 database writer stores it), keep it for the offline fit, feed the streaming calibrator and publish
 the segments it logs, and show the lamp guard the DUT's temperature.
 """
@@ -36,12 +40,16 @@ async def pump(st: Any, seq: Sequencer, d: DutRun) -> None:
     stats = drv.stats
     bad0 = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped
     ok0 = stats.frames_ok
+    read_timeout_s = max(period, 0.25)
+    cap_s = listen_cap_s(period)
+    silent_s = 0.0  # wall seconds this board had the chance to send and sent nothing
+    t_prev = time.monotonic()
     try:
         rt = st.batches.get(seq.batch_id)
         while d.live and not (rt is not None and rt.releasing):
             t_read = time.monotonic()
             try:
-                block = await drv.read_block(timeout_s=max(period, 0.25))
+                block = await drv.read_block(timeout_s=read_timeout_s)
             except DriverError as exc:
                 st.fault_dut(seq, d, f"{d.link}: link lost: {exc}")
                 await slot.close_driver()
@@ -54,9 +62,10 @@ async def pump(st: Any, seq: Sequencer, d: DutRun) -> None:
                 await slot.close_driver()
                 return
             now = time.monotonic()
+            chance_s, t_prev = min(now - t_prev, cap_s), now
             if len(block):
                 try:
-                    ingest(st, seq, d, block, now)
+                    ingest(st, seq, d, block)
                 except Exception as exc:  # noqa: BLE001 - same: this slot only, with a reason
                     log.exception("slot %s: processing a block from %s failed", d.slot, d.link)
                     st.fault_dut(seq, d, f"{d.link}: board data could not be processed: {type(exc).__name__}: {exc}")
@@ -64,15 +73,22 @@ async def pump(st: Any, seq: Sequencer, d: DutRun) -> None:
                     return
                 bad0 = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped
                 ok0 = stats.frames_ok
-            elif now - d.last_wall > timing.stall_timeout_s:
-                bad = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped - bad0
-                if bad > 0 and stats.frames_ok == ok0:
-                    reason = (f"{d.link}: only garbage for {now - d.last_wall:.1f} s "
-                              f"({bad} bad frames/bytes, no good frame)")
-                else:
-                    reason = f"{d.link}: no samples for {now - d.last_wall:.1f} s"
-                st.fault_dut(seq, d, reason)
-                return
+                silent_s = 0.0
+            elif seq.state == "programming":
+                # the program step stops every stream to write the calibration (program_verify.py);
+                # a board that does not answer there is faulted by the write, with that reason
+                silent_s = 0.0
+            else:
+                silent_s += chance_s
+                if silent_s > timing.stall_timeout_s:
+                    bad = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped - bad0
+                    if bad > 0 and stats.frames_ok == ok0:
+                        reason = (f"{d.link}: only garbage for {silent_s:.1f} s "
+                                  f"({bad} bad frames/bytes, no good frame)")
+                    else:
+                        reason = f"{d.link}: no samples for {silent_s:.1f} s"
+                    st.fault_dut(seq, d, reason)
+                    return
             # Pace the reads so that blocks are big enough to be cheap (update_batch).
             rest = period - (time.monotonic() - t_read)
             if rest > 0:
@@ -81,8 +97,14 @@ async def pump(st: Any, seq: Sequencer, d: DutRun) -> None:
         d.link_stats = stats.as_dict()
 
 
-def ingest(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock, now: float) -> None:
-    d.last_wall = now
+def listen_cap_s(read_period_s: float) -> float:
+    """The most one read may add to a board's silence: a read waits max(period, 0.25 s) and the
+    pump then sleeps out the period, so a turn longer than twice that plus half a second is the
+    station's own loop running late, not the board being quiet."""
+    return 2.0 * max(read_period_s, 0.25) + 0.5
+
+
+def ingest(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock) -> None:
     if d.resume_t is not None:
         # First block after a resume: a board whose clock restarted (CAN time is sample index /
         # ODR from our own count) is joined on one sample period after the stored stream.

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -133,7 +132,10 @@ async def connect_duts(st: Any, seq: Sequencer) -> None:
             return
         d.state = "identified"
         if d.run_id is None:
-            d.run_id = int(st.db.create_run(seq.batch_id, d.slot, ident.serial, ident.sensor, identity_dict(ident)))
+            # off the event loop: the insert may wait on the database's lock (the writer's commit,
+            # another station meeting the same serial) while the other slots stream
+            d.run_id = int(await asyncio.to_thread(st.db.create_run, seq.batch_id, d.slot, ident.serial, ident.sensor,
+                                                   identity_dict(ident)))
         if st.writer is not None:
             st.writer.bind_run(seq.batch_id, d.slot, d.run_id)
         mismatch = label_mismatch(d.label_serial, ident.serial)
@@ -161,7 +163,6 @@ async def connect_duts(st: Any, seq: Sequencer) -> None:
             fault_dut(st, seq, d, f"{d.link}: start failed: {exc}")
             return
         d.state = "running"
-        d.last_wall = time.monotonic()
         publish_dut(st, seq, d)
         rt.pumps[d.slot] = asyncio.get_running_loop().create_task(pump(st, seq, d), name=f"pump-{d.slot}")
 

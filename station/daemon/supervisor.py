@@ -244,6 +244,16 @@ class Station:
         its recorded plant by it, station/replay/runner.py)."""
         return {d.slot: d.n_samples for d in self._batch(batch_id).seq.duts if d.live}
 
+    def stop_pending(self, batch_id: int, slot: str) -> bool:
+        """True while the batch will still stop `slot`'s board to program it: its profile has a
+        program step the sequencer has not finished and the slot's DUT is live (cheap: a replay
+        holds a recorded stream at its program stop until then, station/replay/director.py)."""
+        seq = self._batch(batch_id).seq
+        ps = getattr(seq.profile, "program_step", None)
+        if ps is None or seq.state in TERMINAL or not any(d.slot == slot and d.live for d in seq.duts):
+            return False
+        return seq.step_index < ps or (seq.step_index == ps and seq.state == "programming")
+
     async def wait_batch(self, batch_id: int, timeout_s: float | None = None) -> dict:
         rt = self._batch(batch_id)
         await asyncio.wait_for(rt.seq.done.wait(), timeout_s)

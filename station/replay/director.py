@@ -14,8 +14,11 @@ the operator's abort, and the boards' streams.
   (contracts/recording.py answer_index); once every DUT is there and the daemon has taken in every sample sent,
   the prompt is answered and the records go on. A prompt the recording never answered (the
   recorded batch was aborted there, or the recording ends) stays open: the recording runs out.
-- A DUT whose record waits at its recorded program stop longer than HOLD_TIMEOUT_S without the
-  daemon stopping its board (another profile or config replayed) is let go, with a note.
+- A DUT whose record waits at its recorded program stop is held there for as long as the replaying
+  daemon will still stop its board (Station.stop_pending: its program step is ahead or running,
+  however long the analysis before the writes takes on a loaded machine). It is let go, with a
+  note, HOLD_TIMEOUT_S after the daemon no longer will (another profile or config replayed, the
+  DUT faulted), or after STOP_WAIT_MAX_S in any case.
 - When the recording is over and the recorded batch did not finish, the replay ends there too:
   the batch is aborted "where the recording ends", which the comparison reads as unchanged
   (runner.py), instead of a stalled daemon faulting slots or a lamp timer running on.
@@ -35,6 +38,7 @@ log = logging.getLogger(__name__)
 
 POLL_S = 0.02
 HOLD_TIMEOUT_S = 5.0  # wall seconds a hold may wait for what the daemon should do there
+STOP_WAIT_MAX_S = 300.0  # wall seconds a record waits at its program stop for a daemon still on its way there
 RECORDING_END = "the recording ends here"
 
 
@@ -52,7 +56,7 @@ class Director:
     async def run(self) -> None:
         """Until cancelled (the runner cancels it when the batch has ended)."""
         world = self.sim.world
-        stop_waits: dict[int, float] = {}
+        stop_waits: dict[int, list[float]] = {}
         while True:
             await asyncio.sleep(POLL_S)
             try:
@@ -86,11 +90,16 @@ class Director:
             return
         for i, k in holds.items():
             world.hold(i, k)
-        t0 = time.monotonic()
+        # wait while the streams still move towards the answer (a loaded machine is slow, not
+        # stuck); answer anyway once nothing moved for HOLD_TIMEOUT_S
+        t0, moved = time.monotonic(), None
         while not all(world.at_hold(i) for i in holds) or not self._taken_all():
+            now_moved = (tuple(world.next_index(i) for i in holds), self._taken())
+            if now_moved != moved:
+                t0, moved = time.monotonic(), now_moved
             if time.monotonic() - t0 > HOLD_TIMEOUT_S:
-                self.notes.append(f"prompt '{prompt['text']}': not every DUT reached the recorded answer in "
-                                  f"{HOLD_TIMEOUT_S:g} s; answered anyway")
+                self.notes.append(f"prompt '{prompt['text']}': not every DUT reached the recorded answer, and "
+                                  f"nothing moved for {HOLD_TIMEOUT_S:g} s; answered anyway")
                 break
             await asyncio.sleep(POLL_S)
         try:
@@ -114,6 +123,12 @@ class Director:
             self.notes.append(f"prompt '{prompt['text']}' answered at the recorded answer "
                               f"({d.slot}: sample {holds[ref]}, t = {float(d.time_s[holds[ref]]):.1f} s)")
 
+    def _taken(self) -> tuple:
+        try:
+            return tuple(sorted(self.station.samples_taken(self.batch_id).items()))
+        except KeyError:
+            return ()
+
     def _taken_all(self) -> bool:
         """The daemon has taken in every sample the replay boards have sent (live DUTs)."""
         try:
@@ -124,16 +139,23 @@ class Director:
         return all(taken.get(d.slot, world.sent[i]) >= world.sent[i] for i, d in enumerate(self.sim.ordered))
 
     # ---- program stops ------------------------------------------------------------------------
-    def _let_go_of_stops(self, world: Any, since: dict[int, float]) -> None:
+    def _let_go_of_stops(self, world: Any, waits: dict[int, list[float]]) -> None:
+        """waits[i] = [when DUT i began waiting at its stop, when the wait was last justified]."""
         now = time.monotonic()
         for i, d in enumerate(self.sim.ordered):
             if not world.waiting_for_stop(i):
-                since.pop(i, None)
+                waits.pop(i, None)
                 continue
-            t = since.setdefault(i, now)
-            if now - t > HOLD_TIMEOUT_S:
+            w = waits.setdefault(i, [now, now])
+            try:
+                pending = self.station.stop_pending(self.batch_id, d.slot)
+            except KeyError:
+                pending = False
+            if pending and now - w[0] <= STOP_WAIT_MAX_S:
+                w[1] = now
+            if now - w[1] > HOLD_TIMEOUT_S:
                 world.drop_stop(i)
-                since.pop(i, None)
+                waits.pop(i, None)
                 self.notes.append(f"{d.slot}: the replaying daemon did not stop the board where the recorded "
                                   f"one was stopped for programming (t = {d.restart_after_t:.1f} s): let go")
 
