@@ -112,6 +112,9 @@ def test_errors_and_auth(client):
     assert client.get("/api/runs/1/diagnosis").status_code == 401
     r = client.get("/api/runs/1/diagnosis", params={"add": "nonsense"}, headers=AUTH)
     assert r.status_code == 422 and "nonsense" in r.json()["detail"]
+    for blank in ("", " bias_t2"):  # the schema's enum: exact names only (schemathesis found `add=` accepted)
+        r = client.get("/api/runs/1/diagnosis", params={"add": blank}, headers=AUTH)
+        assert r.status_code == 422 and "unknown effect" in r.json()["detail"], (blank, r.text)
     assert client.get("/api/runs/2/diagnosis", headers=AUTH).status_code == 404
     assert client.get("/api/runs/99/diagnosis", headers=AUTH).status_code == 404
 

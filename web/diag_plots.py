@@ -153,8 +153,9 @@ class DiagnosisCache:
 
 
 def check_effects(add: list[str]) -> tuple[str, ...]:
-    """Validated, de-duplicated effect names (StationError names an unknown one)."""
-    out = tuple(dict.fromkeys(a.strip() for a in add if a.strip()))
+    """Validated, de-duplicated effect names (StationError names an unknown one). Exact names, as
+    the OpenAPI schema's enum says: an empty or padded `add=` is an error, not silently dropped."""
+    out = tuple(dict.fromkeys(add))
     for a in out:
         get_effect(a)
     return out
