@@ -185,17 +185,7 @@ class ReplayWorld:
                 parts.append(empty)
                 continue
             if not self.streaming_of(i):  # stopped: nothing measured, the record waits
-                stop = self._stop_at[i]
-                self._held[i] = True
-                self._stop_at[i] = None  # the recorded stop happened (here or a little earlier)
-                if stop is not None and a < stop and float(self._rel[i][stop] - self._rel[i][a]) <= FLUSH_MAX_S:
-                    # stopped before the recorded point: the recorded board's samples up to its stop
-                    # were already on their way when STOP took effect; they arrive now
-                    self._next[i] = stop
-                    parts.append(ReplayPart(d.time_s[a:stop], d.acc_counts[a:stop], d.temp_counts[a:stop],
-                                            self._seq[i][a:stop], flush=True))
-                    continue
-                parts.append(empty)
+                parts.append(self.stopped(i) or empty)
                 continue
             if self._held[i]:  # continue from where it stopped, at the current world time
                 s = self._start[i] = t0 - float(self._rel[i][a])
@@ -210,6 +200,24 @@ class ReplayWorld:
             if b > a:
                 self._temp_now[i] = float(d.identity.temp_c(d.temp_counts[b - 1:b])[0])
         return ReplayChunk(world_t, parts)
+
+    def stopped(self, i: int) -> ReplayPart | None:
+        """DUT i's board was told to STOP: its record waits here. Stopped before the recorded
+        point (the replaying daemon got there sooner), the recorded board's samples up to its
+        stop were already on their way when STOP took effect: they are returned (flush) to go out
+        at once, ahead of the STOP's reply, so the daemon has them before it writes, as the line
+        had (ReplayStation calls this from the board's STOP, not at the next plant advance, which
+        a busy daemon can hold back)."""
+        d, a, stop = self.duts[i], int(self._next[i]), self._stop_at[i]
+        if self._start[i] is None or a >= len(d):
+            return None
+        self._held[i] = True
+        self._stop_at[i] = None  # the recorded stop happened (here or a little earlier)
+        if stop is not None and a < stop and float(self._rel[i][stop] - self._rel[i][a]) <= FLUSH_MAX_S:
+            self._next[i] = stop
+            return ReplayPart(d.time_s[a:stop], d.acc_counts[a:stop], d.temp_counts[a:stop], self._seq[i][a:stop],
+                              flush=True)
+        return None
 
     def note_sent(self, i: int, part: ReplayPart) -> None:
         """What board i actually put on the wire (a board not streaming sends nothing)."""
@@ -293,10 +301,19 @@ class ReplayStation(SimStation):
 
     def _make_serial_board(self, i: int) -> SimSerialBoard:
         board = SimSerialBoard(self.world.identity(i), clock_bits=None)  # 64-bit clock: t_us as recorded
+        board.on_stop = lambda: self._on_stop(i)
         return _as_recorded(board, self.ordered[i])
 
     def _make_can_board(self, j: int, node: int) -> SimCanBoard:
-        return _as_recorded(super()._make_can_board(j, node), self.ordered[self.n_serial + j])
+        i = self.n_serial + j
+        board = super()._make_can_board(j, node)
+        board.on_stop = lambda: self._on_stop(i)
+        return _as_recorded(board, self.ordered[i])
+
+    def _on_stop(self, i: int) -> None:
+        part = self.world.stopped(i)  # type: ignore[attr-defined]
+        if part is not None:
+            self._send(i, part)
 
     def _deliver(self, chunk: Any) -> None:
         world: ReplayWorld = self.world  # type: ignore[assignment]
@@ -311,26 +328,30 @@ class ReplayStation(SimStation):
                 if on:
                     world.start_dut(i)
         for i, part in enumerate(chunk.parts):
-            if not len(part.time_s):
-                continue
-            board = self.board(i)
-            if getattr(board, "muted", False) or not (board.streaming or part.flush):
-                continue
-            was_streaming, board.streaming = board.streaming, True  # a flush goes out past the STOP
-            mask = 0xFF if isinstance(board, SimCanBoard) else 0xFFFFFFFF
-            # contiguous pieces between recorded gaps: the board skips the lost sequence numbers
-            cuts = np.flatnonzero(np.diff(part.seq) != 1) + 1
-            for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(part.seq)]):
-                board.seq = int(part.seq[a]) & mask
-                board.feed(part.time_s[a:b], part.acc_counts[a:b], part.temp_counts[a:b])
-            board.streaming = was_streaming
-            world.note_sent(i, part)
+            self._send(i, part)
         for i, d in enumerate(self.ordered):
             if d.unplugged_at_end and world.done(i) and i not in self._unplugged:
                 self._unplugged.add(i)  # as recorded: the link was lost where the record ends
                 self.board(i).disconnect()
         for cb in self._listeners:
             cb(chunk)
+
+    def _send(self, i: int, part: ReplayPart) -> None:
+        """Board i puts a part of its record on the wire (a flush even though it is stopped)."""
+        if not len(part.time_s):
+            return
+        board = self.board(i)
+        if getattr(board, "muted", False) or not (board.streaming or part.flush):
+            return
+        was_streaming, board.streaming = board.streaming, True  # a flush goes out past the STOP
+        mask = 0xFF if isinstance(board, SimCanBoard) else 0xFFFFFFFF
+        # contiguous pieces between recorded gaps: the board skips the lost sequence numbers
+        cuts = np.flatnonzero(np.diff(part.seq) != 1) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(part.seq)]):
+            board.seq = int(part.seq[a]) & mask
+            board.feed(part.time_s[a:b], part.acc_counts[a:b], part.temp_counts[a:b])
+        board.streaming = was_streaming
+        self.world.note_sent(i, part)  # type: ignore[attr-defined]
 
     def replay_slot_names(self) -> list[str]:
         return [d.slot for d in self.ordered]

@@ -164,6 +164,9 @@ class SimSerialBoard:
         self.frames_sent = 0
         self.cal = CalFirmware()
         self.power_cycles = 0
+        # called as STOP takes effect, before its ack: what was already on its way goes out first
+        # (a replay sends the recorded samples up to the recorded stop, drivers/sim/replay.py)
+        self.on_stop: Callable[[], None] | None = None
 
     # ---- lifecycle ------------------------------------------------------------------------
     def start(self) -> None:
@@ -229,6 +232,8 @@ class SimSerialBoard:
             self._send(sf.AckFrame("START").encode())
         elif cmd == "STOP":
             self.streaming = False
+            if self.on_stop is not None:
+                self.on_stop()
             self._send(sf.AckFrame("STOP").encode())
         elif cmd == "ODR":
             hz = float(frame.args[0])

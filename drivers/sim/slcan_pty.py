@@ -58,6 +58,7 @@ class SimCanBoard:
         self._corrupt = 0
         self.connected = True
         self.commands: list[bytes] = []
+        self.on_stop: Callable[[], None] | None = None  # as SimSerialBoard.on_stop
         self.frames_sent = 0
         self.cal = CalFirmware()
         self._fields: list[float | None] = [None] * cf.N_CAL_FIELDS
@@ -105,6 +106,8 @@ class SimCanBoard:
             self.streaming = True
         elif cmd == cf.CMD_STOP:
             self.streaming = False
+            if self.on_stop is not None:
+                self.on_stop()
         elif cmd == cf.CMD_IDENTIFY:
             for payload in cf.encode_identity(self.identity.serial, self.ug_per_lsb, self.odr_hz):
                 self._out(cf.IDENT_BASE + self.node_id, payload)
