@@ -49,6 +49,8 @@ VERIFIED = "fast-thermal-verified"
 # A plan that hangs is a broken cell with its own line, not a pytest timeout that loses the matrix:
 # every plan gets its batch timeout plus this much for the daemon's start, the end checks and close.
 PLAN_SLACK_S = 90.0
+MAX_LEAD_S = 300.0  # sample seconds the plant may run ahead of the daemon (Ctx.lead_pace); x3000 ticks are 150 s
+MAX_LEAD_HOLD_S = 10.0  # wall seconds one lead hold may last: a daemon that stopped taking samples is not waited for
 LIMITS = {"lamp_max_on_s": 9000.0}  # CI: wall x speed overstates the on-time (see test_program_verify_e2e)
 
 ROWS = [
@@ -189,6 +191,7 @@ class Ctx:
     plan: Plan
     mount: Path | None = None
     filler: Path | None = None
+    _lead_since: float | None = None
 
     def status(self) -> dict:
         return self.st.batch_status(self.bid)
@@ -198,6 +201,33 @@ class Ctx:
 
     def _seq(self) -> Any:
         return self.st.batches[self.bid].seq
+
+    def lead_pace(self) -> bool:
+        """Default SimStation.pace of a plan: hold the plant while it runs more than MAX_LEAD_S of
+        sample time ahead of a streaming serial DUT's newest sample in the daemon. A live plant at
+        x3000 on a loaded machine otherwise outruns the daemon by more than a static step's timeout
+        (762 s of sample time is 0.25 s of wall time): samples from before a fixture move use up
+        the step's timeout before the first one facing the new position arrives, and a healthy DUT
+        is faulted for it. A board the plan has cut off (closed, muted) or a DUT no longer live is
+        not waited for."""
+        seq = self._seq()
+        if seq.done.is_set():
+            return False
+        wall = time.monotonic()
+        if self._lead_since is not None and wall - self._lead_since > MAX_LEAD_HOLD_S:
+            self._lead_since = None
+            return False
+        now_s = self.sim.world.time_s
+        for d in seq.duts:
+            if not d.live or d.last_t is None or not d.slot.startswith("s"):
+                continue
+            board = self.sim.board(int(d.slot[1:]) - 1)
+            if board.connected and board.streaming and not getattr(board, "muted", False) \
+                    and now_s - d.last_t > MAX_LEAD_S:
+                self._lead_since = self._lead_since or wall
+                return True
+        self._lead_since = None
+        return False
 
     @contextlib.asynccontextmanager
     async def held_at(self, moment: Callable[[], bool], what: str, timeout_s: float = 120.0):
@@ -238,7 +268,7 @@ class Ctx:
                 await asyncio.sleep(0.02)
             yield
         finally:
-            self.sim.pace = None
+            self.sim.pace = self.lead_pace
 
     def at_step(self, index: int, min_samples: int = 0, timeout_s: float = 120.0):
         """held_at: the batch is in step `index` and every live DUT took min_samples in it.
@@ -585,6 +615,7 @@ async def _run_plan(plan: Plan, tmp: Path, mount: Path | None) -> None:
             trace = Trace(work_order="WO-FM", labels=plan.labels(sim)) if plan.labels is not None else None
             bid = st.start_batch(plan.profile, None, "fault-matrix", trace)
             ctx = Ctx(sim, st, bid, plan, mount=mount)
+            sim.pace = ctx.lead_pace
             extra: list[str] = []
             inj = asyncio.create_task(plan.inject(ctx)) if plan.inject is not None else None
             try:
