@@ -15,6 +15,7 @@ import numpy as np
 
 from drivers.base import LinkStats
 from drivers.protocol.cal_record import N_SFEM, N_THERMAL, to_f32
+from drivers.protocol import selfcal_frames
 from contracts.types import Identity
 
 _U32_MAX = (1 << 32) - 1
@@ -103,6 +104,15 @@ def cmd_comp(on: bool) -> bytes:
     return encode(f"COMP,{1 if on else 0}")
 
 
+def cmd_scal(on: bool) -> bytes:
+    """On-board streaming calibrator off/on (drivers/protocol/selfcal_frames.py)."""
+    return encode(f"SCAL,{1 if on else 0}")
+
+
+def cmd_scrr() -> bytes:
+    return encode("SCRR")
+
+
 # ---- frame records -------------------------------------------------------------------------
 
 @dataclass(frozen=True, slots=True)
@@ -180,7 +190,8 @@ class CommandFrame:
     args: tuple[str, ...] = ()
 
 
-Frame = SampleFrame | IdentityFrame | AckFrame | ErrorFrame | CommandFrame | CalReadFrame | SfemReadFrame
+Frame = (SampleFrame | IdentityFrame | AckFrame | ErrorFrame | CommandFrame | CalReadFrame | SfemReadFrame
+         | selfcal_frames.SegmentReportFrame | selfcal_frames.SelfCalResultFrame)
 
 
 def _crc_field(text: str) -> int:
@@ -202,7 +213,7 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
     kind = fields[0]
     try:
         if board_side:  # the board parses commands
-            if kind in ("ID", "START", "STOP", "CALR", "SFER") and len(fields) == 1:
+            if kind in ("ID", "START", "STOP", "CALR", "SFER", "SCRR") and len(fields) == 1:
                 return CommandFrame(kind)
             if kind == "ODR" and len(fields) == 2:
                 float(fields[1])
@@ -210,7 +221,7 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
             if (kind == "CALW" and len(fields) == 1 + N_THERMAL) or (kind == "SFEW" and len(fields) == 1 + N_SFEM):
                 _finite_floats(fields[1:])
                 return CommandFrame(kind, tuple(fields[1:]))
-            if kind == "COMP" and len(fields) == 2 and fields[1] in ("0", "1"):
+            if kind in ("COMP", "SCAL") and len(fields) == 2 and fields[1] in ("0", "1"):
                 return CommandFrame(kind, (fields[1],))
             return None
         if kind == "D":
@@ -246,6 +257,8 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
             if len(fields) != 1 + N_SFEM + 1:
                 return None
             return SfemReadFrame(_finite_floats(fields[1 : 1 + N_SFEM]), _crc_field(fields[-1]))
+        if kind in ("G", "R"):
+            return selfcal_frames.decode(fields)
         if kind == "A":
             if len(fields) < 2 or not fields[1]:
                 return None
