@@ -2,18 +2,25 @@
 # Set up everything the tests need on a fresh machine, then run the whole suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-if ! command -v chromium >/dev/null 2>&1; then
-  # Browser tests drive Debian's Chromium (no browser download at test time).
+# Debian packages the tests drive (no download at test time beyond these):
+#   chromium                 the browser tests (no browser download)
+#   poppler-utils            the certificate tests read the PDF back (pdftotext, pdftoppm)
+#   gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm
+#                            the board firmware (firmware/): built for the STM32F407 Discovery and
+#                            run on an emulated Cortex-M4 in the firmware tests
+need=()
+command -v chromium >/dev/null 2>&1 || need+=(chromium)
+{ command -v pdftotext && command -v pdftoppm; } >/dev/null 2>&1 || need+=(poppler-utils)
+command -v arm-none-eabi-gcc >/dev/null 2>&1 || need+=(gcc-arm-none-eabi)
+[ -e /usr/lib/arm-none-eabi/newlib/thumb/v7e-m+fp/hard/libc_nano.a ] || need+=(libnewlib-arm-none-eabi)
+command -v qemu-system-arm >/dev/null 2>&1 || need+=(qemu-system-arm)
+if [ "${#need[@]}" -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
-  $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null \
-    || echo "warning: could not install chromium; browser tests will be skipped"
+  $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null \
+    || echo "warning: could not install ${need[*]}; the tests that need them will fail or be skipped"
 fi
-if ! command -v pdftotext >/dev/null 2>&1 || ! command -v pdftoppm >/dev/null 2>&1; then
-  # The certificate tests read the PDF back with poppler (pdftotext, pdftoppm).
-  if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
-  $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq poppler-utils >/dev/null \
-    || echo "warning: could not install poppler-utils; certificate PDF tests will be skipped"
-fi
+# The firmware tests fail (not skip) here when their tools are missing: CI must run them.
+export STATION_REQUIRE_FIRMWARE="${STATION_REQUIRE_FIRMWARE:-1}"
 bash scripts/setup.sh test
 mkdir -p artifacts
 # Three workers on two cores: most tests wait on simulated hardware, not on the CPU. Whole files

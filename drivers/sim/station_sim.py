@@ -20,6 +20,7 @@ import itertools
 from collections.abc import Callable
 from typing import Any
 
+from drivers.sim.firmware_boards import FirmwareBoard
 from drivers.sim.modbus_server import SimModbusServer
 from drivers.sim.physics import DutTruth, draw_population
 from drivers.sim.serial_pty import SimSerialBoard
@@ -54,6 +55,7 @@ class SimStation:
         tick_s: float = 0.05,
         move_time_s: float = 4.0,
         world: Any = None,
+        firmware: dict[int, str] | None = None,
     ) -> None:
         if n_can > 127:
             raise ValueError("at most 127 CAN boards on one bus")
@@ -74,6 +76,10 @@ class SimStation:
                 raise ValueError("truths must have n_serial + n_can entries")
             self.truths = list(truths)
             self.world = SimWorld(self.truths, env=env, odr_hz=odr_hz, seed=seed)
+        # DUT index -> "host" | "qemu": that board runs the C firmware (drivers/sim/firmware_boards.py)
+        self.firmware = dict(firmware or {})
+        if any(i >= self.n_serial + self.n_can or i < 0 for i in self.firmware):
+            raise ValueError("firmware board index out of range")
         self.can_interface = can_interface
         self.move_time_s = move_time_s
         self.serial_boards: list[SimSerialBoard] = []
@@ -130,6 +136,12 @@ class SimStation:
             else:
                 raise ValueError(f"can_interface must be 'slcan' or 'virtual', not {self.can_interface!r}")
             self._adapter.start()
+        try:
+            await asyncio.gather(*(b.wait_ready() for b in self._firmware_boards()))
+        except BaseException:
+            await self.close()
+            raise
+        self.serial_ports = [b.path for b in self.serial_boards]  # a QEMU board's pty is known once it booted
         self.modbus = SimModbusServer(w, self.modbus_host, move_time_s=self.move_time_s)
         await self.modbus.start()
         self.modbus_port = self.modbus.port
@@ -138,10 +150,20 @@ class SimStation:
         self._clock = asyncio.create_task(self._run_clock(), name="simstation-clock")
 
     def _make_serial_board(self, i: int) -> SimSerialBoard:
+        if i in self.firmware:
+            return FirmwareBoard(self.world.identity(i), self.firmware[i])  # type: ignore[return-value]
         return SimSerialBoard(self.world.identity(i))
 
     def _make_can_board(self, j: int, node: int) -> SimCanBoard:
-        return SimCanBoard(node, self.world.identity(self.n_serial + j))
+        i = self.n_serial + j
+        if i in self.firmware:
+            board = FirmwareBoard(self.world.identity(i), self.firmware[i], node_id=node)
+            board.start()
+            return board  # type: ignore[return-value]
+        return SimCanBoard(node, self.world.identity(i))
+
+    def _firmware_boards(self) -> list[FirmwareBoard]:
+        return [b for b in [*self.serial_boards, *self.can_boards] if isinstance(b, FirmwareBoard)]
 
     async def close(self) -> None:
         if self._clock is not None:
@@ -154,6 +176,8 @@ class SimStation:
         if self.modbus is not None:
             await self.modbus.stop()
         for b in self.serial_boards:
+            b.close()
+        for b in self._firmware_boards():
             b.close()
         if self._adapter is not None:
             self._adapter.close()
@@ -258,7 +282,8 @@ class SimStation:
             last_advance = now
 
     def _backlog(self, now: float) -> int:
-        ports = [b.port for b in self.serial_boards]
+        ports = [b.port for b in self.serial_boards if isinstance(b, SimSerialBoard)]
         if self._adapter is not None and hasattr(self._adapter, "port"):
             ports.append(self._adapter.port)
-        return max((p.backlog_bytes(now) for p in ports), default=0)
+        return max([p.backlog_bytes(now) for p in ports] + [b.backlog_bytes(now) for b in self._firmware_boards()],
+                   default=0)

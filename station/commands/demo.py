@@ -24,6 +24,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--serial", type=int, default=8, help="simulated serial boards (default 8)")
     p.add_argument("--can", type=int, default=4, help="simulated CAN boards (default 4)")
     p.add_argument("--seed", type=int, default=1, help="population seed")
+    p.add_argument("--boards", action="append", default=[], metavar="KIND[:N]",
+                   help="boards running the C reference firmware (firmware/) in the next N slots (default 2): "
+                        "firmware-host (one Linux process per board), firmware-qemu (Cortex-M4 in qemu-system-arm), "
+                        "firmware-host-can (CAN nodes), python (the Python board model, the default); repeatable")
     p.add_argument("--effect", action="append", default=[], metavar="NAME", help="hidden physics effect to switch on")
     p.add_argument("--profile", default="fast-thermal", help="profile of the automatic batch")
     p.add_argument("--no-batch", action="store_true", help="do not start a batch automatically")
@@ -287,8 +291,15 @@ async def _main(args: argparse.Namespace) -> int:
     db_url = args.db or f"sqlite:///{Path('var').resolve() / 'demo.db'}"
     stop = asyncio.Event()
     install_stop_signals(stop)
+    from drivers.sim.firmware_boards import plan_firmware
+
+    try:
+        firmware = plan_firmware(args.boards, args.serial, args.can)
+    except ValueError as exc:
+        print(f"station demo: --boards: {exc}", file=sys.stderr)
+        return 2
     async with SimStation(n_serial=args.serial, n_can=args.can, seed=args.seed, speed=args.speed,
-                          effects=tuple(args.effect)) as sim:
+                          effects=tuple(args.effect), firmware=firmware) as sim:
         cfg = parse_config(sim_config(sim, speed=args.speed, db_url=db_url, fixture=not args.no_fixture,
                                       http_host=args.host, http_port=args.port), "<demo>")
         db = open_database(cfg.database_url, station=cfg.name)

@@ -1,0 +1,117 @@
+"""The station's own batch on boards that run the C reference firmware (firmware/), beside Python ones.
+
+One `fast-thermal-verified` batch on one simulated plant (lamp relay and fixture on the pymodbus
+server, SQLite on disk):
+  s01 s02  the firmware on an emulated Cortex-M4 (qemu-system-arm -M netduinoplus2), its USART on
+           `-serial pty`, its sensor fed by the world simulator over a second USART
+  s03 s04  the same firmware built for Linux, one process per board on a pty
+  s05 s06  the Python board model (drivers/sim/serial_pty.py)
+  c01      the firmware for Linux as a CAN node behind the simulated slcan adapter
+  c02      the Python CAN board model
+Truth: the simulator's parameters (TDB/TDSF within the e2e tolerances of tests/test_daemon_e2e.py),
+the firmware's own NVM bytes on disk (decoded independently of the C code by tests/firmware_nvm.py),
+and after the batch a power cycle of one QEMU board: it boots from its NVM (CRC checked at boot) and
+reads back the same coefficients with the same CRC, compensation on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+
+import pytest
+
+from contracts.types import AXES
+from drivers.protocol.cal_record import crc32_f32, to_f32
+from drivers.sim.firmware_build import missing_tools
+from drivers.sim.physics import draw_population
+from drivers.sim.station_sim import SimStation
+from drivers.serial_board import SerialBoard
+from tests.firmware_nvm import read_nvm
+from tests.test_daemon_e2e import TDB_TOL_MG_PER_C, TDSF_TOL_PPM_PER_C, coil, daemon
+
+SPEED = 250.0
+FIRMWARE = {0: "qemu", 1: "qemu", 2: "host", 3: "host", 6: "host"}  # DUT index -> target
+
+
+def _need_tools() -> None:
+    missing = sorted(set(missing_tools("host") + missing_tools("qemu")))
+    if not missing and not __import__("shutil").which("qemu-system-arm"):
+        missing = ["qemu-system-arm"]
+    if missing:
+        if os.environ.get("STATION_REQUIRE_FIRMWARE") == "1":
+            pytest.fail(f"firmware tools missing: {missing} (scripts/test.sh installs them)")
+        pytest.skip(f"firmware tools missing: {missing}")
+
+
+@pytest.mark.timeout(240)
+async def test_fast_thermal_verified_batch_on_firmware_boards(tmp_path):
+    _need_tools()
+    truths = draw_population(8, 21)
+    async with SimStation(n_serial=6, n_can=2, seed=21, speed=SPEED, truths=truths, firmware=FIRMWARE) as sim:
+        async with daemon(sim, tmp_path, SPEED, limits={"lamp_max_on_s": 9000.0}) as st:
+            ident = {s["slot"]: s for s in st.slots_status()}
+            assert all(s["state"] == "identified" for s in ident.values()), ident
+            bid = st.start_batch("fast-thermal-verified", None, "pytest")
+            status = await st.wait_batch(bid, timeout_s=200)
+            assert status["state"] == "finished", status["error"]
+            assert await coil(sim) is False
+            slots = {s["slot"]: s for s in status["slots"]}
+            names = [f"s{i + 1:02d}" for i in range(6)] + ["c01", "c02"]
+            for n in names:
+                v = slots[n]["verification"] or {"e_after_mg": {}, "axes": {}, "e_before_mg": {}}
+                print(n, slots[n]["state"], slots[n]["fault_reason"], slots[n]["link_stats"],
+                      {a: (round(v["e_after_mg"][a], 2), round(v["axes"][a]["e_after_sigma_mg"], 2),
+                           round(v["e_before_mg"][a], 1)) for a in v["e_after_mg"]})
+            n_passed = 0
+            for i, name in enumerate(names):
+                s = slots[name]
+                assert s["state"] == "done", (name, s["fault_reason"], s["link_stats"])
+                axes, t = s["result"]["axes"], sim.truths[i]
+                for k, a in enumerate(AXES):
+                    assert abs(axes[a]["tdb_mg_per_c"] - t.tdb_mg_per_c[k]) < TDB_TOL_MG_PER_C, (name, a)
+                    assert abs(axes[a]["tdsf_ppm_per_c"] - t.tdsf_ppm_per_c[k]) < TDSF_TOL_PPM_PER_C, (name, a)
+                p = s["program"]
+                want = to_f32([axes[a]["tdb_mg_per_c"] for a in AXES] + [axes[a]["tdsf_ppm_per_c"] for a in AXES])
+                assert p["programmed"] and p["comp"] and p["readback_identical"], (name, p)
+                assert p["crc"] == f"{crc32_f32(want):08X}" == p["readback_crc"], (name, p)
+                # verified E on these linear parts (the rule of tests/test_program_verify_e2e.py): never
+                # below the drift the written coefficients really leave (the simulator's truth), and
+                # within the limit up to its own 2-sigma noise (an axis that barely drifts meets a 2 mg
+                # floor with 2-3 mg of noise: its pass or fail is the noise's, not the firmware's)
+                v = s["verification"]
+                assert v is not None and not v["flags"] or all("verified E" in f for f in v["flags"]), (name, v)
+                for k, a in enumerate(AXES):
+                    after, before, sig = v["e_after_mg"][a], v["e_before_mg"][a], v["axes"][a]["e_after_sigma_mg"]
+                    e_true = 70.0 * abs(t.tdb_mg_per_c[k] - want[k] + (t.tdsf_ppm_per_c[k] - want[3 + k]) * 1e-3 * 0.577)
+                    assert after + 2.0 * sig >= e_true, (name, a, after, sig, e_true)
+                    assert e_true < max(0.25 * before, 2.0), (name, a, e_true, before)
+                    assert after - 2.0 * sig <= max(0.25 * before, 2.0), (name, a, after, sig, before)
+                    assert not v["axes"][a]["curved"], (name, a)
+                n_passed += v["passed"]
+                assert s["decision"]["verdict"] == ("pass" if v["passed"] else "fail"), (name, s["decision"])
+                if i in FIRMWARE:
+                    board = sim.board(i)
+                    # the firmware's own flash, decoded here from the bytes: what it applies at boot
+                    rec = read_nvm(board.nvm_path.read_bytes())
+                    assert rec.thermal == want and rec.comp, (name, rec)
+                    assert rec.thermal_crc == crc32_f32(want), name
+
+            assert n_passed >= 6, n_passed  # most pass outright (2 of 24 axes are within their noise of the floor)
+
+        # power cycle one QEMU board after the write: it boots from its NVM and reads back the same record
+        board = sim.board(0)
+        before = read_nvm(board.nvm_path.read_bytes())
+        sim.power_cycle(0)
+        await board.wait_ready()
+        drv = SerialBoard(board.path)
+        await drv.open()
+        try:
+            ident = await drv.identify()
+            assert ident.serial == sim.truths[0].serial and ident.fw.startswith("fw-c"), ident
+            rb = await drv.read_thermal()
+            assert tuple(rb.values) == before.thermal and rb.crc == before.thermal_crc == crc32_f32(before.thermal)
+            assert rb.comp is True
+        finally:
+            await drv.close()
+        assert board.power_cycles == 1
