@@ -32,6 +32,7 @@ import signal
 import socket
 import subprocess
 import tempfile
+import threading
 import tty
 from pathlib import Path
 
@@ -204,8 +205,9 @@ class FirmwareBoard:
                     "--nvm", str(self.nvm_path)]
             if self.node_id:
                 args += ["--can", str(self.node_id)]
-            self.proc = subprocess.Popen(args, pass_fds=(self._master_fd, theirs.fileno()), stdin=subprocess.DEVNULL,
-                                         stdout=subprocess.DEVNULL, stderr=open(self.workdir / "stderr.log", "ab"))
+            with open(self.workdir / "stderr.log", "ab") as log:
+                self.proc = subprocess.Popen(args, pass_fds=(self._master_fd, theirs.fileno()), stdin=subprocess.DEVNULL,
+                                             stdout=subprocess.DEVNULL, stderr=log)
             theirs.close()
             self.bridge = _Bridge(ours)
         else:
@@ -272,7 +274,9 @@ class FirmwareBoard:
         self._listener.close()
         self.bridge = _Bridge(conn)
         self.bridge.write(strap_frame(self.identity))
-        asyncio.get_running_loop().run_in_executor(None, self._drain_qemu_output)
+        # QEMU's own messages go to a log file, read by a thread of its own (not the loop's
+        # executor, which the daemon needs and which N boards would fill for their lifetime)
+        threading.Thread(target=self._drain_qemu_output, name=f"qemu-log-{self.identity.serial}", daemon=True).start()
 
     def _drain_qemu_output(self) -> None:
         proc = self.proc
