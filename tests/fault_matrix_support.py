@@ -49,7 +49,7 @@ VERIFIED = "fast-thermal-verified"
 # A plan that hangs is a broken cell with its own line, not a pytest timeout that loses the matrix:
 # every plan gets its batch timeout plus this much for the daemon's start, the end checks and close.
 PLAN_SLACK_S = 90.0
-MAX_LEAD_S = 300.0  # sample seconds the plant may run ahead of the daemon (Ctx.lead_pace); x3000 ticks are 150 s
+MAX_LEAD_S = 200.0  # sample seconds the plant may run ahead of the daemon (Ctx.lead_pace); x3000 ticks are 150 s
 MAX_LEAD_HOLD_S = 10.0  # wall seconds one lead hold may last: a daemon that stopped taking samples is not waited for
 LIMITS = {"lamp_max_on_s": 9000.0}  # CI: wall x speed overstates the on-time (see test_program_verify_e2e)
 

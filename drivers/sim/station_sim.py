@@ -102,6 +102,8 @@ class SimStation:
         self.backpressure_bytes = 32 * 1024  # a live reader this far behind holds the plant clock
         self.held_ticks = 0
         self.max_hold_s = 2.0  # wall seconds; well under any stall timeout
+        self.max_catchup_ticks = 2.0  # one advance covers at most this many ticks of plant time
+        self.capped_ticks = 0
         # pace() -> True holds the plant for as long as it says so (no max_hold_s): a replay's
         # recorded plant waits for the daemon's processing, not only for its byte readers
         self.pace: Callable[[], bool] | None = None
@@ -277,6 +279,16 @@ class SimStation:
                 self.held_ticks += 1
                 continue
             due = self._due_samples(now)
+            cap = max(1, int(self.max_catchup_ticks * self.tick_s * self.speed * self.world.odr_hz))
+            if due - self._produced > cap:
+                # The loop was held up (a loaded machine): the plant does not jump ahead by the whole
+                # hold-up in one piece (at x3000, 0.3 s is 900 s of sample time, more than a static
+                # step's timeout, all of it delivered before the daemon's next look); it slows down
+                # instead, as it does for a reader that is behind.
+                self._sim0_samples = self._produced + cap
+                self._wall0 = now
+                due = self._produced + cap
+                self.capped_ticks += 1
             if due > self._produced:
                 self.advance(due - self._produced)
             last_advance = now
