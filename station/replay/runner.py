@@ -26,6 +26,7 @@ log = logging.getLogger(__name__)
 
 # Sections of a station config that decide the outcome; links, tokens and names are the replay's own.
 OUTCOME_SECTIONS = ("limits", "profiles", "products")
+REPLAY_MIN_STALL_TIMEOUT_S = 60.0  # wall seconds of listening before a replayed board counts as silent
 TIMING_KEYS = ("stall_timeout_s", "identify_timeout_s", "fixture_timeout_s", "read_period_s")
 
 
@@ -60,6 +61,11 @@ def replay_config(recording: Recording, sim: Any, opts: ReplayOptions) -> dict:
         if k in OUTCOME_SECTIONS:
             cfg[k] = v
     timing = {k: v for k, v in (snap.get("timing") or {}).items() if k in TIMING_KEYS}
+    # A replayed board is a record the director paces: it is silent by design while held at a program
+    # stop or a prompt, and on a loaded machine those holds can outlast a line's stall timeout. A
+    # record cannot die: a recorded unplug replays as the port closing ("link lost") and a recorded
+    # silent board as its record ending, which still faults after this longer timeout.
+    timing["stall_timeout_s"] = max(float(timing.get("stall_timeout_s", 10.0)), REPLAY_MIN_STALL_TIMEOUT_S)
     timing.update({k: v for k, v in ((opts.overrides or {}).get("timing") or {}).items() if k in TIMING_KEYS})
     timing["speed"] = opts.speed
     slots: list[dict] = []
