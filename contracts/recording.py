@@ -49,6 +49,11 @@ class RecordedDut:
     # same point of the stream. (A board that only went silent is faulted by the wall-clock stall
     # timeout, whose point in sample time depends on the speed and the load: not reproducible.)
     unplugged_at_end: bool = False
+    # The board time at which the recorded station began each step (its DutRun.step_t_start: the
+    # last sample it had taken when the step began logging; the batch's step_windows). A replay
+    # holds the record just after it until the replaying daemon has begun that step too, so each
+    # step starts at the same sample as on the line (station/replay/director.py).
+    step_start_t: dict[int, float] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.time_s.shape[0])
@@ -60,6 +65,16 @@ class RecordedDut:
             return None
         k = int(np.searchsorted(self.time_s, float(self.restart_after_t), side="right"))
         return k if 0 < k < len(self) else None
+
+    def step_start_indices(self) -> list[tuple[int, int]]:
+        """(step, index of the first sample after the recorded start of that step), in step order;
+        steps whose start is outside the record are left out."""
+        out = []
+        for k in sorted(self.step_start_t):
+            i = int(np.searchsorted(self.time_s, float(self.step_start_t[k]), side="right"))
+            if 0 < i < len(self):
+                out.append((int(k), i))
+        return out
 
     def seq_index(self) -> np.ndarray:
         """Frame sequence number of every sample: gaps in the clock longer than 1.5 sample periods

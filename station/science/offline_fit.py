@@ -15,11 +15,16 @@ Details:
   least-squares slope toward zero by var(noise)/var(T) (errors in variables). The reading noise
   variance is estimated from first differences within stable runs (var(diff)/2) and removed from
   the temperature variance (a method-of-moments correction; ~0.1 % on a 25 C step).
+- The wander term's level is the part's own (station/science/part_noise.py): the class's structure
+  function scaled to the part's measured white noise; the class constant only where the still data
+  are too short to tell.
 - Uncertainty: samples are autocorrelated (slow drifts, filtering, unmodelled effects), so the
   per-sample OLS standard error would be far too small. The 1-sigma of each TD_i comes from batch
   means: the stable runs are cut into blocks of `block_samples` consecutive samples, the block means
-  are regressed (weighted by block size) and the scatter of the block means about the line gives
-  the slope variance. Correlation shorter than a block is thus absorbed. It is propagated to
+  are regressed (weighted by block size) and the scatter of the block means (about a parabola
+  when there are five or more: TD_i is the chord of the part's response over its data, so a curved
+  part's bow is not noise of it) gives the slope variance. Correlation shorter than a block is
+  thus absorbed. It is propagated to
   TDB/TDSF through the weighted line fit (scaled by the reduced chi-square when > 1 with more than
   two orientations). Acc0_i errors are neglected (micro-g against a >1 g lever).
 - What batch means cannot see (docs/verdicts.md "Uncertainty budget"): the ambient and hot data of
@@ -41,12 +46,14 @@ Details:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 
+from station.science.bias_wander import (LAG_SIGMA_S, NO_WANDER, WANDER_BY_SENSOR, BiasWander,  # noqa: F401 (re-exported)
+                                         characterise_bias_wander,
+                                         wander_for)
 from station.science.drift_coefficients import InsufficientData, build_result
 from station.science.gate_trace import GateTrace, trace_gate
+from station.science.part_noise import PartNoise, measure_part_noise
 from station.science.streaming_config import StreamingConfig
 from contracts.types import ThermalResult
 
@@ -73,93 +80,6 @@ def usable_mask(acc_g: np.ndarray, trace: GateTrace, still_sigma: float = 8.0, f
     tol = np.maximum(still_sigma * sigma, floor_g)
     still = np.all(np.abs(resid) < tol, axis=1)
     return stable & still
-
-
-@dataclass(frozen=True)
-class BiasWander:
-    """Bias wander of a sensor class beyond white noise, as its structure function
-    D(lag) = var(b(t + lag) - b(t)) = rw^2 lag + sum_c 2 (flicker^2 / m) (1 - exp(-lag / tau_c)):
-    a random walk plus a flicker floor modelled by m decade-spaced Gauss-Markov processes. The
-    variance of any zero-sum combination sum_i w_i b(t_i) is -1/2 sum_ij w_i w_j D(|t_i - t_j|),
-    which is what a slope between segments tens of minutes apart suffers and what sigma/sqrt(n) of
-    a segment mean leaves out. Numbers come from a long static log (`characterise_bias_wander`).
-    white_ug_per_sqrt_hz tells the classes apart when a record does not name its sensor."""
-
-    name: str
-    white_ug_per_sqrt_hz: float
-    rw_g_per_sqrt_s: float
-    flicker_g: float
-    flicker_tau_s: tuple[float, ...] = (60.0, 600.0, 6000.0)
-
-    def structure_g2(self, lag_s) -> np.ndarray:
-        lag = np.abs(np.asarray(lag_s, dtype=np.float64))
-        d = self.rw_g_per_sqrt_s ** 2 * lag
-        m = max(1, len(self.flicker_tau_s))
-        for tau in self.flicker_tau_s:
-            d = d + 2.0 * self.flicker_g ** 2 / m * (1.0 - np.exp(-lag / tau))
-        return d
-
-    def combination_var_g2(self, weights, time_s) -> float:
-        """Variance (g^2) of sum_i w_i b(t_i) for zero-sum weights (a slope, a curvature)."""
-        w = np.asarray(weights, dtype=np.float64).reshape(-1)
-        t = np.asarray(time_s, dtype=np.float64).reshape(-1)
-        if w.size < 2:
-            return 0.0
-        d = self.structure_g2(t[:, None] - t[None, :])
-        return max(0.0, float(-0.5 * w @ d @ w))
-
-
-# Measured with `python benchmarks/coverage.py --characterise` (characterise_bias_wander on a 6 h
-# static simulated log per sensor class, realistic noise, fixed decade taus 60/600/6000 s). A real
-# line measures its part family the same way (one board, static, hours) and replaces these.
-WANDER_BY_SENSOR: dict[str, BiasWander] = {
-    "LIS3DSH": BiasWander("LIS3DSH", 393.0, 3.67e-6, 23e-6),  # 6 boards x 8 h, mean of rw^2 and flicker^2
-    "ADXL355": BiasWander("ADXL355", 24.6, 0.52e-6, 2.5e-6),
-}
-NO_WANDER = BiasWander("white", 0.0, 0.0, 0.0)
-LAG_SIGMA_S = 5.0  # MEMS behind its on-die temperature sensor: same die, a few seconds at most
-
-
-def wander_for(sensor: str | None = None, white_ug_per_sqrt_hz: float | None = None) -> BiasWander:
-    """The bias-wander class of a DUT: by sensor name, else the class whose white noise density is
-    nearest (log ratio) to the measured one, else the largest (LIS3DSH, conservative)."""
-    if sensor:
-        for k, w in WANDER_BY_SENSOR.items():
-            if k.lower() == str(sensor).lower():
-                return w
-    if white_ug_per_sqrt_hz is not None and math.isfinite(white_ug_per_sqrt_hz) and white_ug_per_sqrt_hz > 0:
-        return min(WANDER_BY_SENSOR.values(), key=lambda w: abs(math.log(white_ug_per_sqrt_hz / w.white_ug_per_sqrt_hz)))
-    return WANDER_BY_SENSOR["LIS3DSH"]
-
-
-def characterise_bias_wander(time_s, acc_g, name: str = "measured", block_s: float = 60.0,
-                             flicker_tau_s: tuple[float, ...] = (60.0, 600.0, 6000.0)) -> BiasWander:
-    """BiasWander of a long STATIC log (constant temperature and position): the empirical structure
-    function of block means at lags of 1..(duration/3), minus the white part (2 var_w / n_block),
-    fitted (non-negative least squares, pooled over axes) with rw^2 lag + flicker^2 f(lag)."""
-    from scipy.optimize import nnls
-
-    t = np.asarray(time_s, dtype=np.float64).reshape(-1)
-    a = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
-    odr = 1.0 / float(np.median(np.diff(t)))
-    nb = max(2, int(round(block_s * odr)))
-    m = a.shape[0] // nb
-    bm = a[: m * nb].reshape(m, nb, 3).mean(axis=1)
-    d1 = np.diff(a, axis=0)
-    var_w = 0.5 * float(np.mean(np.var(d1, axis=0)))
-    lags = np.unique(np.round(np.geomspace(1, max(2, m // 3), 25)).astype(int))
-    rows, rhs = [], []
-    mm = max(1, len(flicker_tau_s))
-    for k in lags:
-        dk = float(np.mean((bm[k:] - bm[:-k]) ** 2)) - 2.0 * var_w / nb
-        lag_s = k * nb / odr
-        f = sum(2.0 / mm * (1.0 - math.exp(-lag_s / tau)) for tau in flicker_tau_s)
-        wgt = 1.0 / max(dk, 1e-14)  # relative (log-like) weighting over the decades
-        rows.append([lag_s * wgt, f * wgt])
-        rhs.append(dk * wgt)
-    coef, _ = nnls(np.array(rows), np.array(rhs))
-    white = math.sqrt(var_w) / math.sqrt(odr / 2.0) * 1e6
-    return BiasWander(name, white, math.sqrt(coef[0]), math.sqrt(coef[1]), tuple(flicker_tau_s))
 
 
 def white_density_ug_per_sqrt_hz(time_s, acc_g, trace: GateTrace, use: np.ndarray, alpha: float) -> float:
@@ -228,7 +148,8 @@ def budget_inputs(time_s, acc_g, temp_c, trace: GateTrace, use: np.ndarray, alph
                   ) -> tuple[float, float, np.ndarray, BiasWander]:
     """What every budget of one record shares (the offline slope and the residual's curvature
     alike): (temperature quantum C, its dither C, the quantiser amplitudes A_k C, the bias-wander
-    class). wander None: white noise only; a string ("auto"): `wander_for(sensor, white noise)`."""
+    class). wander None: white noise only; a string ("auto", "class"): `wander_for(sensor, white
+    noise)`, the class whose level `offline_fit` then measures on the part ("auto") or keeps."""
     temp = np.asarray(temp_c, dtype=np.float64)
     runs = [(s, e) for s, e in _runs(use) if e - s >= 2]
     quantum = temperature_quantum_c(temp[use]) if use.any() else 0.0
@@ -276,8 +197,10 @@ def offline_fit(
 
     min_span_c: an orientation is used when its stable data spans at least this temperature range
     (default config.segment_delta_c / 2). trace: a precomputed `trace_gate` result (saves a pass).
-    wander: the bias wander of the part (None: white noise only, as a synthetic record; "auto":
-    `wander_for(sensor, measured white noise)`, what `calibrate` uses for real and simulated boards);
+    wander: the bias wander of the part (None: white noise only, as a synthetic record; "auto": the
+    class `wander_for(sensor, measured white noise)` at the level measured on the part's own still
+    runs, station/science/part_noise.py, what `calibrate` uses; "class": the class constant as it is;
+    a BiasWander: that one);
     lag_sigma_s: standard uncertainty of the MEMS-behind-sensor lag. The result carries
     `.uncertainty`: per orientation and axis the TD_i variance of each budget term (mg/C)^2, the
     TDB/TDSF correlation, and the quantiser/wander inputs used (module doc).
@@ -289,11 +212,14 @@ def offline_fit(
     if trace is None:
         trace, _ = trace_gate(t, acc, temp, cfg)
     use = usable_mask(acc, trace, still_sigma)
-    quantum, dither, amps, wander = budget_inputs(t, acc, temp, trace, use, cfg.alpha_acc, sensor, wander)
+    quantum, dither, amps, cls = budget_inputs(t, acc, temp, trace, use, cfg.alpha_acc, sensor, wander)
     budget: dict[int, dict[str, np.ndarray]] = {}
     span_needed = cfg.pair_delta_c() if min_span_c is None else float(min_span_c)
     drifts: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     sigmas: dict[int, np.ndarray] = {}
+    pending: dict[int, tuple] = {}  # orientation -> what its budget needs once the wander is known
+    still_runs: list[tuple[int, int]] = []
+    chord_x: dict[int, float] = {}
     n_runs = 0
     for o in np.unique(trace.orientation):
         mask = use & (trace.orientation == o)
@@ -327,6 +253,7 @@ def offline_fit(
         xc = x - xm
         sxx = float(xc @ xc)
         sxy = xc @ (y - ym)
+        chord_x[int(o)] = float(xc @ (x * x)) / sxx  # what the slope makes of a curvature c2: c2 * this
         if eiv_correction:
             dtemp = np.concatenate([np.diff(temp[s:e]) for s, e in runs])
             var_noise = 0.5 * float(np.mean(dtemp * dtemp)) if dtemp.size else 0.0
@@ -335,6 +262,7 @@ def offline_fit(
                 sxx = sxx_true
         td = sxy / sxx  # eq. 3 as a regression slope, g/C
         acc0 = ym - td * xm  # eq. 4: the line at T = t_ref
+        still_runs.extend(runs)
         # batch-means slope uncertainty
         m = bx.shape[0]
         if m >= 3:
@@ -342,35 +270,58 @@ def offline_fit(
             bxc = bx - cfg.t_ref_c - bxm
             sbxx = float(np.sum(bn * bxc * bxc))
             bym = np.average(by, axis=0, weights=bn)
-            bslope = (bn * bxc) @ (by - bym) / sbxx
-            resid = by - bym - np.outer(bxc, bslope)
-            s2 = np.sum(bn[:, None] * resid * resid, axis=0) / (m - 2) if m > 2 else np.full(3, np.inf)
-            var_fit = s2 / sbxx
-            # what batch means cannot see: the slope's own weights on the block means
-            bt, bg, ph = block_features(t, trace.temp_filt_c, quantum, blocks)
+            if m >= 5:  # the scatter about a parabola: a curved part's bow is no noise of its chord
+                X = np.column_stack([np.ones(m), bxc, bxc * bxc])
+                XtW = X.T * bn
+                res_b = by - X @ (np.linalg.pinv(XtW @ X) @ XtW @ by)
+                s2 = np.sum(bn[:, None] * res_b * res_b, axis=0) / (m - 3)
+            else:
+                bslope = (bn * bxc) @ (by - bym) / sbxx
+                res_b = by - bym - np.outer(bxc, bslope)
+                s2 = np.sum(bn[:, None] * res_b * res_b, axis=0) / (m - 2)
             w_slope = bn * (bx - cfg.t_ref_c - np.average(bx - cfg.t_ref_c, weights=bn)) / sbxx
-            terms = combination_budget(w_slope, bt, bg, ph, td, wander, amps, lag_sigma_s)
-            terms["fit"] = var_fit
-            budget[int(o)] = terms
-            sigmas[int(o)] = np.sqrt(sum(terms.values()))
+            pending[int(o)] = (s2 / sbxx, w_slope, blocks, td)
         else:
             sigmas[int(o)] = np.full(3, np.inf)
         drifts[int(o)] = (td, acc0)
+    noise = part_noise_of(t, acc, sorted(still_runs), cls, wander)
+    for o, (var_fit, w_slope, blocks, td) in pending.items():
+        # what batch means cannot see: the slope's own weights on the block means
+        bt, bg, ph = block_features(t, trace.temp_filt_c, quantum, blocks)
+        terms = combination_budget(w_slope, bt, bg, ph, td, noise.wander, amps, lag_sigma_s)
+        terms["fit"] = var_fit
+        budget[o] = terms
+        sigmas[o] = np.sqrt(sum(terms.values()))
     if len(drifts) >= 2 and all(np.all(np.isfinite(sigmas[o])) for o in drifts):
         res = build_result("offline", drifts, cfg, n_runs, td_sigma=sigmas)
     else:
         res = build_result("offline", drifts, cfg, n_runs)
-    res.uncertainty = _uncertainty_doc(drifts, budget, sigmas, quantum, dither, wander, lag_sigma_s)
-    res.wander = wander  # the class chosen: the residual report of the same record uses it too
+    res.uncertainty = _uncertainty_doc(drifts, budget, sigmas, quantum, dither, noise, lag_sigma_s)
+    # TD_i is the chord of the part's response over this orientation's data: a bias curvature c2
+    # (mg/C^2) adds c2 * chord_x_c to it (x = T - t_ref; 2x the data's mean x for symmetric data)
+    res.uncertainty["chord_x_c"] = {str(o): v for o, v in chord_x.items() if o in drifts}
+    res.wander = noise.wander  # the part's: the residual report of the same record uses it too
+    res.part_noise = noise
     return res
 
 
-def _uncertainty_doc(drifts, budget, sigmas, quantum, dither, wander, lag_sigma_s) -> dict:
+def part_noise_of(time_s, acc_g, runs, class_wander: BiasWander, wander: BiasWander | str | None) -> PartNoise:
+    """The wander the budgets use: measured on the part for "auto" (part_noise module doc), the
+    class constant as it is for "class", or the BiasWander / white-only the caller fixed."""
+    if wander == "auto":
+        return measure_part_noise(time_s, acc_g, runs, class_wander)
+    return PartNoise(class_wander, class_wander, 1.0, 0, (float("nan"),) * 3,
+                     "class" if isinstance(wander, str) else "given")
+
+
+def _uncertainty_doc(drifts, budget, sigmas, quantum, dither, noise: PartNoise, lag_sigma_s) -> dict:
     """The budget behind each TD_i sigma (mg/C, per term) and the TDB/TDSF correlation per axis
     (two orientations: TDB and TDSF are both made of the same TD_i, so they are correlated)."""
     keys = sorted(drifts)
+    wander = noise.wander
     out = {"temperature_quantum_c": quantum, "temperature_dither_c": dither, "wander": wander.name,
            "wander_rw_g_per_sqrt_s": wander.rw_g_per_sqrt_s, "wander_flicker_g": wander.flicker_g,
+           "wander_flicker_tau_s": list(wander.flicker_tau_s), "part_noise": noise.to_json(),
            "lag_sigma_s": lag_sigma_s, "orientations": {}, "tdb_tdsf_corr": {}}
     for o in keys:
         if o in budget:

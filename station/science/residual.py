@@ -5,13 +5,16 @@ compensate THIS part over the product's operating range R. From the DUT's own st
 still) samples, compensated with its own TDB/TDSF, per axis:
 
 - curvature c2 (mg/C^2): a parabola in (T - 25) fitted per orientation to block means of the
-  compensated data (batch means, so autocorrelated noise does not look significant), the
-  orientation with the largest |c2| kept, with its 1-sigma. A linear TDB/TDSF cannot compensate it.
+  compensated data (batch means, so autocorrelated noise does not look significant); per axis the
+  orientations that put the same gravity on it are combined (inverse variance), and of those groups
+  the largest |c2| is kept, with its 1-sigma. A linear TDB/TDSF cannot compensate it.
 - bow (mg) = |c2| R^2 / 8: how far that parabola departs from the best straight line over R; the
   verdict names a bow over its limit as "the DUT's data reject the linear model".
-- drift error E (mg), eq. 10 evaluated on the residual model over R with fine sections: the mean
-  |d residual / dT| times R, which for a parabola centred in R is |c2| R^2 / 2. Its 1-sigma combines
-  the curvature's sigma (sigma_c2 R^2 / 2) with what the coefficient uncertainty alone leaves over
+- drift error E (mg), eq. 10 evaluated on the residual model over R: the linear compensation
+  matched each orientation's chord slope over its own data (25..50 C on a fast-thermal run), so the
+  parabola it leaves has its vertex at half that chord's x^2-on-x slope (about the data's middle),
+  and E = |c2| ((R/2 + v)^2 + (R/2 - v)^2) (R^2 / 2 for a vertex at 25 C; `parabola_variation`).
+  Its 1-sigma combines the curvature's sigma (times the same factor) with what the coefficient uncertainty alone leaves over
   R at +-1 g (eq. 1 with each coefficient's error, TDB and TDSF correlated by rho, the worse sign):
   R sqrt(sigma_TDB^2 + (sigma_TDSF * 1 g)^2 + 2 |rho sigma_TDB sigma_TDSF * 1 g|).
   sigma_c2 is the batch-means scatter PLUS the terms batch means cannot see (offline_fit module
@@ -50,6 +53,45 @@ def _sigmas(v) -> np.ndarray:
     return np.array([np.nan if x is None else float(x) for x in v], dtype=np.float64)
 
 
+def _combine_curvatures(per_gravity: dict[tuple[int, float], list[tuple[float, float, float]]], range_c: float
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per axis: the curvature (c2, sigma, mg/C^2) and the drift error it leaves (E, its sigma, mg).
+
+    The orientations in which the axis feels the same gravity measure the same curvature (a bias
+    curvature; a scale curvature flips with the sign of g), so they are combined by inverse
+    variance. Of the gravity groups the curvature kept is the largest |c2|, and E the largest
+    |c2| `parabola_variation` (each group's own vertex: its data's chord, which differs between a
+    heating and a cooling orientation by several C): the worse position. A max over every single
+    orientation instead would favour noise."""
+    c2, c2_sig = np.full(3, np.nan), np.full(3, np.nan)
+    e, e_sig = np.full(3, np.nan), np.full(3, np.nan)
+    for (k, _g), vals in per_gravity.items():
+        v = np.array([x[0] for x in vals])
+        sg = np.array([x[1] for x in vals])
+        f = float(np.max(parabola_variation(np.array([x[2] for x in vals]), range_c)))
+        if not np.all(np.isfinite(sg)) or np.any(sg <= 0):
+            i = int(np.argmax(np.abs(v)))
+            cur, cs = float(v[i]), float(sg[i])
+        else:
+            w = 1.0 / sg ** 2
+            cur, cs = float(np.sum(w * v) / np.sum(w)), float(1.0 / math.sqrt(np.sum(w)))
+        if not np.isfinite(c2[k]) or abs(cur) > abs(c2[k]):
+            c2[k], c2_sig[k] = cur, cs
+        if not np.isfinite(e[k]) or abs(cur) * f > e[k]:
+            e[k], e_sig[k] = abs(cur) * f, cs * f
+    return c2, c2_sig, e, e_sig
+
+
+def parabola_variation(vertex_c: np.ndarray, range_c: float) -> np.ndarray:
+    """Eq. 10's total variation of (x - vertex)^2 over the range x in [-R/2, R/2] (x = T - 25):
+    times |c2| it is the drift error E a curvature leaves after a linear compensation that matched
+    the chord of the calibration's data (R^2 / 2 when the vertex sits at 25 C)."""
+    h = range_c / 2.0
+    v = np.asarray(vertex_c, dtype=np.float64)
+    inside = np.abs(v) <= h
+    return np.where(inside, (h + v) ** 2 + (h - v) ** 2, np.abs((h - v) ** 2 - (h + v) ** 2))
+
+
 def residual_report(
     time_s,
     acc_g,
@@ -72,7 +114,8 @@ def residual_report(
     """Per-axis residual drift E/E_FS, curvature and noise density of one DUT (see module doc).
 
     Returns {"operating_range_c", "odr_hz", "n_used", "axes": {x: {"drift_error_mg",
-    "drift_error_sigma_mg", "drift_error_fs_pct", "drift_error_fs_sigma_pct", "curvature_mg_per_c2",
+    "drift_error_sigma_mg", "drift_error_fs_pct", "drift_error_fs_sigma_pct",
+    "drift_error_curvature_sigma_mg" (the curvature's part of that sigma), "curvature_mg_per_c2",
     "curvature_sigma_mg_per_c2", "bow_mg", "bow_sigma_mg", "noise_ug_per_sqrt_hz",
     "ramp_residual_rms_mg"}}}; values are None where the data do not allow them (an orientation
     needs >= 5 blocks spanning min_span_c for a curvature). tdb_tdsf_corr (3,): correlation of
@@ -92,43 +135,52 @@ def residual_report(
     rng = float(operating_range_c)
     quantum, _, amps, wander = budget_inputs(t, acc, temp, trace, use, cfg.alpha_acc, sensor, wander)
 
-    c2 = np.full(3, np.nan)
-    c2_sig = np.full(3, np.nan)
+    per_gravity: dict[tuple[int, float], list[tuple[float, float]]] = {}
     ramp_ss = np.zeros(3)
     ramp_n = 0
     for o in np.unique(trace.orientation):
         runs = [(s, e) for s, e in _runs(use & (trace.orientation == o)) if e - s >= 2]
         if not runs:
             continue
-        bx, by, blocks = [], [], []
+        bx, by, bn, blocks = [], [], [], []
         for s, e in runs:
             nb = max(1, int(round((e - s) / block_samples)))
             for blk in np.array_split(np.arange(s, e), nb):
                 bx.append(temp[blk].mean() - T_REF_C)
                 by.append(comp[blk].mean(axis=0))
+                bn.append(float(blk.size))
                 blocks.append(blk)
-        bx, by = np.array(bx), np.array(by)
+        bx, by, bn = np.array(bx), np.array(by), np.array(bn)
         if bx.size >= 2:
             ramp_ss += np.sum((by - by.mean(axis=0)) ** 2, axis=0)
             ramp_n += bx.size
         if bx.size >= 5 and np.ptp(bx) >= min_span_c:
-            xm = bx.mean()
+            # weighted by block size: a gate that flickers on a noisy temperature reading leaves
+            # short blocks on the ramp, whose means are noisier and sit where a curvature has its
+            # leverage; an unweighted fit and scatter under-state that sigma 2x (part_noise tests)
+            xm = float(np.average(bx, weights=bn))
             X = np.column_stack([np.ones_like(bx), bx - xm, (bx - xm) ** 2])
-            coef, *_ = np.linalg.lstsq(X, by, rcond=None)
+            XtW = X.T * bn
+            cov_unit = np.linalg.pinv(XtW @ X)
+            coef = cov_unit @ XtW @ by
             resid = by - X @ coef
-            s2 = np.sum(resid * resid, axis=0) / max(bx.size - 3, 1)
-            var_c2 = s2 * np.linalg.pinv(X.T @ X)[2, 2]
+            s2 = np.sum(bn[:, None] * resid * resid, axis=0) / max(bx.size - 3, 1)  # per-sample variance
+            var_c2 = s2 * cov_unit[2, 2]
+            w_c2 = (cov_unit @ XtW)[2]
             # wander / quantiser / lag through the curvature's own weights on the block means; a
             # temperature error moves the compensated output by the slope compensation removed
-            w_c2 = np.linalg.pinv(X)[2]
             bt, bg, ph = block_features(t, trace.temp_filt_c, quantum, blocks)
             sens = tdb * 1e-3 + tdsf * 1e-6 * by.mean(axis=0)
             terms = combination_budget(w_c2, bt, bg, ph, sens, wander, amps, lag_sigma_s)
             sig = np.sqrt(var_c2 + sum(terms.values()))
-            cur = coef[2] * 1e3  # mg/C^2
-            for k in range(3):  # keep the orientation with the largest |curvature|
-                if not np.isfinite(c2[k]) or abs(cur[k]) > abs(c2[k]):
-                    c2[k], c2_sig[k] = cur[k], sig[k] * 1e3
+            g_axis = np.round(by.mean(axis=0) * 2.0) / 2.0  # the axis's gravity, to 0.5 g
+            # the compensation matched this orientation's chord slope (its TD_i) over these data, so
+            # the parabola it leaves has its vertex where a line fitted to x^2 touches: chord / 2
+            bxc = bx - np.average(bx, weights=bn)
+            vertex = 0.5 * float(np.sum(bn * bxc * bx * bx) / np.sum(bn * bxc * bxc))
+            for k in range(3):
+                per_gravity.setdefault((k, float(g_axis[k])), []).append((coef[2, k] * 1e3, sig[k] * 1e3, vertex))
+    c2, c2_sig, e_curv_mg, e_curv_sig_mg = _combine_curvatures(per_gravity, rng)
     ramp_rms = np.sqrt(ramp_ss / ramp_n) * 1e3 if ramp_n else np.full(3, np.nan)
     # noise density
     dt = np.diff(t)
@@ -148,8 +200,8 @@ def residual_report(
         np.asarray([np.nan if v is None else float(v) for v in tdb_tdsf_corr], dtype=np.float64))
     sf_mg = sf * 1e-3  # ppm/C at 1 g = 1e-3 mg/C
     coef_sig = rng * np.sqrt(sb ** 2 + sf_mg ** 2 + 2.0 * np.abs(rho * sb * sf_mg))  # the worse of +-1 g
-    e_mg = np.abs(c2) * rng ** 2 / 2.0
-    e_sig = np.sqrt((c2_sig * rng ** 2 / 2.0) ** 2 + coef_sig ** 2)
+    e_mg = e_curv_mg
+    e_sig = np.sqrt(e_curv_sig_mg ** 2 + coef_sig ** 2)
     bow = np.abs(c2) * rng ** 2 / 8.0
     bow_sig = c2_sig * rng ** 2 / 8.0
 
@@ -163,6 +215,7 @@ def residual_report(
             "drift_error_sigma_mg": f(e_sig[k]),
             "drift_error_fs_pct": f(e_mg[k] / FULL_SCALE_MG * 100.0),
             "drift_error_fs_sigma_pct": f(e_sig[k] / FULL_SCALE_MG * 100.0),
+            "drift_error_curvature_sigma_mg": f(e_curv_sig_mg[k]),
             "curvature_mg_per_c2": f(c2[k]),
             "curvature_sigma_mg_per_c2": f(c2_sig[k]),
             "bow_mg": f(bow[k]),

@@ -84,6 +84,32 @@ def decompose_a(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 # results
 
 
+@dataclass(frozen=True)
+class SfemGoodness:
+    """How the residual of a fit compares with what the part's noise predicts (computed by
+    station/science/sfem_goodness.py; a plain record here so a fit carries it without depending
+    on how it was judged).
+
+    residual_ratio: RMS of the |a| - 1 g residuals in units of each position's noise sigma, over
+    the residual's degrees of freedom (1 when the model is complete and the noise is white); None
+    when the positions leave too few degrees of freedom to tell (`dof`)."""
+
+    residual_ratio: float | None
+    dof: int
+    mark_ratio: float  # the ratio above which the fit is marked (sfem_goodness.GOF_MARK_RATIO)
+    misses_effect: bool
+    words: str
+    effect: str | None = None  # the named effect that explains the residual, when one does
+    effect_mg: tuple[float, ...] | None = None  # its size per axis (x, y, z), mg/g^n
+    ratio_with_effect: float | None = None  # the residual ratio once the named effect is allowed for
+
+    def to_json(self) -> dict:
+        return {"residual_ratio": self.residual_ratio, "dof": self.dof, "mark_ratio": self.mark_ratio,
+                "misses_effect": self.misses_effect, "words": self.words, "effect": self.effect,
+                "effect_mg": None if self.effect_mg is None else list(self.effect_mg),
+                "ratio_with_effect": self.ratio_with_effect}
+
+
 @dataclass
 class SfemFit:
     """One SFEM fit. Raw units are whatever the readings were in (g for station logs)."""
@@ -115,6 +141,10 @@ class SfemFit:
     # held-out |a| - 1 g RMSE (mg): positions or samples the fit never saw (see heldout_rmse)
     rmse_heldout_mg: float | None = None
     heldout_method: str | None = None
+    # where ref_sigma_deg came from (station/science/sfem_goodness.py): measured on this step's
+    # direction residuals, the profile's setting, or the documented default
+    ref_sigma_source: str = ""
+    goodness: "SfemGoodness | None" = None  # the residual against the noise (sfem_goodness.py)
 
     @property
     def M(self) -> np.ndarray:
@@ -184,6 +214,8 @@ class SfemFit:
             "heldout_method": self.heldout_method,
             "n_positions": self.n_positions,
             "ref_sigma_deg": self.ref_sigma_deg,
+            "ref_sigma_source": self.ref_sigma_source,
+            "goodness_of_fit": None if self.goodness is None else self.goodness.to_json(),
             "uncertainty_scaled": self.uncertainty_scaled,
             "success": self.success,
             "residuals": residuals,
@@ -193,6 +225,7 @@ class SfemFit:
 
 __all__ = [
     "SfemFit",
+    "SfemGoodness",
     "SfemInsufficientData",
     "compose_a",
     "decompose_a",

@@ -6,6 +6,14 @@ temperature in its range. It needs the model's algebra, not the optimiser.
 
 Thermal model (sensors2023 eq. 8): each of the 12 parameters as a polynomial (cubic when there are
 >= 4 temperature steps, lower otherwise) of (T - t_ref_c).
+
+Sign convention of the drift (`drift_at_t_ref`): the SFEM's scale S maps raw readings to g, so a
+sensor whose output per g falls as it warms has a RISING S. The thermal calibration (martinez2022
+eq. 1, Acc = Acc0 (1 + TDSF dT) + TDB dT) states the drift of the output instead, so a true TDSF of
+-225 ppm/C shows as dS/dT = +225 ppm/C of S. The station prints and stores the drift in the thermal
+calibration's convention, TDSF = -(dS/dT) / S and TDB = db/dT - TDSF b (the bias b moves with the
+scale too: b(T) = b (1 + TDSF dT) + TDB dT), so the SFEM's figures compare with `station
+calibrate`'s directly; the raw slopes are kept beside them under their own names.
 """
 
 from __future__ import annotations
@@ -50,12 +58,15 @@ class SfemThermalModel:
     t_ref_c: float = T_REF_C
     residual_rms: dict[str, np.ndarray] = field(default_factory=dict)  # polynomial misfit at the steps
     notes: list[str] = field(default_factory=list)
+    coef_sigma: dict[str, np.ndarray] = field(default_factory=dict)  # 1-sigma of coef from the steps' sigmas
+    acc_g_per_raw: float = 1.0  # g per raw unit of the readings (b is in raw units): TDB in mg/C needs it
 
     NAMES = ("rotvec_rad", "alpha", "scale", "b")
 
     @classmethod
     def fit(
-        cls, steps: list[tuple[float, SfemFit]], max_degree: int = 3, t_ref_c: float = T_REF_C
+        cls, steps: list[tuple[float, SfemFit]], max_degree: int = 3, t_ref_c: float = T_REF_C,
+        acc_g_per_raw: float = 1.0,
     ) -> "SfemThermalModel":
         """Least-squares polynomial per parameter; degree = min(max_degree, n_steps - 1)."""
         if not steps:
@@ -80,13 +91,53 @@ class SfemThermalModel:
             "scale": np.array([f.scale for _, f in steps]),
             "b": np.array([f.b for _, f in steps]),
         }
+        sigmas = {
+            "rotvec_rad": np.array([f.sigma["rotvec_rad"] if determined else np.zeros(3) for _, f in steps]),
+            "alpha": np.array([f.sigma["alpha"] for _, f in steps]),
+            "scale": np.array([f.sigma["scale"] for _, f in steps]),
+            "b": np.array([f.sigma["b"] for _, f in steps]),
+        }
         x = temps - t_ref_c
-        coef, resid = {}, {}
+        # the least-squares polynomial is linear in the step values: coef = L @ values, so each
+        # coefficient's variance is sum_j L_ij^2 sigma_j^2 (the steps are independent fits)
+        lmap = np.linalg.pinv(np.polynomial.polynomial.polyvander(x, degree))  # (degree+1, n_steps)
+        coef, resid, coef_sigma = {}, {}, {}
         for name, vals in values.items():
             c = np.polynomial.polynomial.polyfit(x, vals, degree)  # (degree+1, 3)
             coef[name] = c
             resid[name] = np.sqrt(np.mean((np.polynomial.polynomial.polyval(x, c).T - vals) ** 2, axis=0))
-        return cls(degree, coef, temps, determined, t_ref_c, resid, notes)
+            coef_sigma[name] = np.sqrt((lmap**2) @ np.nan_to_num(sigmas[name]) ** 2)
+        return cls(degree, coef, temps, determined, t_ref_c, resid, notes, coef_sigma, acc_g_per_raw)
+
+    def drift_at_t_ref(self) -> dict | None:
+        """The drift at t_ref_c per axis in the thermal calibration's convention (module doc):
+        TDSF ppm/C, TDB mg/C, with their 1-sigma from the steps' sigmas, and the raw slopes of S
+        and b under their own names; None without a slope (one step)."""
+        if self.degree < 1:
+            return None
+        s0, ds = self.coef["scale"][0], self.coef["scale"][1]
+        acc_g_per_raw = self.acc_g_per_raw
+        b0_g, db_g = self.coef["b"][0] * acc_g_per_raw, self.coef["b"][1] * acc_g_per_raw
+        tdsf = -ds / s0  # 1/C
+        sig = self.coef_sigma or {}
+        sds = sig.get("scale", np.full((2, 3), np.nan))[1]
+        sdb = sig.get("b", np.full((2, 3), np.nan))[1] * acc_g_per_raw
+        tdsf_sigma = sds / np.abs(s0)
+        tdb = db_g - tdsf * b0_g
+        tdb_sigma = np.sqrt(sdb**2 + (b0_g * tdsf_sigma) ** 2)
+        return {
+            "convention": "martinez2022 eq. 1: Acc = Acc0 (1 + TDSF dT) + TDB dT, the drift of the raw output; "
+                          "TDSF = -(dS/dT)/S, TDB = db/dT - TDSF b",
+            "sigma_covers": "the steps' fit noise only: not the part's bias wander over the hours between steps "
+                            "nor the error of the board's temperature reading",
+            "t_ref_c": self.t_ref_c,
+            "tdsf_ppm_per_c": (tdsf * 1e6).tolist(),
+            "tdsf_sigma_ppm_per_c": (tdsf_sigma * 1e6).tolist(),
+            "tdb_mg_per_c": (tdb * 1e3).tolist(),
+            "tdb_sigma_mg_per_c": (tdb_sigma * 1e3).tolist(),
+            "dscale_dT_ppm_of_scale_per_c": (ds / s0 * 1e6).tolist(),
+            "db_dT_mg_per_c": (db_g * 1e3).tolist(),
+        }
 
     @property
     def temp_range_c(self) -> tuple[float, float]:
@@ -112,7 +163,9 @@ class SfemThermalModel:
             "misalignment_determined": self.misalignment_determined,
             "coef": {k: v.tolist() for k, v in self.coef.items()},
             "coef_layout": "coef[name][power][axis], polynomial of (temp_c - t_ref_c), lowest power first",
+            "coef_sigma": {k: v.tolist() for k, v in self.coef_sigma.items()},
             "residual_rms": {k: v.tolist() for k, v in self.residual_rms.items()},
+            "drift_at_t_ref": self.drift_at_t_ref(),
             "notes": list(self.notes),
         }
 

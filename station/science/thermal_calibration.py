@@ -21,6 +21,7 @@ from scipy.signal import lfilter
 
 from contracts.logfile import DutLog
 from station.science.offline_fit import offline_fit
+from station.science.placement import settled_labels
 from station.science.residual import DEFAULT_OPERATING_RANGE_C, residual_report
 from station.science.drift_coefficients import InsufficientData, result_from_segments
 from station.science.gate_trace import trace_gate
@@ -48,6 +49,24 @@ def _with_positions(segments: list[Segment], time_s: np.ndarray, position: np.nd
     return out
 
 
+def placed_only(block: SampleBlock, position: np.ndarray | None) -> tuple[SampleBlock, np.ndarray | None]:
+    """The samples the station placed at a position (station/science/placement.py): a log with a
+    position column drops its -1 rows (the plate being turned, not yet settled, or not where the
+    step wanted it) and the rows whose samples do not show the labelled position settled (a
+    producer that labelled by a button), so a stored log, a third-party log and the station's own
+    analysis fit the samples the station would. A log without placed rows keeps everything."""
+    if position is None:
+        return block, None
+    pos = np.asarray(position).reshape(-1)
+    if not (pos >= 0).any():
+        return block, pos
+    pos = settled_labels(block.time_s, block.acc_g, pos)  # the station's labels pass unchanged
+    keep = pos >= 0
+    if keep.all():
+        return block, pos
+    return SampleBlock(block.time_s[keep], block.acc_g[keep], block.temp_c[keep]), pos[keep]
+
+
 def fit_samples(block: SampleBlock, segment_ends_s: list[float]) -> SampleBlock:
     """The samples a DUT's fit uses: up to the end of its last segment. What a station receives
     after it (while other DUTs finish the step and the batch stops) depends on wall-clock latency,
@@ -60,16 +79,18 @@ def fit_samples(block: SampleBlock, segment_ends_s: list[float]) -> SampleBlock:
 
 
 def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None = None,
-              operating_range_c: float = DEFAULT_OPERATING_RANGE_C) -> dict:
+              operating_range_c: float = DEFAULT_OPERATING_RANGE_C, wander: str = "auto") -> dict:
     """Both methods on one record; raises StationError (InsufficientData) with one clear line.
 
+    wander: "auto" (the part's measured noise level, the station's) or "class" (the sensor class's
+    constant, for comparison: benchmarks/coverage.py --wander class).
     "residual" holds what the offline TDB/TDSF leave over `operating_range_c` (station/science/
     residual.py: drift error E/E_FS of eqs. 10-12 with its 1-sigma, curvature, noise density)."""
     cfg = config or StreamingConfig()
     serial, sensor, position = "", "", None
     if isinstance(block_or_log, DutLog):
-        serial, sensor, position = block_or_log.serial, block_or_log.meta.get("sensor", ""), block_or_log.position
-        block = block_or_log.block()
+        serial, sensor = block_or_log.serial, block_or_log.meta.get("sensor", "")
+        block, position = placed_only(block_or_log.block(), block_or_log.position)
     else:
         block = block_or_log
     n = len(block)
@@ -97,9 +118,10 @@ def calibrate(block_or_log: DutLog | SampleBlock, config: StreamingConfig | None
             f"{len(segments)} segment(s) logged ({', '.join(f'orientation {o}: {c}' for o, c in sorted(per_o.items())) or 'none'}); "
             f"need at least two segments in each of two orientations ({exc})"
         ) from None
-    # the part's bias wander (by sensor, else by its white noise) enters the coefficient sigmas
+    # the part's bias wander (its class by sensor, else by its white noise, at the level measured on
+    # its own still runs: station/science/part_noise.py) enters the coefficient sigmas
     offline = offline_fit(block.time_s, block.acc_g, block.temp_c, cfg, trace=trace, sensor=sensor or None,
-                          wander="auto")
+                          wander=wander)
     oj = offline.to_json()["axes"]
     unc = getattr(offline, "uncertainty", {}) or {}
     residual = residual_report(

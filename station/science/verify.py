@@ -40,6 +40,7 @@ import math
 import numpy as np
 
 from station.science.offline_fit import NO_WANDER, BiasWander, wander_for
+from station.science.part_noise import measure_part_noise
 from station.science.thermal_model import drift_error_fs_pct, drift_error_mg
 from contracts.types import AXES, T_REF_C
 
@@ -251,7 +252,7 @@ def verify_compensated(
     acc_g (n, 3) compensated samples in g, temp_c (n,) the board's temperature; e_before_mg (3,)
     or None: the uncompensated E of the same orientation from the first pass. time_s (n,): sample
     times (default: index / criteria.odr_hz); wander: the part's bias wander ("auto": the class of
-    its white noise; None: white only).
+    its white noise at the part's own level, station/science/part_noise.py; None: white only).
     """
     c = criteria or VerifyCriteria()
     acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
@@ -263,9 +264,9 @@ def verify_compensated(
     t = np.arange(n) / c.odr_hz if time_s is None else np.asarray(time_s, dtype=np.float64).reshape(-1)
     if wander is None:
         wander = NO_WANDER
-    elif isinstance(wander, str):
+    elif isinstance(wander, str):  # the class of its white noise, at the level measured on the part
         odr = 1.0 / float(np.median(np.diff(t))) if n > 1 and np.median(np.diff(t)) > 0 else c.odr_hz
-        wander = wander_for(None, _white_ug_per_sqrt_hz(acc, odr))
+        wander = measure_part_noise(t, acc, [(0, n)], wander_for(None, _white_ug_per_sqrt_hz(acc, odr))).wander
     # the rise seen by the board: robust ends (medians of the first and last 5 %)
     k = max(5, n // 20)
     t_from, t_to = float(np.median(temp[:k])), float(np.median(temp[-k:]))
