@@ -29,7 +29,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from contracts.trace import Trace
 from contracts.types import StationError
-from db.models import SCHEMA_REVISION, Batch, Dut, DutRun, SampleChunk, SegmentRow, utcnow
+from db.models import NO_ATTEMPT, SCHEMA_REVISION, Batch, Dut, DutRun, MeasuredBy, SampleChunk, SegmentRow, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -356,33 +356,43 @@ class Database:
 
     def create_run(
         self, batch_id: int, slot: str, serial: str, sensor: str = "", identity: dict | None = None,
-        state: str = "identified",
+        state: str = "identified", *, counts_as_attempt: bool = True, measured_by: MeasuredBy | None = None,
     ) -> int:
         """A new run of `serial` in (batch_id, slot), numbered as the serial's next attempt. Safe with
         several stations on one database: the DUT row is insert-or-get and row-locked while the
         attempt is counted (attempts of real batches are 1..N without duplicates or gaps), and a
-        unique collision or a PostgreSQL serialization failure/deadlock is retried."""
-        return retry_collisions(lambda: self._create_run(batch_id, slot, serial, sensor, identity, state),
+        unique collision or a PostgreSQL serialization failure/deadlock is retried.
+
+        counts_as_attempt=False: a run that never tested the part (the label scanned for the slot
+        is not the board's serial: station/daemon/slots.py stops it before any data). It is stored
+        with attempt 0 (NO_ATTEMPT) so the MES and the history see which board was there, and it
+        is no attempt of `serial`: never counted in its attempt numbers, attempts or yields.
+        measured_by: the software, firmware and holder that measure the run (None: not known)."""
+        return retry_collisions(lambda: self._create_run(batch_id, slot, serial, sensor, identity, state,
+                                                         counts_as_attempt, measured_by or MeasuredBy()),
                                 f"create run of {serial}", on_retry=self._count_retry)
 
     def _count_retry(self) -> None:
         self.collision_retries += 1
 
     def _create_run(self, batch_id: int, slot: str, serial: str, sensor: str, identity: dict | None,
-                    state: str) -> int:
+                    state: str, counts_as_attempt: bool = True, measured_by: MeasuredBy = MeasuredBy()) -> int:
         with self.session() as s:
             dut = self.upsert_dut(s, serial, sensor)
             # a serial seen again is a retest: its attempt number counts every earlier run of real
-            # parts (a replay re-runs a recorded attempt: it keeps that attempt's number)
+            # parts that tested it (a replay re-runs a recorded attempt: it keeps that attempt's
+            # number; a run stopped for a label mismatch is no attempt)
             real = select(Batch.id).where(Batch.replay_of.is_(None))
             earlier = int(s.scalar(select(func.count(DutRun.id)).where(
-                DutRun.dut_id == dut.id, DutRun.batch_id.in_(real))) or 0)
+                DutRun.dut_id == dut.id, DutRun.batch_id.in_(real), DutRun.attempt > NO_ATTEMPT)) or 0)
             attempt = earlier + 1
             if s.scalar(select(Batch.replay_of).where(Batch.id == batch_id)) is not None:
                 attempt = max(1, earlier)
+            if not counts_as_attempt:
+                attempt = NO_ATTEMPT
             labels = s.scalar(select(Batch.labels).where(Batch.id == batch_id)) or {}
             run = DutRun(batch_id=batch_id, station=self.station, slot=slot, dut_id=dut.id, state=state, identity=dict(identity or {}),
-                         attempt=attempt, label_serial=labels.get(slot) or None)
+                         attempt=attempt, label_serial=labels.get(slot) or None, **measured_by.columns())
             s.add(run)
             s.flush()
             return run.id

@@ -8,6 +8,7 @@ is lost even where the typed columns summarize it.
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from typing import Any
 
@@ -29,7 +30,32 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 # The revision of the newest schema this code knows (db/migrations/versions/).
-SCHEMA_REVISION = "0008"
+SCHEMA_REVISION = "0009"
+# dut_run.attempt of a run that never tested its part (the label scanned for the slot is not the
+# board's serial: stopped at connect, before any data). Stored and judged error, so the MES sees which
+# board was there, but no attempt of the board's serial: attempt numbers, attempts and yields skip it.
+NO_ATTEMPT = 0
+# dut_run.holder: what held the part while its positions were taken. 'fixture': the station's
+# motorized fixture moved the plate; 'operator': a person turned the plate (no fixture configured).
+HOLDERS = ("fixture", "operator")
+
+
+@dataclass(frozen=True)
+class MeasuredBy:
+    """What measured a run, stored with it when it is made (Database.create_run): the software's
+    version, the board firmware's (None: the board reports none) and the holder (HOLDERS)."""
+
+    software_version: str | None = None
+    firmware_version: str | None = None
+    holder: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.holder is not None and self.holder not in HOLDERS:
+            raise ValueError(f"holder {self.holder!r} is none of {', '.join(HOLDERS)}")
+
+    def columns(self) -> dict[str, str | None]:
+        """dut_run's columns ('' stored as NULL: not reported is not known)."""
+        return {k: (v or None) for k, v in asdict(self).items()}
 
 NAMING_CONVENTION = {
     "ix": "ix_%(table_name)s_%(column_0_N_name)s",
@@ -144,7 +170,8 @@ class DutRun(Base):
     result_seq: Mapped[int | None] = mapped_column(BigInteger, unique=True)
     started_at: Mapped[datetime] = mapped_column(default=utcnow)
     ended_at: Mapped[datetime | None] = mapped_column(index=True)
-    # the serial's attempt number (retests: 2, 3, ...) and the station's decision (station/decisions/verdicts.py)
+    # the serial's attempt number (retests: 2, 3, ...; NO_ATTEMPT = 0: a label mismatch, the part was never
+    # tested) and the station's decision (station/decisions/verdicts.py)
     attempt: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
     verdict: Mapped[str | None] = mapped_column(String(16), index=True)  # pass, marginal, fail, error
     grade: Mapped[str | None] = mapped_column(String(16))
@@ -155,6 +182,12 @@ class DutRun(Base):
     limits_version: Mapped[str | None] = mapped_column(String(32))
     judged_at: Mapped[datetime | None] = mapped_column()
     label_serial: Mapped[str | None] = mapped_column(String(64))  # scanned from the part's label, if any
+    # what measured the run (migration 0009): the station software's version, the board firmware's
+    # (its identity reply; None when it reports none) and what held the part: HOLDERS (None: not
+    # stored, a run from before 0009)
+    software_version: Mapped[str | None] = mapped_column(String(64))
+    firmware_version: Mapped[str | None] = mapped_column(String(64))
+    holder: Mapped[str | None] = mapped_column(String(16))
 
     batch: Mapped[Batch] = relationship(back_populates="runs")
     dut: Mapped[Dut] = relationship(back_populates="runs")

@@ -14,6 +14,7 @@ from sqlalchemy.orm import aliased
 
 from db.database import Database
 from db.models import (
+    NO_ATTEMPT,
     Batch,
     Dut,
     DutRun,
@@ -25,6 +26,7 @@ from db.models import (
     ThermalResultRow,
     utcnow,
 )
+from contracts.sfem_result import SFEM_RESULT_SHAPE
 from contracts.trace import Trace
 from contracts.types import AXES
 
@@ -49,10 +51,17 @@ def thermal_json(row: ThermalResultRow) -> dict:
 
 
 def sfem_json(rows: list[SfemResultRow]) -> dict | None:
-    """The SFEM result as reported: one fit, or {"steps": [...], "polynomial_coefficients": ...}."""
+    """The SFEM result as reported: the record the writer stored (contracts/sfem_result.py
+    SfemResult: its record row plus one row per step, put back together), or, for rows stored
+    before that shape, one fit or {"steps": [...], "polynomial_coefficients": ...}."""
     if not rows:
         return None
     steps = [r for r in rows if r.temperature_step is not None]
+    record = next((r for r in rows if r.temperature_step is None
+                   and (r.parameters or {}).get("shape") == SFEM_RESULT_SHAPE), None)
+    if record is not None:
+        ordered = sorted(steps, key=lambda r: (r.temperature_step, r.id))
+        return {**dict(record.parameters or {}), "steps": [dict(r.parameters or {}) for r in ordered]}
     poly = [r for r in rows if r.polynomial_coefficients is not None]
     if len(rows) == 1 and (len(steps) <= 1):
         out = dict(rows[0].parameters or {})
@@ -159,6 +168,10 @@ def _run_json(r: DutRun, serial: str, n_segments: int | None = None) -> dict:
         "started_at": _iso(r.started_at),
         "ended_at": _iso(r.ended_at),
         "label_serial": r.label_serial,
+        # what measured it (None: not stored, a run from before migration 0009)
+        "software_version": r.software_version,
+        "firmware_version": r.firmware_version,
+        "holder": r.holder,
         **verdict_json(r),
     }
     if n_segments is not None:
@@ -187,8 +200,11 @@ def dut_by_serial(db: Database, serial: str) -> dict | None:
             return None
         n_runs = s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id,
                                                               DutRun.batch_id.in_(_real_batches()))) or 0
+        # a run stopped for a label mismatch (attempt 0) is in the history, but it never tested the part
+        n_attempts = s.scalar(select(func.count(DutRun.id)).where(DutRun.dut_id == dut.id, _is_attempt(),
+                                                                  DutRun.batch_id.in_(_real_batches()))) or 0
         # the DUT's result is its latest VALID attempt (judged pass/marginal/fail); a retest that
-        # faulted does not hide the attempt before it. Never judged: the latest run with a record
+        # faulted does not hide the attempt before it. Never judged: the latest attempt with a record
         # or with results.
         latest = s.scalars(
             select(DutRun).where(DutRun.dut_id == dut.id, DutRun.verdict.in_(VALID_VERDICTS),
@@ -197,7 +213,7 @@ def dut_by_serial(db: Database, serial: str) -> dict | None:
         if latest is None:  # results are data of their run (no result_seq until its verdict)
             with_results = select(ThermalResultRow.run_id).union(select(SfemResultRow.run_id))
             latest = s.scalars(
-                select(DutRun).where(DutRun.dut_id == dut.id,
+                select(DutRun).where(DutRun.dut_id == dut.id, _is_attempt(),
                                      or_(DutRun.result_seq.is_not(None), DutRun.id.in_(with_results)))
                 .order_by(DutRun.id.desc())
             ).first()
@@ -212,7 +228,7 @@ def dut_by_serial(db: Database, serial: str) -> dict | None:
             "thermal_method": None,
             "thermal_by_method": {},
             "sfem": None,
-            "attempts": n_runs,
+            "attempts": n_attempts,
         }
         if latest is not None:
             out.update(_run_results(s, latest.id))
@@ -375,6 +391,11 @@ def _real_batches() -> Any:
     return select(Batch.id).where(Batch.replay_of.is_(None))
 
 
+def _is_attempt() -> Any:
+    """Runs that tested their part: not a run stopped for a label mismatch (attempt NO_ATTEMPT)."""
+    return DutRun.attempt > NO_ATTEMPT
+
+
 def yields(db: Database, batch_id: int | None = None) -> dict:
     """First-pass and final yield over the DUTs judged at least once (those with a run in
     `batch_id` when given), counting every attempt of each DUT.
@@ -382,12 +403,13 @@ def yields(db: Database, batch_id: int | None = None) -> dict:
     first pass: the DUT's first judged attempt is `pass` (an error, marginal or fail on the first
     attempt is not first pass). final: its latest VALID attempt (pass/marginal/fail; errors are
     skipped) is `pass`; a DUT with errors only is not a final pass. Runs not judged yet
-    (running, interrupted) are left out."""
+    (running, interrupted) are left out, and so are runs that never tested their part (a label
+    mismatch, attempt NO_ATTEMPT): a wrong label is not a failed part."""
     with db.session() as s:
-        q = (select(DutRun.dut_id, DutRun.id, DutRun.verdict).where(DutRun.verdict.is_not(None))
+        q = (select(DutRun.dut_id, DutRun.id, DutRun.verdict).where(DutRun.verdict.is_not(None), _is_attempt())
              .where(DutRun.batch_id.in_(_real_batches())).order_by(DutRun.id))
         if batch_id is not None:
-            q = q.where(DutRun.dut_id.in_(select(DutRun.dut_id).where(DutRun.batch_id == batch_id)))
+            q = q.where(DutRun.dut_id.in_(select(DutRun.dut_id).where(DutRun.batch_id == batch_id, _is_attempt())))
         per: dict[int, list[str]] = {}
         for dut_id, _run_id, verdict in s.execute(q).all():
             per.setdefault(dut_id, []).append(verdict)
@@ -531,9 +553,10 @@ def judged_runs(db: Database, limit: int = 5000, station: str | None = None, *, 
                             limits_version)
         rows = s.execute(q.order_by(DutRun.judged_at.desc(), DutRun.id.desc()).limit(max(1, min(int(limit), 100_000)))).all()
         out = [{"run_id": r.id, "batch_id": r.batch_id, "station": r.station, "slot": r.slot, "serial": serial,
-                "judged_at": _iso(r.judged_at), "verdict": r.verdict, "grade": r.grade, "limits_name": r.limits_name,
+                "attempt": r.attempt, "judged_at": _iso(r.judged_at), "verdict": r.verdict, "grade": r.grade, "limits_name": r.limits_name,
                 "limits_version": r.limits_version, "checks": list((r.verdict_detail or {}).get("checks") or []),
                 "reasons": list((r.verdict_detail or {}).get("reasons") or []), "state": r.state,
+                "fault_reason": r.fault_reason or "",
                 "profile": b.profile, **trace_json(b, with_labels=False), "product": Trace.of(b).product}
                for r, serial, b in rows]
     out.reverse()

@@ -55,6 +55,7 @@ from sqlalchemy.exc import OperationalError
 
 from db.sample_chunks import SampleChunks
 from contracts.json_safe import finite_or_none as _num, plain_json
+from contracts.sfem_result import SfemResult
 from db.database import BATCH_END_STATES, RUN_END_STATES, Database
 from db.models import (
     Batch,
@@ -117,54 +118,37 @@ def thermal_rows(thermal: dict | None) -> list[dict]:
 
 
 def sfem_rows(sfem: dict | None) -> list[dict]:
-    """Rows for sfem_result: one per temperature step (`{"steps": [...], "polynomial": ...}`) or
-    one row for a single fit (the `station sfem --json` shape)."""
+    """Rows for sfem_result from the SFEM record (contracts/sfem_result.py SfemResult, the one
+    shape the daemon and `station sfem --json` give): one row per temperature step (its fit) and
+    one row for the record (temperature_step None: the reference step's headline figures, the
+    record's own keys and, in polynomial_coefficients, the thermal model). db/repository.py
+    sfem_json puts them back together. Any other shape raises ValueError (the event is refused)."""
     if not sfem:
         return []
-    poly = sfem.get("polynomial_coefficients") or sfem.get("polynomials") or sfem.get("polynomial")
-    steps = sfem.get("steps")
-    if not isinstance(steps, list) and isinstance(sfem.get("temperatures"), list):
-        # the daemon's shape: {"temperatures": [{"setpoint_c", "temp_c", "fit": {...}}, ...]}
-        steps = [{**(t.get("fit") or {}), **{k: v for k, v in t.items() if k != "fit"},
-                  "temperature_step": i} for i, t in enumerate(sfem["temperatures"])]
-    rows = []
-    if isinstance(steps, list):
-        for i, st in enumerate(steps):
-            st = st or {}
-            rows.append(
-                {
-                    "temperature_step": int(st.get("temperature_step", i)),
-                    "temp_c": _num(st.get("temp_c")),
-                    "rmse_before_mg": _num(st.get("rmse_before_mg")),
-                    "rmse_after_mg": _num(st.get("rmse_after_mg")),
-                    "parameters": plain_json(st),
-                    "polynomial_coefficients": None,
-                }
-            )
-        if poly is not None:
-            rest = {k: v for k, v in sfem.items() if k != "steps"}
-            rows.append(
-                {
-                    "temperature_step": None,
-                    "temp_c": None,
-                    "rmse_before_mg": _num(sfem.get("rmse_before_mg")),
-                    "rmse_after_mg": _num(sfem.get("rmse_after_mg")),
-                    "parameters": plain_json(rest),
-                    "polynomial_coefficients": plain_json(poly),
-                }
-            )
-        return rows
-    step = sfem.get("temperature_step")
-    return [
+    rec = SfemResult.from_json(sfem)
+    rows = [
         {
-            "temperature_step": None if step is None else int(step),
-            "temp_c": _num(sfem.get("temp_c")),
-            "rmse_before_mg": _num(sfem.get("rmse_before_mg")),
-            "rmse_after_mg": _num(sfem.get("rmse_after_mg")),
-            "parameters": plain_json(sfem),
-            "polynomial_coefficients": None if poly is None else plain_json(poly),
+            "temperature_step": st.temperature_step,
+            "temp_c": st.temp_c,
+            "rmse_before_mg": st.rmse_before_mg,
+            "rmse_after_mg": st.rmse_after_mg,
+            "parameters": st.to_json(),
+            "polynomial_coefficients": None,
         }
+        for st in rec.steps
     ]
+    ref = rec.reference
+    rows.append(
+        {
+            "temperature_step": None,
+            "temp_c": ref.temp_c,
+            "rmse_before_mg": ref.rmse_before_mg,
+            "rmse_after_mg": ref.rmse_after_mg,
+            "parameters": rec.record_row_json(),
+            "polynomial_coefficients": None if rec.thermal is None else plain_json(rec.thermal),
+        }
+    )
+    return rows
 
 
 VERDICT_FIELDS = ("verdict", "grade", "tray", "reason", "attempt", "limits_name", "limits_version")

@@ -43,7 +43,9 @@ class Limit(_Model):
 
     A value inside [low, high] but within `marginal` of either end is `marginal`; so is a value
     whose uncertainty interval (value +- guard_sigma * sigma) crosses a limit, on either side;
-    outside (interval included) is `fail`. sigma = sqrt(sigma_measured^2 + u_sys^2).
+    outside (interval included) is `fail`. sigma = sqrt(sigma_measured^2 + u_sys^2). With
+    `evidence_sigma` > 0 the limit is a model check (the curvature a linear model cannot
+    compensate): a crossing interval is `marginal` only when |value| >= evidence_sigma * sigma.
     """
 
     measurement: str = Field(min_length=1, max_length=64)
@@ -57,6 +59,10 @@ class Limit(_Model):
     label: str = Field(default="", description="plain words for the operator, e.g. 'TDSF'")
     required: bool = Field(default=False, description="missing measurement -> verdict error")
     analysis: Literal["thermal", "sfem", "any"] = "thermal"
+    evidence_sigma: float = Field(default=0.0, ge=0, description=(
+        "a model check, not a spec value: an interval that crosses the limit holds the part only when "
+        "the value is at least this many of its own sigmas from zero (the data reject the model); "
+        "0 = a plain guard-banded limit"))
 
     @model_validator(mode="after")
     def _bounds(self) -> "Limit":
@@ -96,9 +102,18 @@ class ProductSpec(_Model):
 
 
 def _lim(measurement: str, unit: str, label: str, low=None, high=None, marginal=0.0, required=False,
-         analysis="thermal", axes=None, u_sys=0.0) -> Limit:
+         analysis="thermal", axes=None, u_sys=0.0, evidence_sigma=0.0) -> Limit:
     return Limit(measurement=measurement, unit=unit, label=label, low=low, high=high, marginal=marginal,
-                 required=required, analysis=analysis, axes=axes, u_sys=u_sys)
+                 required=required, analysis=analysis, axes=axes, u_sys=u_sys, evidence_sigma=evidence_sigma)
+
+
+# The curvature hold needs the data to reject the linear model: |bow| >= 4 of its sigmas (the
+# verification's own curvature rule, VerifyCriteria.curvature_sigma). Chosen against truth on
+# simulated parts (benchmarks/curvature_holds.py): the bow sigma under-covers the simulator's
+# errors by up to 1.6x (docs/verdicts.md "Curvature"), so the nominal 1 % point (z 3.1 over three
+# axes) would hold 5-8 % of linear parts; at 4 sigma the hold rate of linear parts is the figure
+# that benchmark prints, and parts bowing twice the limit are still held.
+CURVATURE_EVIDENCE_SIGMA = 4.0
 
 
 # Systematic uncertainty of the fast-thermal coefficients, i.e. only what no DUT's own sigma can
@@ -141,8 +156,9 @@ def default_products() -> dict[str, ProductSpec]:
                  u_sys=U_SYS_TDSF_PPM_PER_C),
             # Table 7: after the fast compensation every axis but one is under 1 % FS (eq. 12)
             _lim("drift_error_fs_pct", "%FS", "drift E_FS", high=1.0, marginal=0.05, required=True),
-            # a bow over 3 mg over 70 C is a model the data reject (linear parts here bow < ~1 mg)
-            _lim("bow_mg", "mg", "curvature (linear model rejected)", high=3.0, required=True),
+            # a bow over 3 mg over 70 C is a model the data reject (linear parts here bow < ~1 mg);
+            # held only on evidence of curvature (docs/verdicts.md "Curvature")
+            _lim("bow_mg", "mg", "curvature bow", high=3.0, required=True, evidence_sigma=CURVATURE_EVIDENCE_SIGMA),
             _lim("ramp_residual_rms_mg", "mg", "ramp residual", high=1.5),
             # LIS3DSH datasheet zero-g offset +-60 mg typ. (sensors2023 Table 6 spreads to ~80 mg)
             _lim("sfem_bias_mg", "mg", "bias", low=-100.0, high=100.0, analysis="sfem"),
@@ -169,7 +185,7 @@ def default_products() -> dict[str, ProductSpec]:
             _lim("tdsf_ppm_per_c", "ppm/C", "TDSF", low=-100.0, high=100.0, marginal=5.0, required=True,
                  u_sys=U_SYS_TDSF_PPM_PER_C),
             _lim("drift_error_fs_pct", "%FS", "drift E_FS", high=0.25, marginal=0.02, required=True),
-            _lim("bow_mg", "mg", "curvature (linear model rejected)", high=1.0, required=True),
+            _lim("bow_mg", "mg", "curvature bow", high=1.0, required=True, evidence_sigma=CURVATURE_EVIDENCE_SIGMA),
             _lim("ramp_residual_rms_mg", "mg", "ramp residual", high=0.5),
             _lim("sfem_bias_mg", "mg", "bias", low=-75.0, high=75.0, analysis="sfem"),  # datasheet +-75 mg
             _lim("sfem_scale_error_pct", "%", "scale error", high=2.0, analysis="sfem"),

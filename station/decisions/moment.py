@@ -2,16 +2,22 @@
 
 The verdict's moment (design 8): a run is judged ONCE, when it ends, from everything it stored
 (`verdicts.final_verdict` of a `RunRecord`), never earlier. The supervisor calls:
-- `judge_final(station, seq)` when the batch releases its DUTs, after every DUT's end state is set
+- `judge_final(ctx, seq)` when the batch releases its DUTs, after every DUT's end state is set
   (done, faulted, interrupted by an abort, a failure, a daemon stop): each run gets its verdict, on
   the DUT for the batch status and as one DutVerdict event: the one record the database numbers for
   the MES (result_seq) and the webhook sends. The analysis before it publishes results WITHOUT a
   verdict, so a later fault, abort or failed verification can never leave a pass behind;
-- `judge_interrupted_runs(station, batch_ids)` at daemon start, for the runs a killed daemon left
+- `judge_interrupted_runs(ctx, batch_ids)` at daemon start, for the runs a killed daemon left
   running (marked interrupted by the database): error, "interrupted: station restarted". A batch
   resumed later judges its runs again at its end: a new record that supersedes the error;
 (The batch status's verdict counts, sorting list and time left are station/daemon/progress.py.)
-Profiles without analysis (validation) are not judged: nothing was measured for a verdict.
+Profiles without analysis (validation) are not judged, at the end or at a restart: nothing was
+measured for a verdict. A batch whose profile is known neither to the station nor to the config
+stored with the batch is not judged at a restart either (logged): guessing "thermal" sent
+validation runs to the MES as errors (issue 35).
+
+`ctx` is a VerdictContext (verdict_context.py): every part of the station read here, typed, so a
+renamed station attribute fails where the Station is built, not at a restart.
 """
 
 from __future__ import annotations
@@ -20,39 +26,50 @@ import logging
 from typing import Any
 
 from contracts.events import DutVerdict
-from station.science.residual import DEFAULT_OPERATING_RANGE_C
+from station.config import ProfileConfig
+from station.decisions.limits import ProductSpec
+from station.decisions.verdict_context import EndedBatch, VerdictContext, VerdictStore
 from station.decisions.verdicts import RunRecord, final_verdict
+from station.profiles import Profile, profile_from_config
+from station.science.residual import DEFAULT_OPERATING_RANGE_C
 
 log = logging.getLogger("station.decisions.moment")
 
 
-def _spec(station: Any, identity: Any):
-    sensor = getattr(identity, "sensor", None) if not isinstance(identity, dict) else identity.get("sensor")
-    return station.config.product_for(sensor)
+def _sensor(identity: Any) -> str | None:
+    """The sensor of an identity (contracts.types.Identity, or the dict stored with a run)."""
+    return identity.get("sensor") if isinstance(identity, dict) else getattr(identity, "sensor", None)
 
 
-def operating_range_c(station: Any, identity: Any) -> float:
+def spec_of(ctx: VerdictContext, identity: Any, part_number: str = "") -> ProductSpec | None:
+    """The product whose limits judge this DUT: its batch's part number first, else its sensor."""
+    return ctx.product_for(_sensor(identity), part_number or None)
+
+
+def operating_range_c(ctx: VerdictContext, identity: Any, part_number: str = "") -> float:
     """Full Range of eq. 10 for this DUT's product (default 70 C, martinez2022's -10..60 C)."""
-    spec = _spec(station, identity)
+    spec = spec_of(ctx, identity, part_number)
     return float(spec.operating_range_c) if spec is not None else DEFAULT_OPERATING_RANGE_C
 
 
-def attempt_of(db: Any, run_id: int | None) -> int | None:
-    """Attempt number of a run (the database's column); None for a run the database does not know."""
+def attempt_of(db: VerdictStore, run_id: int | None) -> int | None:
+    """Attempt number of a run (the database's column); None for a run the database does not know
+    or cannot tell now (a database error is logged: the verdict still goes out, without attempt,
+    and the other DUTs of the batch are still judged)."""
     if run_id is None:
         return None
     try:
         return int(db.run_attempt(run_id))
     except KeyError:
         return None
+    except Exception:  # noqa: BLE001 - any driver's error: one run's attempt, not every verdict
+        log.warning("run %s: attempt number not read from the database", run_id, exc_info=True)
+        return None
 
 
-def _link_stats(station: Any, d: Any) -> dict:
-    slot = station.slots.get(d.slot)
-    drv = getattr(slot, "driver", None)
-    if drv is not None and hasattr(drv, "stats"):
-        return drv.stats.as_dict()
-    return dict(d.link_stats or {})
+def _link_stats(ctx: VerdictContext, d: Any) -> dict:
+    live = ctx.live_link_stats(d.slot)
+    return dict(live) if live is not None else dict(d.link_stats or {})
 
 
 def slim(v: dict) -> dict:
@@ -75,62 +92,84 @@ def end_of(seq: Any, d: Any) -> tuple[str, str]:
     return (d.state if d.state != "done" else ending), f"{why}, DUT incomplete"
 
 
-def run_record(station: Any, seq: Any, d: Any) -> RunRecord:
+def run_record(ctx: VerdictContext, seq: EndedBatch, d: Any) -> RunRecord:
     state, why = end_of(seq, d)
     return RunRecord(analysis=seq.profile.analysis, program_verify=seq.profile.program_step is not None,
-                     end_state=state, end_reason=why, result=d.result, link_stats=_link_stats(station, d),
+                     end_state=state, end_reason=why, result=d.result, link_stats=_link_stats(ctx, d),
                      n_samples=int(d.n_samples), program=d.program, verification=d.verification)
 
 
-def _judge(station: Any, batch_id: int, slot: str, serial: str | None, run_id: int | None, run: RunRecord,
-           identity: Any) -> dict:
+def _judge(ctx: VerdictContext, batch_id: int, slot: str, serial: str | None, run_id: int | None, run: RunRecord,
+           spec: ProductSpec | None) -> dict:
     """The final verdict of one run as the MES record carries it; published when the run exists."""
-    v = final_verdict(run, _spec(station, identity)).to_json()
-    v["attempt"] = attempt_of(station.db, run_id)
+    v = final_verdict(run, spec).to_json()
+    v["attempt"] = attempt_of(ctx.db, run_id)
     v["run_id"] = run_id
     if run_id is not None:
-        station.bus.publish(DutVerdict(batch_id, slot=slot, serial=serial, verdict=v))
+        ctx.bus.publish(DutVerdict(batch_id, slot=slot, serial=serial, verdict=v))
     return v
 
 
-def judge_final(station: Any, seq: Any) -> None:
+def judge_final(ctx: VerdictContext, seq: EndedBatch) -> None:
     """The final verdict of every DUT of a released batch (see module doc), once per run."""
     if seq.profile.analysis == "none":
         return
+    part = seq.trace.part_number
     for d in seq.duts:
-        if getattr(d, "verdict", None) is not None:
+        if d.verdict is not None:
             continue  # judged once (release runs once; a second call must not send a second record)
-        d.verdict = slim(_judge(station, seq.batch_id, d.slot, d.serial, d.run_id, run_record(station, seq, d),
-                                d.identity))
+        d.verdict = slim(_judge(ctx, seq.batch_id, d.slot, d.serial, d.run_id, run_record(ctx, seq, d),
+                                spec_of(ctx, d.identity, part)))
 
 
-def judge_interrupted_runs(station: Any, batch_ids: list[int], reason: str = "station restarted") -> int:
+def profile_of_batch(ctx: VerdictContext, name: str, snapshot: dict | None) -> Profile | None:
+    """The profile a stored batch ran: the station's by name, else the one in the config stored
+    with the batch (a site profile removed from the config since); None when neither knows it."""
+    prof = ctx.profiles.get(name)
+    if prof is not None:
+        return prof
+    stored = ((snapshot or {}).get("profiles") or {}).get(name)
+    if not isinstance(stored, dict):
+        return None
+    try:
+        return profile_from_config(name, ProfileConfig.model_validate(stored))
+    except ValueError:  # pydantic's ValidationError: a snapshot this software cannot read
+        return None
+
+
+def judge_interrupted_runs(ctx: VerdictContext, batch_ids: list[int], reason: str = "station restarted") -> int:
     """Error verdicts for the runs a killed daemon left running (the database marked them
-    interrupted at start): their end is now. Returns how many runs were judged."""
+    interrupted at start): their end is now. Runs of a profile with no analysis are not judged
+    (see the module doc). Returns how many runs were judged."""
     n = 0
-    resume_point = getattr(station.db, "resume_point", None)
-    if resume_point is None:
-        return 0
-    profiles = getattr(station, "_profiles", {})
     for bid in batch_ids:
         try:
-            rp = resume_point(int(bid))
+            rp = ctx.db.resume_point(int(bid))
+            part = ctx.db.batch_trace(int(bid)).part_number
         except KeyError:
             continue
-        prof = profiles.get(rp.profile)
-        analysis = prof.analysis if prof is not None else "thermal"
-        if analysis == "none":
+        except Exception:  # noqa: BLE001 - a database error on one batch: the others are still judged
+            log.warning("batch %s: interrupted runs not judged (database)", bid, exc_info=True)
+            continue
+        prof = profile_of_batch(ctx, rp.profile, rp.config_snapshot)
+        if prof is None:
+            log.warning("batch %s: profile %r unknown to this station and its stored config: its interrupted "
+                        "runs are not judged", bid, rp.profile)
+            continue
+        if prof.analysis == "none":
             continue
         for r in rp.runs:
             if r.state != "interrupted":
                 continue
-            run = RunRecord(analysis=analysis, program_verify=getattr(prof, "program_step", None) is not None,
+            run = RunRecord(analysis=prof.analysis, program_verify=prof.program_step is not None,
                             end_state="interrupted",
                             end_reason=f"interrupted: {reason} during the batch, DUT incomplete "
                                        "(resumable: station serve --resume)")
-            _judge(station, int(bid), r.slot, r.serial, r.run_id, run, r.identity or {"sensor": r.sensor})
+            identity = r.identity or {"sensor": r.sensor}
+            _judge(ctx, int(bid), r.slot, r.serial, r.run_id, run, spec_of(ctx, identity, part))
             n += 1
     return n
 
 
-__all__ = ["judge_final", "judge_interrupted_runs", "run_record", "end_of", "slim", "operating_range_c", "attempt_of"]
+__all__ = ["judge_final", "judge_interrupted_runs", "run_record", "end_of", "slim", "operating_range_c", "attempt_of",
+           "spec_of", "profile_of_batch"]

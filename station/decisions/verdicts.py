@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Iterable
 
 from station.decisions.limits import Limit, ProductSpec
+from station.decisions.sfem_checks import RESIDUAL_RATIO, RESIDUAL_RATIO_UNIT, sfem_figures, sfem_fit_mark
 from contracts.types import AXES
 
 VERDICTS = ("pass", "marginal", "fail", "error")
@@ -138,19 +139,25 @@ def judge(m: Measurement, limit: Limit, guard_sigma: float, u_sys: float | None 
     v = float(m.value)
     half = guard_sigma * sigma if sigma is not None else 0.0
     lo_v, hi_v = v - half, v + half
-    pm = f" +-{fmt(half)}" if half > 0 else ""
-    # wholly outside a limit: fail (the limit named is the one crossed)
+    pm = f" +-{fmt(sigma)} {unit} (1 sigma, k={fmt(guard_sigma)} band)" if half > 0 else f" {unit}"
+    z = abs(v) / sigma if limit.evidence_sigma > 0 and sigma else None
+    if z is not None and z >= limit.evidence_sigma:  # a model check the data reject (docs/verdicts.md "Curvature")
+        what = f"{what} (linear model rejected, {z:.1f} sigma)"
+    # wholly outside a limit: fail (the limit named is the one crossed; the interval is all outside,
+    # so the words carry no uncertainty)
     if limit.low is not None and hi_v < limit.low:
         return Check(**base, outcome="fail", reason=f"{what} {fmt(v)} {unit}, limit {fmt(limit.low)}")
     if limit.high is not None and lo_v > limit.high:
         return Check(**base, outcome="fail", reason=f"{what} {fmt(v)} {unit}, limit {fmt(limit.high)}")
+    crosses = (limit.low is not None and lo_v < limit.low) or (limit.high is not None and hi_v > limit.high)
+    if crosses and z is not None and z < limit.evidence_sigma:  # no evidence, no hold
+        return Check(**base, outcome="pass",
+                     reason=f"{what} {fmt(v)}{pm}: not significant ({z:.1f} sigma < {fmt(limit.evidence_sigma)})")
     # the interval crosses a limit: the data cannot tell
     if limit.low is not None and lo_v < limit.low:
-        return Check(**base, outcome="marginal",
-                     reason=f"{what} {fmt(v)}{pm} {unit} crosses limit {fmt(limit.low)}")
+        return Check(**base, outcome="marginal", reason=f"{what} {fmt(v)}{pm} crosses limit {fmt(limit.low)}")
     if limit.high is not None and hi_v > limit.high:
-        return Check(**base, outcome="marginal",
-                     reason=f"{what} {fmt(v)}{pm} {unit} crosses limit {fmt(limit.high)}")
+        return Check(**base, outcome="marginal", reason=f"{what} {fmt(v)}{pm} crosses limit {fmt(limit.high)}")
     # inside, but within the marginal band
     if limit.marginal > 0:
         if limit.low is not None and lo_v < limit.low + limit.marginal:
@@ -336,31 +343,9 @@ def thermal_measurements(result: dict | None) -> list[Measurement]:
 
 
 def sfem_measurements(result: dict | None) -> list[Measurement]:
-    """Bias (mg) and |scale - 1| (%) per axis, with their 1-sigma, from an SFEM result: the fit of
-    the first temperature step (the supervisor's {"temperatures": [{"fit": ...}]}) or one fit
-    (`station sfem --json`: "bias" in g, "scale" diagonal of S, "*_sigma")."""
-    if not result:
-        return []
-    temps = result.get("temperatures") or []
-    fit = (temps[0] or {}).get("fit") if temps else result
-    if not isinstance(fit, dict):
-        return []
-    out: list[Measurement] = []
-    bias, bias_sig = fit.get("bias"), fit.get("bias_sigma")
-    scale, scale_sig = fit.get("scale"), fit.get("scale_sigma")
-
-    def at(v: Any, k: int) -> Any:
-        return v[k] if isinstance(v, (list, tuple)) and len(v) == 3 else None
-
-    for k, ax in enumerate(AXES):
-        b, sb = at(bias, k), at(bias_sig, k)
-        if _finite(b):
-            out.append(_m("sfem_bias_mg", float(b) * 1e3, "mg", ax, float(sb) * 1e3 if _finite(sb) else None, "sfem"))
-        sc, ss = at(scale, k), at(scale_sig, k)
-        if _finite(sc):
-            out.append(_m("sfem_scale_error_pct", abs(float(sc) - 1.0) * 100.0, "%", ax,
-                          float(ss) * 100.0 if _finite(ss) else None, "sfem"))
-    return out
+    """The SFEM figures the verdict judges (station/decisions/sfem_checks.py): bias and scale of
+    the step nearest t_ref_c with their 1-sigma, its held-out RMSE, the model check's residual ratio."""
+    return [_m(*f) for f in sfem_figures(result)]
 
 
 def link_measurements(link_stats: dict | None, n_samples: int) -> list[Measurement]:
@@ -462,7 +447,20 @@ def final_verdict(run: RunRecord, spec: ProductSpec | None) -> Verdict:
                fault_reason=run.end_reason, required=profile_requirements(run.analysis, run.program_verify))
     if v.verdict == "error" and run.end_state == "done" and run.program_verify:
         v.reasons[:0] = _program_verify_causes(run)  # the cause first, then what it left unmeasured
+    if run.analysis == "sfem" and run.end_state == "done" and spec is not None:
+        _mark_sfem_fit(v, run.result)
     return v
+
+
+def _mark_sfem_fit(v: Verdict, result: dict | None) -> None:
+    """The SFEM model check marks the verdict, it never decides it (sfem_checks.py says why): a
+    check with its words, and the words among the reasons when the model misses an effect."""
+    mark = sfem_fit_mark(result)
+    if mark is None or any(c.measurement == RESIDUAL_RATIO for c in v.checks):
+        return  # no record, or the product's own limit judged the ratio
+    v.checks.append(Check(RESIDUAL_RATIO, None, mark[0], None, RESIDUAL_RATIO_UNIT, None, None, "pass", mark[1]))
+    if "misses an effect" in mark[1]:
+        v.reasons.append(mark[1])
 
 
 def _program_verify_causes(run: RunRecord) -> list[str]:
