@@ -99,15 +99,26 @@ class SimModbusServer:
         self.last_relay_request = time.monotonic()
         self.relay_offline = False  # fault injection: the relay answers nothing (tests)
         self.fixture_offline = False  # fault injection: the fixture answers nothing
+        # fault injection: the fixture reports "reached, not moving" this many sample seconds before
+        # the plate really gets there (a limit switch hit early, a controller that acks the command)
+        self.reports_early_s = 0.0
         self._watchdog_task: asyncio.Task | None = None
 
     # ---- plant side ------------------------------------------------------------------------
     def update(self) -> None:
         """Finish a fixture move whose time is up (called by the clock and on every request)."""
-        if self.moving and self.plant.time_s >= self._move_end_s:
+        t = self.plant.time_s
+        if self.moving and self.reports_early_s > 0 and t >= self._move_end_s - self.reports_early_s:
+            self.reached_position = self.commanded_position  # says "there" while the plate still moves
+        if self.moving and t >= self._move_end_s:
             self.moving = False
             self.reached_position = self.commanded_position
             self.plant.position = self.commanded_position
+
+    @property
+    def reports_moving(self) -> bool:
+        """What input register 1 says: a fixture that reports early says 'not moving' already."""
+        return self.moving and not (self.reports_early_s > 0 and self.reached_position == self.commanded_position)
 
     def _start_move(self, position: int) -> None:
         self.commanded_position = position
@@ -153,7 +164,7 @@ class SimModbusServer:
         self.update()
         if fc == FC_READ_INPUT:
             regs[0] = self.reached_position & 0xFFFF
-            regs[1] = int(self.moving)
+            regs[1] = int(self.reports_moving)
         return None
 
     async def _chamber(self, fc, start, address, count, regs, values):

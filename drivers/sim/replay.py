@@ -20,7 +20,9 @@ in the same state as the recorded one did:
   restart are the recorded ones, compensated on the board exactly as recorded (the replay boards
   never compensate again: `compensates = False`);
 - `hold(i, index)` keeps DUT i at a recorded index until `release()` (station/replay/director.py:
-  an operator prompt is answered at the sample where the recorded operator's answer took effect).
+  an operator prompt is answered at the sample where the recorded operator's answer took effect);
+  `hold_at_step_start(i, index)` keeps it just after a recorded step start until the replaying
+  daemon has begun that step.
 A DUT released from a pause or a hold continues from where it stopped, at the current world time
 (its record is re-anchored), so no backlog bursts out. A board whose recorded link was lost
 (`unplugged_at_end`) is unplugged when its record has been sent.
@@ -95,7 +97,8 @@ class ReplayWorld:
         n = len(self.duts)
         self.streaming_of: Callable[[int], bool] = lambda i: True  # set by ReplayStation: board i streams
         self._stop_at: list[int | None] = [d.restart_index() for d in self.duts]  # recorded program stops
-        self._hold_at: list[int | None] = [None] * n  # holds set by the director
+        self._hold_at: list[int | None] = [None] * n  # holds set by the director (prompts)
+        self._step_hold_at: list[int | None] = [None] * n  # ... at a recorded step start
         self._held = [False] * n  # DUT i did not advance with the world last time: re-anchor before it does
 
     # ---- SimWorld interface ------------------------------------------------------------------
@@ -147,8 +150,15 @@ class ReplayWorld:
         return int(self._next[i])
 
     def hold(self, i: int, index: int) -> None:
-        """Send DUT i's record up to (not including) `index`, then wait there until release()."""
+        """Send DUT i's record up to (not including) `index`, then wait there until release().
+        A prompt's hold replaces a step-start hold (the step cannot begin before its answer)."""
         self._hold_at[i] = int(index)
+        self._step_hold_at[i] = None
+
+    def hold_at_step_start(self, i: int, index: int | None) -> None:
+        """Send DUT i's record up to `index` (a recorded step start) and wait there until this is
+        called again with another index or None."""
+        self._step_hold_at[i] = None if index is None else int(index)
 
     def at_hold(self, i: int) -> bool:
         """DUT i has sent its record up to its hold (or has no hold, or has sent it all)."""
@@ -191,7 +201,8 @@ class ReplayWorld:
                 s = self._start[i] = t0 - float(self._rel[i][a])
                 self._held[i] = False
             b = int(np.searchsorted(self._rel[i], t_end - s, side="left"))
-            cap = min((x for x in (self._stop_at[i], self._hold_at[i]) if x is not None), default=None)
+            cap = min((x for x in (self._stop_at[i], self._hold_at[i], self._step_hold_at[i]) if x is not None),
+                      default=None)
             if cap is not None and b >= cap:
                 b = max(a, cap)
                 self._held[i] = True

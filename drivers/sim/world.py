@@ -70,6 +70,50 @@ class WorldChunk:
     def __len__(self) -> int:
         return int(self.time_s.shape[0])
 
+    @staticmethod
+    def concat(chunks: list["WorldChunk"]) -> "WorldChunk":
+        """Consecutive chunks as one (a turn is advanced sample by sample)."""
+        if len(chunks) == 1:
+            return chunks[0]
+        last = chunks[-1]
+        return WorldChunk(
+            time_s=np.concatenate([c.time_s for c in chunks]),
+            acc_counts=np.concatenate([c.acc_counts for c in chunks], axis=1),
+            temp_counts=np.concatenate([c.temp_counts for c in chunks], axis=1),
+            plate_temp_c=np.concatenate([c.plate_temp_c for c in chunks]),
+            die_temp_c=np.concatenate([c.die_temp_c for c in chunks], axis=1),
+            mems_temp_c=np.concatenate([c.mems_temp_c for c in chunks], axis=1),
+            lamp_on=last.lamp_on, position=last.position,
+            chamber_air_c=np.concatenate([c.chamber_air_c for c in chunks]),
+        )
+
+
+@dataclass(frozen=True)
+class PlateTurn:
+    """A plate turned by hand: gravity (plate frame) rotates from g_from to g_to at a steady rate
+    over duration_s of sample time, starting at t0_s; about their common normal, or, for opposite
+    directions (P to N: the plate turned over), about an axis perpendicular to g_from."""
+
+    g_from: np.ndarray
+    g_to: np.ndarray
+    t0_s: float
+    duration_s: float
+
+    def gravity_at(self, time_s: float) -> np.ndarray:
+        f = 1.0 if self.duration_s <= 0 else min(max((time_s - self.t0_s) / self.duration_s, 0.0), 1.0)
+        a, b = self.g_from / np.linalg.norm(self.g_from), self.g_to / np.linalg.norm(self.g_to)
+        angle = float(np.arccos(np.clip(a @ b, -1.0, 1.0)))
+        axis = np.cross(a, b)
+        if np.linalg.norm(axis) < 1e-9:
+            e = np.eye(3)[int(np.argmin(np.abs(a)))]
+            axis = np.cross(a, e)
+        axis = axis / np.linalg.norm(axis)
+        th = f * angle  # Rodrigues' rotation of a about axis by th
+        return a * np.cos(th) + np.cross(axis, a) * np.sin(th) + axis * float(axis @ a) * (1.0 - np.cos(th))
+
+    def over(self, time_s: float) -> bool:
+        return time_s >= self.t0_s + self.duration_s
+
 
 def _stack(truths: list[DutTruth], attr: str) -> np.ndarray:
     return np.array([getattr(t, attr) for t in truths], dtype=np.float64)
@@ -89,7 +133,8 @@ class SimWorld:
         self._odr_hz = float(odr_hz if odr_hz else (SENSORS[self.duts[0].sensor].odr_hz if n else 3.125))
         # controls
         self.lamp_on: bool = False
-        self.position: int = 0
+        self._position: int = 0
+        self.turn: PlateTurn | None = None  # a plate being turned by hand (turn_to); position is its end
         self.chamber_setpoint_c: float | None = None
         self.chamber_ramp_c_per_min: float = self.env.chamber_ramp_c_per_min
         # clock
@@ -247,8 +292,48 @@ class SimWorld:
         self._air = float(air)
         return out
 
+    @property
+    def position(self) -> int:
+        """The plate's position index (the end of a turn in progress)."""
+        return self._position
+
+    @position.setter
+    def position(self, value: int) -> None:
+        """Put the plate there at once (a fixture's move ends, a test sets it): no turn goes on."""
+        self._position = int(value)
+        self.turn = None
+
+    def gravity(self) -> np.ndarray:
+        """The plate's gravity direction now (nominal, plate frame): mid-turn, where the turn is."""
+        if self.turn is not None:
+            return self.turn.gravity_at(self.time_s)
+        return GRAVITY_DIRECTIONS[int(self.position)].copy()
+
+    def turn_to(self, position: int, duration_s: float) -> None:
+        """A person turns the plate to `position` over duration_s of sample time, from where it is
+        now (mid-turn too: a turn back starts where the hands are)."""
+        g_from = self.gravity()
+        self._position = int(position)
+        self.turn = PlateTurn(g_from, GRAVITY_DIRECTIONS[int(position)].copy(), self.time_s, max(0.0, float(duration_s)))
+
     def advance(self, n: int) -> WorldChunk:
-        """Step n samples at the ODR with the current controls; returns raw counts per DUT."""
+        """Step n samples at the ODR with the current controls; returns raw counts per DUT. While
+        the plate is being turned, sample by sample along the turn."""
+        n = int(n)
+        if self.turn is None or n <= 0:
+            return self._advance(n, None)
+        chunks = []
+        while n > 0 and self.turn is not None:
+            if self.turn.over(self.time_s):
+                self.turn = None
+                break
+            chunks.append(self._advance(1, self.turn.gravity_at(self.time_s)))
+            n -= 1
+        if n > 0:
+            chunks.append(self._advance(n, None))
+        return WorldChunk.concat(chunks)
+
+    def _advance(self, n: int, gravity: np.ndarray | None) -> WorldChunk:
         n = int(n)
         nd = self.n_duts
         dt = 1.0 / self._odr_hz
@@ -256,7 +341,7 @@ class SimWorld:
         time_s = self._t0_s + k / self._odr_hz
         self._k += n
         pos = int(self.position)
-        g = GRAVITY_DIRECTIONS[pos]
+        g = GRAVITY_DIRECTIONS[pos] if gravity is None else gravity
 
         # thermal chain -----------------------------------------------------------------------
         air = self._air_series(n, dt)
@@ -296,7 +381,7 @@ class SimWorld:
         temp_counts = np.empty((nd, n), dtype=np.int64)
         for i in range(nd):
             z = self._rngs[i].standard_normal((n, 4))
-            a = acc[i] + z[:, :3] * self._noise[i]
+            a = acc[i] + z[:, :3] * (self._noise[i] * self.noise_models[i].white_scale)
             if not self.noise_models[i].is_white:
                 a = a + self._bias_wander(i, n, dt)
             acc_counts[i] = np.clip(np.rint(a / self._lsb_g[i]), *self._acc_lim[i]).astype(np.int64)

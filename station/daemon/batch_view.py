@@ -53,8 +53,8 @@ def dut_waiting_for(seq: Any, d: DutRun) -> str | None:
     if seq.state == "logging" and step is not None:
         if seq.dut_step_done(d, step):
             return "other DUTs"
-        if not d.step_facing:
-            return f"facing {step.position_name}"
+        if not d.at_step_position() and seq.position is not None:
+            return f"plate at {step.position_name}"  # confirmed, but this DUT does not measure it yet
     return waiting_for(seq)
 
 def dut_counts(seq: Any) -> dict[str, int]:

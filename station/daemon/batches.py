@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from contracts.types import SampleBlock
-from contracts.trace import Trace
+from contracts.trace import Trace, label_mismatch
 from db import repository as repo
 from db.export import run_log
 from db.repository import segments_of_run
@@ -28,6 +28,7 @@ from station.daemon.dut_run import DutRun, annotate_segment
 from station.daemon.sequencer import Sequencer
 from station.daemon.states import TERMINAL
 from station.profiles import Profile
+from station.science.placement import label_cuts
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ def _run(st: Any, seq: Sequencer) -> None:
     for d in seq.duts:
         st.slots[d.slot].batch_id = seq.batch_id
     st.batches[seq.batch_id] = BatchRt(seq)
-    st.lamp.reset(seq.batch_id)
+    st.lamp.reset(seq.batch_id, seq.clock_s())
     seq.start()
 
 
@@ -108,24 +109,94 @@ def _audit_start(st: Any, batch_id: int, operator: str, by: str, detail: dict) -
         log.critical("audit: could not record the start of batch %d", batch_id, exc_info=True)
 
 
-def retest_batch(st: Any, batch_id: int, operator: str, by: str = "") -> int:
-    """A new batch of only the slots that ended fail or error in `batch_id` (ended), with its
-    profile, work order, part, lot and those slots' label serials; `operator` runs it."""
+# The verdicts "Retest failed" takes again: error (faulted or incomplete: nothing valid was measured),
+# fail (outside a limit: a part badly seated, a label mixed up, a plate not flat can do that, and the
+# retest is the second look; first-pass yield keeps the first verdict) and marginal (the interval
+# crosses a limit: its tray is "hold (review / retest)", and a new measurement is the way out of
+# hold). A pass is final. docs/verdicts.md, docs/operator-page.md.
+RETEST_VERDICTS = ("error", "fail", "marginal")
+
+
+@dataclass(frozen=True)
+class EndedRun:
+    """What a retest needs of one slot of an ended batch: its verdict, the label scanned for it
+    and the serial its board answered with (None: it never identified)."""
+
+    slot: str
+    verdict: str | None
+    label_serial: str | None
+    board_serial: str | None
+
+
+@dataclass(frozen=True)
+class EndedBatch:
+    profile: str
+    runs: list[EndedRun]
+    trace: Trace
+
+
+def ended_batch(st: Any, batch_id: int) -> EndedBatch:
+    """An ended batch as a retest reads it: from this daemon's sequencer, or from the database
+    for a batch a stopped daemon ran (after a restart the failed slots are still retested, not
+    404). KeyError: no such batch; ValueError: it has not ended, or another station ran it."""
     rt = st.batches.get(int(batch_id))
-    if rt is None:
+    if rt is not None:
+        seq = rt.seq
+        if seq.state not in TERMINAL:
+            raise ValueError(f"batch {batch_id} is still {seq.state}: retest once it has ended")
+        return EndedBatch(seq.profile.name, [EndedRun(d.slot, (d.verdict or {}).get("verdict"), d.label_serial,
+                                                      d.serial if d.identity is not None else None)
+                                             for d in seq.duts], seq.trace)
+    detail = repo.batch_detail(st.db, int(batch_id))
+    if detail is None:
         raise KeyError(f"unknown batch {batch_id}")
-    seq = rt.seq
-    if seq.state not in TERMINAL:
-        raise ValueError(f"batch {batch_id} is still {seq.state}: retest once it has ended")
-    again = [d.slot for d in seq.duts if (d.verdict or {}).get("verdict") in ("fail", "error")]
+    if detail["state"] not in TERMINAL:
+        raise ValueError(f"batch {batch_id} is {detail['state']} in the database: retest once it has ended")
+    if detail.get("station") not in (None, "", st.db.station):  # '' : a row from before migration 0005
+        raise ValueError(f"batch {batch_id} ran on station {detail['station']!r}: retest it there")
+    last: dict[str, dict] = {}
+    for run in detail["runs"]:  # the last run of each slot
+        last[run["slot"]] = run
+    runs = [EndedRun(r["slot"], r.get("verdict"), r.get("label_serial"), r["serial"] if r.get("identity") else None)
+            for r in last.values()]
+    return EndedBatch(detail["profile"], runs, st.db.batch_trace(int(batch_id)))
+
+
+def retest_batch(st: Any, batch_id: int, operator: str, by: str = "", labels: dict[str, str] | None = None,
+                 slots: list[str] | None = None) -> int:
+    """A new batch of the slots that ended error, fail or marginal in `batch_id` (ended; `slots`:
+    some of them), with its profile, work order, part and lot; `operator` runs it.
+
+    `labels` (slot -> label serial) are the parts' labels scanned again for the retest: a slot
+    without one runs unchecked, as in any batch. None (a client that does not scan again): the
+    labels scanned for the batch, except that a label its board contradicted is refused, never
+    reused (scan the part's label again: that is how a label mismatch is mended)."""
+    ended = ended_batch(st, batch_id)
+    again = [r.slot for r in ended.runs if r.verdict in RETEST_VERDICTS]
     if not again:
-        raise ValueError(f"batch {batch_id} has no failed or error slot to retest")
+        raise ValueError(f"batch {batch_id} has no slot that ended error, fail or marginal to retest")
+    if slots is not None:
+        others = [n for n in slots if n not in again]
+        if others:
+            raise ValueError(f"slot(s) {', '.join(others)} did not end error, fail or marginal in batch {batch_id}: "
+                             f"a retest takes {', '.join(again)}")
+        again = [n for n in again if n in slots]
+        if not again:
+            raise ValueError("no slots selected")
     missing = [n for n in again if n not in st.slots]
     if missing:
         raise ValueError(f"slot(s) {', '.join(missing)} are no longer in this config")
-    t = seq.trace
-    trace = Trace(**t.fields(), labels={k: v for k, v in t.labels.items() if k in again})
-    return start_batch(st, seq.profile.name, again, operator, trace, by=f"{by or 'station'} (retest of batch {batch_id})")
+    t = ended.trace
+    if labels is None:
+        wrong = [(r.slot, r.label_serial, r.board_serial) for r in ended.runs if r.slot in again and r.label_serial
+                 and r.board_serial is not None and label_mismatch(r.label_serial, r.board_serial) is not None]
+        if wrong:
+            raise ValueError("; ".join(f"the label scanned for {slot} ({label!r}) is not its board's serial "
+                                       f"({serial!r})" for slot, label, serial in wrong)
+                             + ": scan the part's label again (labels)")
+        labels = {k: v for k, v in t.labels.items() if k in again}
+    trace = Trace.of({**t.fields(), "labels": labels})
+    return start_batch(st, ended.profile, again, operator, trace, by=f"{by or 'station'} (retest of batch {batch_id})")
 
 
 def resume_batch(st: Any, batch_id: int, operator: str = "") -> int:
@@ -165,11 +236,21 @@ def restored_dut(st: Any, r: Any, rp: Any) -> DutRun:
     if len(stored) == 0:
         return d
     block = SampleBlock(stored.time_s, stored.acc_g, stored.temp_c)
-    d.blocks, d.block_steps = [block], [max(rp.next_step - 1, 0)]
     d.t0, d.last_t, d.resume_t = float(block.time_s[0]), float(block.time_s[-1]), float(block.time_s[-1])
     d.n_samples = len(block)
     d.calibrator = st.calibrator_factory()
-    replayed = d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c)
+    # The calibrator is fed as it was live (intake._take): placed samples only, its window starting
+    # over after every run of samples that were not placed.
+    labels = stored.position if stored.position is not None else np.zeros(len(block), dtype=np.int64)
+    replayed = []
+    for a, b in label_cuts(labels):
+        part = SampleBlock(block.time_s[a:b], block.acc_g[a:b], block.temp_c[a:b])
+        d.blocks.append(part)
+        d.block_steps.append(max(rp.next_step - 1, 0))
+        d.block_positions.append(max(int(labels[a]), -1))
+        if labels[a] >= 0:
+            d.calibrator.restart_window()
+            replayed += d.calibrator.update_batch(part.time_s, part.acc_g, part.temp_c)
     steps = {g["index"]: (g["step_index"], g["position"]) for g in (segments_of_run(st.db, r.run_id) or [])}
     for seg in replayed:
         if seg.index in steps:

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from contracts.positions import first_facing
 from contracts.types import Identity, SampleBlock, Segment
 from station.profiles import Step
+from station.science.placement import Placement, same_direction
 
 
 @dataclass
@@ -33,14 +33,40 @@ class DutRun:
     calibrator: Any = None
     blocks: list[SampleBlock] = field(default_factory=list)
     block_steps: list[int] = field(default_factory=list)
+    # Per block, the position its samples were placed at (-1: not placed): blocks are cut where
+    # the placement changes (station/science/placement.py), so one label holds for a whole block.
+    block_positions: list[int] = field(default_factory=list)
+    placement: Placement = field(default_factory=Placement)
+    fed_last: bool = False  # the newest sample went to the calibrator (the next gap restarts its window)
     segments: list[Segment] = field(default_factory=list)
     segment_steps: list[int] = field(default_factory=list)
     t0: float | None = None  # board time of the first sample in this batch
     last_t: float | None = None  # board time of the latest sample
     n_samples: int = 0
-    step_t_start: float = -math.inf  # board time when the current step began logging
-    step_facing: bool = True  # a static step's samples show its position (contracts.positions.first_facing)
-    facing_scan: int = 0  # blocks already searched for the first facing sample
+    step_t_start: float = -math.inf  # board time when the current step began logging (Done, "reached")
+    # The current step's placement (station/science/placement.py, docs/design.md section 4), in
+    # board time. Set at the step's setup, before anybody moves the plate: the step's position and
+    # the one before it (still accepted until the DUT arrives: the plate sits there until turned),
+    # the newest sample then (a segment step counts segments after it), the first sample of the
+    # current run of placed samples and its position, the first sample placed at the step's own
+    # position (None: not arrived yet) and when it last left it.
+    step_position: int | None = None
+    prev_position: int | None = None
+    next_position: int | None = None
+    step_setup_t: float = -math.inf
+    # a static/heat/dwell requirement counts from samples after this board time: the step's setup,
+    # or its logging start where the step switches the lamp (or heats): the lamp follows Done
+    requirement_floor_t: float = -math.inf
+    placed_since_t: float | None = None
+    placed_at: int | None = None
+    arrived_t: float | None = None
+    left_t: float | None = None
+    # What the DUT faced before the person was asked to turn (direction id: where the plate was
+    # when the prompt came, else the first position it settled at in this batch), and the board time
+    # the plate is watched from (Done, or the Done of a prompt asked again): station/daemon/plate_watch.py.
+    faced_before: int | None = None
+    first_settled: int | None = None
+    plate_check_t: float = -math.inf
     step_windows: dict[int, tuple[float, float]] = field(default_factory=dict)  # step -> board time span
     result: dict | None = None
     link_stats: dict = field(default_factory=dict)
@@ -114,40 +140,71 @@ class DutRun:
     def step_done(self, step: Step, step_index: int) -> bool:
         """Has this DUT logged what step `step_index` requires: a segment at its position, the
         temperature rise of a heat step, or the dwell (after settle) of a static/none step; the
-        dwell starts at the first sample facing the step's position."""
+        dwell and the rise count from the first placed sample (station/science/placement.py)."""
         d = self
         if step.require == "segment":
             return any(
-                st == step_index and seg.position == step.position and seg.t_end_s > d.step_t_start
+                st == step_index and seg.position == step.position and seg.t_end_s > d.segment_after_t()
                 for seg, st in zip(d.segments, d.segment_steps)
             )
         if d.last_t is not None and not math.isfinite(d.step_t_start) and d.t0 is not None:
             # No sample had arrived when the step began logging (a step that needs no move, a slow
             # link): the DUT's first sample of the batch starts its dwell, instead of never.
             d.step_t_start = d.t0
-        if d.last_t is None or not math.isfinite(d.step_t_start):
-            return False
-        if not d.step_facing and not d._find_facing(step):
+        start = d.requirement_start_t()
+        if d.last_t is None or start is None:
             return False
         if step.require == "heat":
-            return d.last_t - d.step_t_start >= step.settle_s and d.temp_rise_c(d.step_t_start) >= step.heat_c
+            return d.last_t - start >= step.settle_s and d.temp_rise_c(start) >= step.heat_c
         need = step.dwell_s + (step.settle_s if step.require == "static" else 0.0)
-        return d.last_t - d.step_t_start >= need
+        return d.last_t - start >= need
 
-    def _find_facing(self, step: Step) -> bool:
-        """Search the blocks that arrived since the last look for the first sample facing the
-        step's position; when found, the step's settle and dwell start at it."""
-        d = self
-        blocks = d.blocks[d.facing_scan:]
-        d.facing_scan += len(blocks)
-        for blk in blocks:
-            later = blk.time_s > d.step_t_start
-            k = first_facing(blk.acc_g[later], step.position)
-            if k is not None:
-                d.step_t_start = float(blk.time_s[later][k])
-                d.step_facing = True
-                return True
-        return False
+    def at_step_position(self) -> bool:
+        """Is the DUT placed at its step's position now (settled there, by its own samples)?"""
+        return (self.placed_since_t is not None and self.placed_at is not None and self.step_position is not None
+                and same_direction(self.placed_at, self.step_position))
+
+    def requirement_start_t(self) -> float | None:
+        """Board time a static, heat or dwell requirement counts from: the start of the current run
+        of samples placed at the step's position, not before the step began logging (the lamp, a
+        program step's raw samples); None while the DUT is not placed there."""
+        if not self.at_step_position():
+            return None
+        assert self.placed_since_t is not None
+        return max(self.placed_since_t, self.requirement_floor_t)
+
+    def segment_after_t(self) -> float:
+        """A segment step counts the segments that end after this board time: the step's setup (the
+        segment of the step before has ended by then; the plate may arrive, and a segment be logged,
+        before a late Done), or -inf for a step resumed after a crash (a segment it logged counts)."""
+        return min(self.step_setup_t, self.step_t_start)
+
+    def begin_step(self, position: int, prev_position: int | None, next_position: int | None = None) -> None:
+        """The step is set up (before the plate moves): its placement starts over, keeping a run of
+        placed samples that goes on at the same position as the step before."""
+        if not (self.placed_at is not None and same_direction(self.placed_at, position)):
+            self.arrived_t = None
+        else:
+            self.arrived_t = self.placed_since_t
+        self.step_position, self.prev_position, self.next_position = position, prev_position, next_position
+        self.step_setup_t = self.last_t if self.last_t is not None else -math.inf
+        self.left_t = None
+
+    def begin_logging(self, gated: bool) -> None:
+        """The step begins logging (Done, or the fixture reached): the plate is watched from here.
+        gated: the step's requirement counts only from here (it switches the lamp, or heats)."""
+        self.plate_check_t = self.step_t_start
+        floor = self.step_setup_t if math.isfinite(self.step_setup_t) else (self.t0 if self.t0 is not None else -math.inf)
+        self.requirement_floor_t = self.step_t_start if gated else floor
+
+    def since_plate_check_s(self) -> float:
+        """Board seconds of this DUT's own stream since the plate is watched (its own clock: in
+        compressed time a slow link is behind the others, and its plate must not be judged on their
+        newer samples)."""
+        if self.last_t is None:
+            return 0.0
+        ref = self.plate_check_t if math.isfinite(self.plate_check_t) else (self.t0 or self.last_t)
+        return self.last_t - ref
 
 
 def annotate_segment(seg: Segment, position: int | None) -> Segment:

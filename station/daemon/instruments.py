@@ -10,6 +10,7 @@ which kind of link; the rest of the daemon sees `BoardDriver` and the instrument
 from __future__ import annotations
 
 import asyncio
+import logging
 from typing import Any
 
 from contracts.types import StationError
@@ -18,6 +19,12 @@ from drivers.base import BoardDriver, DriverError
 from drivers.can_board import CanBoard, CanBus
 from drivers.serial_board import SerialBoard
 from station.config import ModbusDevice, SlotConfig
+
+log = logging.getLogger(__name__)
+
+# Pauses between tries of a Modbus instrument at start (wall seconds): three tries in about 1.5 s
+# plus their timeouts, then the start fails with the last try's reason.
+CONNECT_RETRY_DELAYS_S = (0.5, 1.0)
 
 DEVICE_CLASSES = {
     "lamp": md.ModbusLampRelay,
@@ -36,7 +43,18 @@ class Links:
 
     async def modbus_device(self, kind: str, dev: ModbusDevice) -> Any:
         """The instrument `kind` on its (shared) Modbus link; one read proves the unit answers.
-        An unreachable link or a silent unit is a StationError (one line)."""
+        A unit that is slow to answer at start (a gateway still booting, a host busy for a
+        second) is tried again after 0.5 s and 1 s; an unreachable link or a silent unit after
+        that is a StationError (one line)."""
+        for delay_s in CONNECT_RETRY_DELAYS_S:
+            try:
+                return await self._modbus_device_once(kind, dev)
+            except StationError as exc:
+                log.info("%s (trying again in %g s)", exc, delay_s)
+                await asyncio.sleep(delay_s)
+        return await self._modbus_device_once(kind, dev)
+
+    async def _modbus_device_once(self, kind: str, dev: ModbusDevice) -> Any:
         key = dev.link_key
         link = self.modbus.get(key)
         if link is None:

@@ -26,6 +26,7 @@ from contracts.types import SampleBlock
 from drivers.base import DriverError
 from station.daemon.dut_run import DutRun, annotate_segment
 from station.daemon.sequencer import Sequencer
+from station.science.placement import direction_id, label_cuts, same_direction
 
 log = logging.getLogger(__name__)
 
@@ -118,33 +119,83 @@ def ingest(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock) -> None:
         d.t0 = float(block.time_s[0])
     d.last_t = float(block.time_s[-1])
     d.n_samples += len(block)
+    # Placement (station/science/placement.py, docs/design.md section 4): what each sample measured
+    # decides where it was, never the button or the fixture's bit. The block is cut where that changes.
+    labels = place(d, block)
+    for a, b in label_cuts(labels):
+        part = block if (a, b) == (0, len(block)) else SampleBlock(
+            block.time_s[a:b], block.acc_g[a:b], block.temp_c[a:b], block.lost_samples if a == 0 else 0)
+        _take(st, seq, d, part, int(labels[a]) if labels[a] >= 0 else None)
+    lamp = st.lamp
+    assert lamp is not None
+    lamp.note_sample_time(seq.clock_s())
+    lamp.check_dut_temp(d.slot, float(np.max(block.temp_c)))
+    seq.notify()
+
+
+def place(d: DutRun, block: SampleBlock) -> np.ndarray:
+    """Per sample, the position it is placed at (-1: none): settled at the step's position; at the
+    position of the step before until the DUT has arrived at the new one (the plate sits there
+    until somebody or the fixture moves it); or at the next step's (the plate moved on while this
+    block still held the end of the step). The roles are set at each step's setup, so the labels
+    depend on the samples alone, never on when Done or "reached" came: a replay of the same samples
+    gets the same labels, fits and results."""
+    ids, settled = d.placement.update(block.time_s, block.acc_g)
+    if d.first_settled is None:
+        d.first_settled = d.placement.settled_direction()
+    labels = np.full(len(block), -1, dtype=np.int64)
+    if d.step_position is None:
+        return labels
+    here = settled & (ids == direction_id(d.step_position))
+    if d.next_position is not None and not same_direction(d.next_position, d.step_position):
+        labels[settled & (ids == direction_id(d.next_position))] = d.next_position
+    if d.prev_position is not None and d.arrived_t is None and not same_direction(d.prev_position, d.step_position):
+        before = settled & (ids == direction_id(d.prev_position))
+        hit = np.flatnonzero(here)
+        if hit.size:
+            before[hit[0]:] = False  # arrived in this block: the old position no longer counts
+        labels[before] = d.prev_position
+    labels[here] = d.step_position
+    return labels
+
+
+def _take(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock, position: int | None) -> None:
+    """One run of equally placed samples: keep it, publish it with its position (None: not placed,
+    stored as -1), track the step's arrival and departures, and feed the calibrator placed samples
+    only, its averaging window starting over after every gap or change of position."""
     d.blocks.append(block)
     d.block_steps.append(seq.step_index)
+    d.block_positions.append(-1 if position is None else int(position))
     lamp = st.lamp
     assert lamp is not None
     st.bus.publish(SamplesReceived(seq.batch_id, slot=d.slot, serial=d.serial or "", step_index=seq.step_index,
-                                   block=block, lamp_on=lamp.is_on, position=seq.position))
+                                   block=block, lamp_on=lamp.is_on, position=position))
+    was_at_step = d.at_step_position()
+    if position is None or d.placed_at != position:
+        if position is None:
+            d.placed_since_t = d.placed_at = None
+        else:
+            d.placed_since_t, d.placed_at = float(block.time_s[0]), int(position)
+        d.fed_last = False
+    if was_at_step and not d.at_step_position():
+        d.left_t = float(block.time_s[0])
+    if d.at_step_position() and d.arrived_t is None:
+        d.arrived_t = d.placed_since_t
+    if position is None:
+        return
     if d.hold_calibrator and seq.state == "logging":
         # Resumed: the plate is where the step wants it now. No average may span the time the
         # daemon was down or the reconnect, so the calibrator's window starts over here.
         d.hold_calibrator = False
-        if hasattr(d.calibrator, "restart_window"):
-            d.calibrator.restart_window()
-    if d.calibrator is not None and not d.hold_calibrator:
-        segs = d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c)
-        if segs and seq.position is None and hasattr(d.calibrator, "discard_last_segment"):
-            # averaged while the plate's position was unknown (connecting, moving): no step can
-            # use it, and a kept one would make the calibrator wait for a change that never comes
-            for _ in segs:
-                d.calibrator.discard_last_segment()
-            log.info("slot %s: a segment logged while the plate position was unknown is discarded", d.slot)
-            segs = []
-        for seg in segs:
-            seg = annotate_segment(seg, seq.position)
-            d.segments.append(seg)
-            d.segment_steps.append(seq.step_index)
-            st.bus.publish(SegmentLogged(seq.batch_id, slot=d.slot, serial=d.serial or "",
-                                         step_index=seq.step_index, segment=seg))
-    lamp.note_sample_time(seq.clock_s())
-    lamp.check_dut_temp(d.slot, float(np.max(block.temp_c)))
-    seq.notify()
+        d.fed_last = False
+    if d.calibrator is None or d.hold_calibrator:
+        return
+    if not d.fed_last and hasattr(d.calibrator, "restart_window"):
+        d.calibrator.restart_window()  # no average spans samples that were not placed here
+    d.fed_last = True
+    for seg in d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c):
+        seg = annotate_segment(seg, position)
+        d.segments.append(seg)
+        d.segment_steps.append(seq.step_index)
+        st.bus.publish(SegmentLogged(seq.batch_id, slot=d.slot, serial=d.serial or "",
+                                     step_index=seq.step_index, segment=seg))

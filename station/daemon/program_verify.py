@@ -29,6 +29,8 @@ import numpy as np
 
 from drivers.base import CalibrationError, DriverError
 from contracts.events import DutProgrammed, DutVerified
+from station.science.bias_wander import BiasWander
+from station.science.part_noise import wander_of_budget
 from station.science.verify import drift_before_mg, verify_compensated
 from contracts.types import AXES, SampleBlock
 
@@ -133,9 +135,10 @@ async def program_duts(station: Any, seq: Any) -> None:
 
 
 def _verify_one(blocks: list, segments: list, t_start: float, t_end: float | None, profile: Any, heat_index: int,
-                program_index: int, comp_from_t: float | None = None) -> dict:
+                program_index: int, comp_from_t: float | None = None, wander: BiasWander | str = "auto") -> dict:
     """Pure part of the verification of one DUT (runs in a worker thread on snapshots):
-    blocks = [(SampleBlock, step index)], segments = [(Segment, step index)]."""
+    blocks = [(SampleBlock, step index)], segments = [(Segment, step index)]; wander: the part's own
+    bias wander from its calibration (`wander_of_budget`), "auto" to measure it here."""
     step = profile.steps[heat_index]
     if comp_from_t is not None:
         block = SampleBlock.concat([b for b, st in blocks if st >= program_index])
@@ -151,7 +154,8 @@ def _verify_one(blocks: list, segments: list, t_start: float, t_end: float | Non
     if len(segs) >= 2:
         before = drift_before_mg(np.array([s[1] for s in segs]), np.array([s[2] for s in segs]),
                                  profile.verify.full_range_c)
-    res = verify_compensated(block.acc_g[m], block.temp_c[m], before, profile.verify, time_s=block.time_s[m])
+    res = verify_compensated(block.acc_g[m], block.temp_c[m], before, profile.verify, time_s=block.time_s[m],
+                             wander=wander)
     out = res.to_json()
     out["step_index"] = heat_index
     out["duration_s"] = float(t_end - t_start) if np.isfinite(t_start) and t_end is not None else None
@@ -205,13 +209,16 @@ async def verify_duts(station: Any, seq: Any) -> None:
             station.bus.publish(DutVerified(seq.batch_id, slot=d.slot, serial=d.serial or "", verification=out))
             return
         try:
-            blocks = list(zip(d.blocks, d.block_steps))  # snapshots taken in the loop: pumps append
+            # snapshots taken in the loop (pumps append); every sample: the verification's window is
+            # defined by the samples themselves (design 4), the placement labels play no part in it
+            blocks = list(zip(d.blocks, d.block_steps))
             segments = list(zip(d.segments, d.segment_steps))
             t_start, t_end = d.step_windows.get(heat_index, (d.step_t_start, d.last_t))
             comp_t = d.program.get("comp_from_t")
             comp_t = None if comp_t is None else float(comp_t) + d.time_offset_s
+            wander = wander_of_budget((d.result or {}).get("uncertainty")) or "auto"  # the part's, measured raw
             out = await asyncio.to_thread(_verify_one, blocks, segments, t_start, t_end, profile, heat_index,
-                                          program_index, comp_t)
+                                          program_index, comp_t, wander)
         except (ValueError, np.linalg.LinAlgError) as exc:
             out = {"passed": False, "flags": [f"verification could not be computed: {exc}"], "e_before_mg": None,
                    "e_after_mg": None, "axes": {}}

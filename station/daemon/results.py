@@ -2,31 +2,27 @@
 
 Thermal: the offline fit (station/science/thermal_calibration.calibrate) over the run's samples at
 its logged segments, beside the live streaming calibrator's own result, as `station calibrate
---json` prints it. SFEM: one sensor-frame fit per temperature step, from the static window of each
-position (sensors2023). Both run in a worker thread while the pump may still append blocks, so
-they work on a snapshot of the block list.
+--json` prints it. SFEM: `station sfem`'s pipeline (station/science/sfem_record.py) on the run's
+samples as its exported log holds them, so both give the same record (sensors2023). Both run in a
+worker thread while the pump may still append blocks, so they work on a snapshot of the block list.
 """
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from contracts.json_safe import plain_json
-from contracts.positions import GRAVITY_DIRECTIONS
-from contracts.types import SampleBlock, StationError
+from contracts.logfile import ACC_DECIMALS, TEMP_DECIMALS, TIME_DECIMALS
+from contracts.types import T_REF_C, SampleBlock
 from station.daemon.dut_run import DutRun
 from station.profiles import Profile
-from station.science import sfem
+from station.science.sfem_record import fit_sfem_record
 from station.science.thermal_calibration import calibrate, fit_samples
 
 
 def thermal_result(d: DutRun, operating_range_c: float = 70.0) -> dict:
     """Streaming (the live calibrator) and offline results of one DUT, as `station calibrate --json`."""
-    # list() first: a copy (atomic under the GIL) keeps the three columns of concat from seeing
-    # different lists while the pump appends
-    block = fit_samples(SampleBlock.concat(list(d.blocks)), [s.t_end_s for s in d.segments])
+    block = fit_samples(placed_samples(d), [s.t_end_s for s in d.segments])
     res = dict(calibrate(block, operating_range_c=operating_range_c))
     res["serial"] = d.serial
     try:
@@ -37,34 +33,36 @@ def thermal_result(d: DutRun, operating_range_c: float = 70.0) -> dict:
     return plain_json(res)
 
 
+def placed_samples(d: DutRun) -> SampleBlock:
+    """The DUT's samples that were placed at a step's position (station/science/placement.py):
+    what a turn, a plate not yet settled or a plate at the wrong position measured is not fitted.
+    Snapshots first (atomic copies under the GIL): the pump may still append in another thread."""
+    blocks, positions = list(d.blocks), list(d.block_positions)
+    return SampleBlock.concat([b for b, p in zip(blocks, positions) if p >= 0])
+
+
+def run_log_arrays(d: DutRun) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every sample of the run with its placement label (-1: not placed), at the precision the
+    database stores and `station db export` writes them (db/codec.py, contracts/logfile.py), so the
+    SFEM of the live run and of its exported log see the very same numbers. Snapshots first."""
+    pairs = list(zip(list(d.blocks), list(d.block_positions)))  # a block appended without its label yet: later
+    full = SampleBlock.concat([b for b, _ in pairs])
+    pos = np.concatenate([np.full(len(b), p, dtype=np.int64) for b, p in pairs]) if pairs \
+        else np.zeros(0, dtype=np.int64)
+
+    def stored(x: np.ndarray, decimals: int) -> np.ndarray:
+        return np.rint(np.asarray(x, dtype=np.float64) * 10**decimals) / 10**decimals
+
+    return (stored(full.time_s, TIME_DECIMALS), stored(full.acc_g, ACC_DECIMALS), stored(full.temp_c, TEMP_DECIMALS),
+            pos)
+
+
 def sfem_result(d: DutRun, profile: Profile) -> dict:
-    """SFEM per temperature step from the static windows of each step (sensors2023)."""
-    groups: dict[Any, list[int]] = {}
-    for i, s in enumerate(profile.steps):
-        if s.require == "static":
-            groups.setdefault((s.chamber_setpoint_c, s.lamp), []).append(i)
-    full = SampleBlock.concat(list(d.blocks))  # a snapshot: the pump may still append (worker thread)
-    out: dict = {"temperatures": []}
-    for (setpoint, lamp), idxs in groups.items():
-        means, refs, temps = [], [], []
-        for i in idxs:
-            if i not in d.step_windows:
-                continue
-            t_from, t_to = d.step_windows[i]
-            s = profile.steps[i]
-            lo = t_from + s.settle_s
-            m = (full.time_s > lo) & (full.time_s <= min(t_to, lo + s.dwell_s))
-            if m.sum() < 10:
-                continue
-            means.append(full.acc_g[m].mean(axis=0))
-            temps.append(float(full.temp_c[m].mean()))
-            refs.append(GRAVITY_DIRECTIONS[s.position])
-        if len(means) < 9:
-            continue
-        fit = sfem.fit_sfem(np.array(means), ref_dir=np.array(refs))
-        fj = fit.to_json() if hasattr(fit, "to_json") else plain_json(fit)
-        out["temperatures"].append({"setpoint_c": setpoint, "lamp": lamp, "temp_c": float(np.mean(temps)),
-                                    "n_positions": len(means), "fit": fj})
-    if not out["temperatures"]:
-        raise StationError("no temperature step has enough static positions for an SFEM fit")
-    return plain_json(out)
+    """The run's SFEM (sensors2023): exactly what `station sfem` computes from the run's exported
+    log (station/science/sfem_record.py fit_sfem_record on the same samples and placement labels),
+    with the profile's reference temperature and fixture setting, as the typed record
+    contracts/sfem_result.py SfemResult (its JSON). StationError when no step can be fitted."""
+    time_s, acc_g, temp_c, position = run_log_arrays(d)
+    rec = fit_sfem_record(time_s, acc_g, temp_c, None, position, ref_sigma_deg=profile.sfem_ref_sigma_deg,
+                          t_ref_c=T_REF_C if profile.sfem_reference_temp_c is None else profile.sfem_reference_temp_c)
+    return rec.to_json()

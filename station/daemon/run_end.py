@@ -6,7 +6,8 @@ The sequencer calls these when its batch reaches them:
   after a programming step, the verification instead (station/daemon/program_verify.py);
 - `release_duts`: the pumps stop, the boards stop, everything stored so far must be committed, and
   each live DUT gets its end state (done; interrupted with the batch's reason; faulted when its data
-  were not stored). Only then is every run judged, once, from that final state
+  were not stored); a slot whose DUT faulted but whose board still answers is ready again
+  (`identified`) for the next batch. Only then is every run judged, once, from that final state
   (station/decisions/moment.judge_final): no fault, abort or failed verification can come after a
   verdict and leave a pass behind (design 8).
 """
@@ -22,7 +23,7 @@ from station.daemon import program_verify
 from station.daemon.results import sfem_result, thermal_result
 from station.daemon.dut_run import DutRun
 from station.daemon.sequencer import Sequencer
-from station.daemon.slots import publish_dut, stop_streams
+from station.daemon.slots import publish_dut, ready_again, stop_streams
 from station.decisions import moment
 
 ANALYSIS_THREADS = 2  # two cores: do not starve the pumps of other work
@@ -44,7 +45,8 @@ async def analyse(st: Any, seq: Sequencer) -> None:
         async with sem:
             try:
                 if kind == "thermal":
-                    res = await asyncio.to_thread(thermal_result, d, moment.operating_range_c(st, d.identity))
+                    full_range_c = moment.operating_range_c(st.verdicts, d.identity, seq.trace.part_number)
+                    res = await asyncio.to_thread(thermal_result, d, full_range_c)
                     d.result = res
                     st.bus.publish(DutResult(seq.batch_id, slot=d.slot, serial=d.serial or "", thermal=res))
                 elif kind == "sfem":
@@ -68,9 +70,11 @@ async def release_duts(st: Any, seq: Sequencer) -> None:
 
     async def stop_one(d: DutRun) -> None:
         slot = st.slots[d.slot]
+        answered = False  # the STOP went out (a serial board acknowledges it): the link is still there
         if slot.driver is not None:
             try:
                 await asyncio.wait_for(slot.driver.stop(), 3.0)
+                answered = True
             except Exception:
                 pass
             d.link_stats = slot.driver.stats.as_dict() if hasattr(slot.driver, "stats") else {}
@@ -85,6 +89,11 @@ async def release_duts(st: Any, seq: Sequencer) -> None:
             publish_dut(st, seq, d)
         if slot.state == "busy":
             slot.state = "identified"
+        elif slot.state == "faulted" and answered and getattr(st, "running", True):  # not at a shutdown
+            # the DUT's run faulted (analysis, label, a step, a verification...) on a link that is
+            # still there: once the board identifies, the slot is ready for the next batch; the run
+            # keeps its fault (slots.ready_again; at most identify_timeout_s for a board that is mute)
+            await ready_again(st, slot)
 
     await asyncio.gather(*(stop_one(d) for d in seq.duts))
-    moment.judge_final(st, seq)  # the verdict's moment: every run, once, from its final state
+    moment.judge_final(st.verdicts, seq)  # the verdict's moment: every run, once, from its final state

@@ -112,11 +112,14 @@ class LampGuard:
         since = self._on_wall if self._sample_wall is None else max(self._on_wall, self._sample_wall)
         return sample + (self.clock() - since) * self.speed
 
-    def reset(self, batch_id: int) -> None:
-        """A new batch: clear a latched trip (the cause is re-checked on every sample)."""
+    def reset(self, batch_id: int, sample_now_s: float = 0.0) -> None:
+        """A new batch: clear a latched trip (the cause is re-checked on every sample).
+        `sample_now_s`: the batch's sample clock now. A resumed batch's clock starts where its
+        stored samples end (an hour in, say); counted from 0, a lamp switched on before its first
+        new sample would read that whole hour as on-time at that sample and trip."""
         self.batch_id = batch_id
         self.trip_reason = None
-        self._sample_now = 0.0
+        self._sample_now = sample_now_s
         self._sample_wall = None
 
     # ---------------------------------------------------------------- commands

@@ -35,15 +35,18 @@ from contracts.events import (
     StepCompleted,
     StepStarted,
 )
-from contracts.positions import FACING_MAX_ANGLE_DEG, direction
+from contracts.positions import direction
 from contracts.trace import Trace
-from station.daemon import batch_view
+from station.daemon import batch_view, plate_watch
 from station.daemon.dut_run import DutRun, wall_text
 from station.daemon.states import BATCH_STATE, TERMINAL, TRANSITIONS
 from station.profiles import Profile, Step
 from station.daemon.safety import LampGuard, LampTripped
 
 log = logging.getLogger(__name__)
+
+LINK_LAG_S = 0.5  # wall seconds a board's samples may lag what it measures (buffers, read period)
+
 
 class BatchFailed(Exception):
     """The batch cannot go on (no live DUT, fixture fault, lamp trip)."""
@@ -77,6 +80,8 @@ class Hardware(Protocol):
     fixture: Fixture | None
     chamber: Chamber | None
     fixture_timeout_s: float
+    plate_again_after_s: float  # sample seconds after Done before a plate not yet there is asked for again
+    speed: float  # plant seconds per wall second (1 on real hardware; a compressed-time simulation more)
 
     async def connect_duts(self, seq: "Sequencer") -> None: ...
 
@@ -116,6 +121,7 @@ class Sequencer:
         self.trace = trace or Trace()  # work order, part, lot, label serials (contracts/trace.py)
         self.poll_s = poll_s
         self.state = "created"
+        self._running = False  # run() has begun (see stop())
         self.history: list[tuple[float, str, str]] = []  # (wall, from, to)
         if not 0 <= start_step <= len(profile.steps):
             raise ValueError(f"profile {profile.name!r} has no step {start_step}")
@@ -129,6 +135,7 @@ class Sequencer:
         self.prompt: dict | None = None
         self._prompt_future: asyncio.Future | None = None
         self._prompt_counter = 0
+        self._plate_check_wall = 0.0  # monotonic time of the Done the plate is watched from
         self._wake = asyncio.Event()
         self._stop: tuple[str, str] | None = None
         self.task: asyncio.Task | None = None
@@ -139,9 +146,25 @@ class Sequencer:
         self.ended_by: str | None = None
         for d in duts:  # a resumed batch: the steps before start_step were completed before the crash
             d.steps_done = max(d.steps_done, start_step)
+        # the first step's plate is where the first samples belong, from the first sample on (not
+        # from when the step is set up after every board connected: the labels are the samples')
+        self._placement_step = -1
+        self._set_up_placement(start_step)
         self.storage_error: str | None = None  # set by release_duts: the batch's data is not stored
 
     # ------------------------------------------------------------ helpers
+    def _set_up_placement(self, index: int) -> None:
+        """Tell every DUT where its samples belong from now on (before anything moves the plate):
+        step `index`'s position, the one before it and the next (station/daemon/intake.place)."""
+        steps = self.profile.steps
+        if not 0 <= index < len(steps) or index == self._placement_step:
+            return
+        self._placement_step = index
+        prev = steps[index - 1].position if index > 0 else None
+        nxt = steps[index + 1].position if index + 1 < len(steps) else None
+        for d in self.duts:
+            d.begin_step(steps[index].position, prev, nxt)
+
     @property
     def step(self) -> Step | None:
         if 0 <= self.step_index < len(self.profile.steps):
@@ -195,7 +218,9 @@ class Sequencer:
             return  # already ending: its cleanup decides the end state (see _cleanup)
         self._stop = (state, reason)
         self.ended_by = by or ("daemon" if state == "interrupted" else "station")
-        if self.task is not None and not self.task.done():
+        if self.task is not None and not self.task.done() and self._running:
+            # (a task not yet running is left alone: cancelled before its first step, its body and
+            # its cleanup would never run and the batch would never end; it sees _stop at once)
             if asyncio.current_task() is self.task:
                 # asked from inside the batch's own task (a lamp trip raised by its own lamp command):
                 # a cancel of the running task would stay pending past the handler's uncancel() and
@@ -232,9 +257,11 @@ class Sequencer:
             return
         if not self._prompt_future.done():
             self._prompt_future.set_result(answer)
+        self.notify()
 
     # ------------------------------------------------------------ the machine
     async def run(self) -> str:
+        self._running = True
         try:
             while self.state not in TERMINAL:
                 self._check_stop()
@@ -323,6 +350,7 @@ class Sequencer:
                 chamber_setpoint_c=step.chamber_setpoint_c,
             )
         )
+        self._set_up_placement(self.step_index)
         if step.require == "program":
             return "programming"
         if step.chamber_setpoint_c is not None and self.hw.chamber is not None:
@@ -371,24 +399,46 @@ class Sequencer:
         self.position = step.position
         return "logging"
 
-    async def _state_waiting_operator(self) -> str:
-        step = self.step
-        assert step is not None
+    def _raise_prompt(self, step: Step, reason: str = "") -> None:
+        """Open a "turn the plate" prompt; `reason` (a re-prompt while logging): what is wrong."""
         self._prompt_counter += 1
         pid = self.batch_id * 1000 + self._prompt_counter
-        self.position = None  # the operator turns the plate: unknown until confirmed (as during a move)
         text = f"turn the plate to {step.position_name}"
+        if reason:
+            text = f"{reason}: {text}"
         self.prompt = {"id": pid, "kind": "turn_plate", "text": text, "position": step.position,
                        "position_name": step.position_name, "step_index": self.step_index,
+                       "again": bool(reason), "reason": reason or None,
                        # the board's static reading there (g, its own frame): the page draws it
                        "direction": [round(float(v), 6) for v in direction(step.position)]}
         self._prompt_future = asyncio.get_running_loop().create_future()
         self.bus.publish(PromptRaised(self.batch_id, prompt_id=pid, text=text, position=step.position))
+
+    def _close_prompt(self, answer: str) -> None:
+        """Close an open re-prompt the station no longer needs (every DUT arrived): the page hides it."""
+        if self.prompt is None:
+            return
+        pid = self.prompt["id"]
+        self.prompt = None
+        self._prompt_future = None
+        if answer != "done":  # a Done was published by answer_prompt already
+            self.bus.publish(PromptAnswered(self.batch_id, prompt_id=pid, answer=answer))
+
+    async def _state_waiting_operator(self) -> str:
+        step = self.step
+        assert step is not None
+        self.position = None  # the operator turns the plate: unknown until confirmed (as during a move)
+        for d in self.duts:  # where the plate is before the person touches it (a wrong turn is named)
+            d.faced_before = d.placement.settled_direction()
+        self._raise_prompt(step)
+        assert self._prompt_future is not None
         try:
             await self._prompt_future
         finally:
             self.prompt = None
             self._prompt_future = None
+        # Confirmed by a person: samples are placed at this position only where each DUT measures
+        # it (station/science/placement.py); a plate not there yet is asked for again while logging.
         self.position = step.position
         return "logging"
 
@@ -399,40 +449,90 @@ class Sequencer:
         async with _device("lamp relay", "its power, Modbus address (unit 1) and cable/network"):
             await self.hw.lamp.set_lamp(step.lamp, f"step {self.step_index} {step.name}")
         self.step_clock_start = self.clock_s()
+        self._plate_check_wall = time.monotonic()
         resumed_step = self.step_index == self.start_step and self.start_step > 0
         for d in self.duts:
             d.step_t_start = d.last_t if d.last_t is not None else -math.inf
             if resumed_step and step.require == "segment":
                 # The step was interrupted: a segment it logged (at its position) before the crash counts.
                 d.step_t_start = -math.inf
-            # A static step counts from the first sample that faces its position, not from the
-            # newest sample received when the fixture reported it reached: in compressed time the
-            # boards' bytes can lag the plant by more than the settle time.
-            d.step_facing = not (step.require == "static" and step.position is not None)
-            d.facing_scan = len(d.blocks)
-        while True:
-            self._ensure_live()
-            pending = [d for d in self.live_duts if not self.dut_step_done(d, step)]
-            if not pending:
-                break
-            # Each DUT's timeout runs on its own board clock: a link that delivers late (a busy
-            # CAN adapter) is not judged by the fastest board's clock. A silent board is the
-            # stall watchdog's (wall time) to fault.
-            late = [(d, e) for d in pending if (e := self._step_elapsed_s(d)) >= step.timeout_s]
-            if late:
-                need = {"segment": "a segment", "static": f"{step.dwell_s:g} s static", "none": "its dwell",
-                        "heat": f"a +{step.heat_c:g} C rise"}[step.require]
-                for d, elapsed in late:
-                    why = need if d.step_facing else (
-                        f"its output facing position {step.position_name} (gravity never within "
-                        f"{FACING_MAX_ANGLE_DEG:g} deg of it: DUT not seated, mounted turned, or the fixture did not move)")
-                    self.hw.fault_dut(
-                        self, d, f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {why}"
-                    )
-                continue
-            await self._wait()
-        self._complete_step(lambda d: d.step_t_start)
+            # A step's requirement counts from its samples (placed after the step's setup), except
+            # where the station itself changes what they measure at this moment: the batch's
+            # first step (the operator's Done says the plate is loaded), a lamp switched, a heat.
+            prev = self.profile.steps[self.step_index - 1] if self.step_index > self.start_step else None
+            d.begin_logging(gated=step.require == "heat" or prev is None or prev.lamp != step.lamp)
+        try:
+            while True:
+                self._ensure_live()
+                pending = [d for d in self.live_duts if not self.dut_step_done(d, step)]
+                if not pending:
+                    break
+                self._watch_plate(step, pending)
+                if self._fault_late(step, pending):
+                    continue
+                await self._wait()
+        finally:
+            if self.prompt is not None:
+                self._close_prompt("step ended")
+        self._complete_step(lambda d: d.requirement_start_t() if step.require != "segment" and
+                            d.requirement_start_t() is not None else d.step_t_start)
         return "step_done"
+
+    def _after(self) -> str:
+        """What confirmed the position, for the words: a person's Done or the fixture."""
+        return "the fixture reported it reached" if self.hw.fixture is not None else "Done"
+
+    def _watch_plate(self, step: Step, pending: list[DutRun]) -> None:
+        """Without a fixture, ask the person again (with the mistake in words) for a plate that is
+        not where the step wants it: plate_again_after_s of sample time after Done, or at once when
+        a DUT settles at a wrong position. A re-prompt's Done restarts that time; it closes by
+        itself once every DUT is placed."""
+        if self.hw.fixture is not None:
+            return
+        if self.prompt is not None:
+            if not plate_watch.away(pending):
+                self._close_prompt("arrived")
+            elif self._prompt_future is not None and self._prompt_future.done():
+                self._close_prompt("done")
+                for d in self.duts:  # the person says it is done again: another while to get there
+                    d.plate_check_t = d.last_t if d.last_t is not None else d.plate_check_t
+                self._plate_check_wall = time.monotonic()
+            return
+        # The while runs on both clocks: each DUT's own samples (a held plant sends none) and the
+        # station's, wall x speed plus LINK_LAG_S of wall time: the samples read just after Done were
+        # measured before it (a link's buffers; in compressed time they span many sample seconds).
+        waited_s = time.monotonic() - self._plate_check_wall
+        if waited_s < LINK_LAG_S or waited_s * self.hw.speed < self.hw.plate_again_after_s:
+            overdue = [d for d in plate_watch.away(pending) if plate_watch.wrong_turn(d, step)]
+        else:
+            overdue = plate_watch.overdue(pending, step, self.hw.plate_again_after_s)
+        if overdue:
+            reason = plate_watch.not_there_words(step, overdue, "Done")
+            log.info("batch %d: %s", self.batch_id, reason)
+            self._raise_prompt(step, reason)
+
+    def _fault_late(self, step: Step, pending: list[DutRun]) -> bool:
+        """Fault the DUTs past the step's timeout, each with why: a plate that never arrived at
+        the position (its clock runs from Done), or a requirement not met (from its arrival)."""
+        # Each DUT's timeout runs on its own board clock: a link that delivers late (a busy
+        # CAN adapter) is not judged by the fastest board's clock. A silent board is the
+        # stall watchdog's (wall time) to fault.
+        late = [(d, e) for d in pending if (e := self._step_elapsed_s(d)) >= step.timeout_s]
+        if not late:
+            return False
+        need = {"segment": "a segment", "static": f"{step.dwell_s:g} s static", "none": "its dwell",
+                "heat": f"a +{step.heat_c:g} C rise"}[step.require]
+        others_arrived = any(d.arrived_t is not None for d in self.live_duts if all(d is not x for x, _ in late))
+        for d, elapsed in late:
+            if d.arrived_t is None:
+                why = plate_watch.never_arrived_reason(step, d, elapsed, others_arrived, self._after())
+            elif not d.at_step_position():
+                why = (f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {need}: the "
+                       f"plate left {step.position_name} and it {plate_watch.facing_words(d)}")
+            else:
+                why = f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {need}"
+            self.hw.fault_dut(self, d, why)
+        return True
 
     def _complete_step(self, window_start: Callable[[DutRun], float]) -> None:
         """Record each DUT's sample-time window of this step (from window_start(d) to its latest
@@ -449,7 +549,10 @@ class Sequencer:
         ))
 
     def _step_elapsed_s(self, d: DutRun) -> float:
-        """Sample time this DUT has spent in the current step (its own board clock)."""
+        """Sample time this DUT has spent in the current step (its own board clock): since it
+        arrived at the step's position, or, until it does, since the step began logging (Done)."""
+        if d.last_t is not None and d.arrived_t is not None and math.isfinite(d.step_t_start):
+            return d.last_t - max(d.arrived_t, d.step_t_start)
         if d.last_t is not None and math.isfinite(d.step_t_start):
             return d.last_t - d.step_t_start
         return self.clock_s() - self.step_clock_start  # no sample before the step (or resumed step)
@@ -464,6 +567,11 @@ class Sequencer:
         return "analysing"
 
     async def _state_analysing(self) -> str:
+        # The profile's steps are over: a sample from here on is placed at no step's position
+        # (design 4), so the run's stored log holds the same placed samples as the analysis'
+        # snapshot, and `station sfem` on the exported log gives the station's own SFEM.
+        for d in self.duts:
+            d.step_position = d.prev_position = d.next_position = None
         # Lamp off before the (possibly long) fits: the heat is no longer needed.
         await self.hw.lamp.off("profile complete")
         await self.hw.analyse(self)

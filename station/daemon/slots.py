@@ -18,12 +18,15 @@ from typing import Any
 
 from contracts.trace import label_mismatch
 from contracts.events import SegmentLogged, SlotStateChanged
+from contracts.types import Identity
+from db.models import MeasuredBy
 from drivers.base import BoardDriver, DriverError
 from station.config import SlotConfig
 from station.daemon.intake import pump
 from station.daemon.dut_run import DutRun
 from station.daemon.sequencer import Sequencer
 from station.daemon.states import TERMINAL
+from station.version import software_version
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +66,14 @@ class SlotRuntime:
 
 def identity_dict(ident: Any) -> dict:
     return {k: getattr(ident, k) for k in IDENTITY_FIELDS}
+
+
+def measured_by(seq: Sequencer, ident: Identity) -> MeasuredBy:
+    """What measures a new run (stored with it): this software, the board's firmware as its identity
+    reports it, and what turns the plate: the fixture when the batch has one (the sequencer moves it),
+    else a person at the plate (the sequencer prompts)."""
+    return MeasuredBy(software_version=software_version(), firmware_version=ident.fw,
+                      holder="fixture" if seq.hw.fixture is not None else "operator")
 
 
 async def connect_slot(st: Any, rt: SlotRuntime, batch_id: int = 0) -> bool:
@@ -131,15 +142,20 @@ async def connect_duts(st: Any, seq: Sequencer) -> None:
                                   f"{d.expected_serial} (board swapped?)")
             return
         d.state = "identified"
+        # The label is checked before the run is made: a board that is not the labelled part is
+        # never tested, so its run is no attempt of the board's serial (attempt 0: not counted in
+        # attempts or yields, db/database.py). The run is still stored (faulted, judged error):
+        # the MES and the audit see which board was in the slot, and why it stopped.
+        mismatch = label_mismatch(d.label_serial, ident.serial)
         if d.run_id is None:
             # off the event loop: the insert may wait on the database's lock (the writer's commit,
             # another station meeting the same serial) while the other slots stream
             d.run_id = int(await asyncio.to_thread(st.db.create_run, seq.batch_id, d.slot, ident.serial, ident.sensor,
-                                                   identity_dict(ident)))
+                                                   identity_dict(ident), counts_as_attempt=mismatch is None,
+                                                   measured_by=measured_by(seq, ident)))
         if st.writer is not None:
             st.writer.bind_run(seq.batch_id, d.slot, d.run_id)
-        mismatch = label_mismatch(d.label_serial, ident.serial)
-        if mismatch is not None:  # the run is kept (faulted, judged error): the MES sees which board was there
+        if mismatch is not None:
             fault_dut(st, seq, d, mismatch)
             return
         publish_dut(st, seq, d)
@@ -182,6 +198,24 @@ async def stop_streams(st: Any, seq: Sequencer) -> None:
         for t in late:
             log.error("batch %d: pump %s did not stop within 10 s", seq.batch_id, t.get_name())
     rt.pumps.clear()
+
+
+async def ready_again(st: Any, rt: SlotRuntime) -> bool:
+    """At a batch's end, a slot faulted in it whose board still answers (its STOP was acknowledged)
+    is ready for the next batch once the board identifies again: `identified`, no fault reason (the
+    run keeps its own fault and verdict). A slot whose board does not answer, or whose link is gone
+    (driver closed: link lost, port vanished), keeps `faulted` with its reason; it can still be
+    chosen for the next batch, whose connect tries it again (connect_slot)."""
+    if rt.driver is None:
+        return False
+    try:
+        ident = await rt.driver.identify(st.config.timing.identify_timeout_s)
+    except Exception as exc:  # noqa: BLE001 - whatever the board or driver does, the batch's end goes on
+        log.info("slot %s: no identity after its fault (%s): stays faulted", rt.cfg.name, exc)
+        return False
+    rt.identity, rt.state, rt.fault_reason = ident, "identified", ""
+    st.bus.publish(SlotStateChanged(0, slot=rt.cfg.name, serial=ident.serial, state="identified"))
+    return True
 
 
 def slots_status(st: Any) -> list[dict]:

@@ -41,6 +41,7 @@ from station.daemon.states import TERMINAL
 from station.daemon.slots import SlotRuntime
 from station.daemon.storage import Storage, open_database, storage_state
 from station.decisions import moment
+from station.decisions.verdict_context import VerdictContext, slot_link_stats
 from station.profiles import Profile, all_profiles
 from station.science.streaming import StreamingCalibrator
 from station.science.streaming_config import StreamingConfig
@@ -79,8 +80,14 @@ class Station:
         self.chamber: Chamber | None = None
         self.thermometer: Thermometer | None = None
         self.fixture_timeout_s = config.timing.fixture_timeout_s
+        self.plate_again_after_s = config.timing.plate_again_after_s
+        self.speed = config.timing.speed
         self.calibrator_factory = calibrator_factory or _default_calibrator_factory
         self.analyse_results = analyse_results
+        # what the verdict's moment reads, typed and taken here: a renamed part fails now, not at a
+        # restart (station/decisions/verdict_context.py, issue 35)
+        self.verdicts = VerdictContext(db=self.db, bus=self.bus, product_for=config.product_for,
+                                       profiles=self.profiles_by_name, live_link_stats=slot_link_stats(self.slots))
         self._started = False
         self._closed = False
 
@@ -186,9 +193,11 @@ class Station:
         """Start a batch for `operator` (required); trace: work order, part, lot, label serials."""
         return batches.start_batch(self, profile, slots, operator, trace, by)
 
-    def retest_batch(self, batch_id: int, operator: str, by: str = "") -> int:
-        """A new batch of the failed and error slots of an ended batch (same profile and trace)."""
-        return batches.retest_batch(self, batch_id, operator, by)
+    def retest_batch(self, batch_id: int, operator: str, by: str = "", labels: dict[str, str] | None = None,
+                     slots: list[str] | None = None) -> int:
+        """A new batch of the error, fail and marginal slots of an ended batch (same profile, work
+        order, part, lot), with the labels scanned again (station/daemon/batches.py)."""
+        return batches.retest_batch(self, batch_id, operator, by, labels=labels, slots=slots)
 
     def resume_batch(self, batch_id: int, operator: str = "") -> int:
         """Resume an interrupted batch (crash, restart) at the step after its last completed one,
@@ -254,6 +263,17 @@ class Station:
             return False
         return seq.step_index < ps or (seq.step_index == ps and seq.state == "programming")
 
+    def step_begun(self, batch_id: int) -> int | None:
+        """The last step the batch has begun (logging, or programming for a program step; -1 before
+        the first); None once the batch has ended (cheap: a replay holds each recorded stream at
+        its recorded step start until the daemon has begun that step, station/replay/director.py)."""
+        seq = self._batch(batch_id).seq
+        if seq.state in TERMINAL:
+            return None
+        if seq.state in ("step_setup", "positioning", "moving", "waiting_operator"):
+            return seq.step_index - 1
+        return seq.step_index
+
     async def wait_batch(self, batch_id: int, timeout_s: float | None = None) -> dict:
         rt = self._batch(batch_id)
         await asyncio.wait_for(rt.seq.done.wait(), timeout_s)
@@ -261,7 +281,7 @@ class Station:
 
     def judge_interrupted(self, batch_ids: list[int], reason: str = "station restarted") -> int:
         """Error verdicts for the runs of batches a killed daemon left running (decisions/moment.py)."""
-        return moment.judge_interrupted_runs(self, list(batch_ids or []), reason)
+        return moment.judge_interrupted_runs(self.verdicts, list(batch_ids or []), reason)
 
     # ================================================================== facade: slots and lamp
     def slots_status(self) -> list[dict]:

@@ -19,6 +19,10 @@ the operator's abort, and the boards' streams.
   however long the analysis before the writes takes on a loaded machine). It is let go, with a
   note, HOLD_TIMEOUT_S after the daemon no longer will (another profile or config replayed, the
   DUT faulted), or after STOP_WAIT_MAX_S in any case.
+- Each DUT's record is held just after the sample at which the recorded station began each step
+  (the batch's step windows) until the replaying daemon has begun that step too: a step then
+  counts its dwell or its heat from the same sample, however long the analysis, the writes or a
+  retried write before it took on this machine.
 - When the recording is over and the recorded batch did not finish, the replay ends there too:
   the batch is aborted "where the recording ends", which the comparison reads as unchanged
   (runner.py), instead of a stalled daemon faulting slots or a lamp timer running on.
@@ -39,6 +43,7 @@ log = logging.getLogger(__name__)
 POLL_S = 0.02
 HOLD_TIMEOUT_S = 5.0  # wall seconds a hold may wait for what the daemon should do there
 STOP_WAIT_MAX_S = 300.0  # wall seconds a record waits at its program stop for a daemon still on its way there
+STEP_HOLD_MAX_S = 120.0  # wall seconds a record waits at a recorded step start for the daemon to begin that step
 RECORDING_END = "the recording ends here"
 
 
@@ -51,12 +56,14 @@ class Director:
     notes: list[str] = field(default_factory=list)
     ended_at_recording_end: bool = False
     _answered: set[int] = field(default_factory=set)
+    _step_starts: dict[int, list[tuple[int, int]]] = field(default_factory=dict)  # DUT -> its (step, index)
 
     # ---- the loop -------------------------------------------------------------------------
     async def run(self) -> None:
         """Until cancelled (the runner cancels it when the batch has ended)."""
         world = self.sim.world
         stop_waits: dict[int, list[float]] = {}
+        step_waits: dict[int, tuple[int, int, float]] = {}
         while True:
             await asyncio.sleep(POLL_S)
             try:
@@ -67,6 +74,7 @@ class Director:
                 await self._answer(prompt)
                 continue
             self._let_go_of_stops(world, stop_waits)
+            self._hold_at_step_starts(world, step_waits)
             if not self.ended_at_recording_end and self._recording_over(world):
                 await self._end_at_recording_end()
 
@@ -158,6 +166,46 @@ class Director:
                 waits.pop(i, None)
                 self.notes.append(f"{d.slot}: the replaying daemon did not stop the board where the recorded "
                                   f"one was stopped for programming (t = {d.restart_after_t:.1f} s): let go")
+
+    # ---- step starts ----------------------------------------------------------------------------
+    def _hold_at_step_starts(self, world: Any, waits: dict[int, tuple[int, int, float]]) -> None:
+        """Hold each DUT's record just after its recorded start of the next step the daemon has not
+        begun, so that the step begins at the same sample as on the line. (A heat step counts its
+        rise from there: begun a few hundred recorded seconds late, behind boards that streamed on
+        while another board's write was retried, its rise never came within the recording and the
+        lamp timer ran on to a trip.) waits[i] = (step, index, when the hold was set); a hold the
+        daemon does not reach within STEP_HOLD_MAX_S (another profile or config replayed, the
+        DUT faulted, a step ended otherwise) is let go with a note."""
+        try:
+            begun = self.station.step_begun(self.batch_id)
+        except KeyError:
+            begun = None
+        now = time.monotonic()
+        for i, d in enumerate(self.sim.ordered):
+            if begun is None or world.done(i):
+                if i in waits:
+                    world.hold_at_step_start(i, None)
+                    waits.pop(i)
+                continue
+            nxt = world.next_index(i)
+            if i not in self._step_starts:  # once per DUT: the record does not change
+                self._step_starts[i] = d.step_start_indices()
+            due = next(((k, idx) for k, idx in self._step_starts[i] if k > begun and idx >= nxt), None)
+            held = waits.get(i)
+            if due is None:
+                if held is not None:
+                    world.hold_at_step_start(i, None)
+                    waits.pop(i)
+                continue
+            if held is not None and held[:2] == due:
+                if now - held[2] > STEP_HOLD_MAX_S and held[2] >= 0:
+                    world.hold_at_step_start(i, None)
+                    waits[i] = (*due, -1.0)  # let go for good
+                    self.notes.append(f"{d.slot}: the replaying daemon did not begin step {due[0]} where the "
+                                      f"recorded one did (t = {d.step_start_t[due[0]]:.1f} s): let go")
+                continue
+            world.hold_at_step_start(i, due[1])
+            waits[i] = (*due, now)
 
     # ---- the end ------------------------------------------------------------------------------
     def _recording_over(self, world: Any) -> bool:

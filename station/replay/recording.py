@@ -13,6 +13,8 @@ Two sources:
 
 from __future__ import annotations
 
+import dataclasses
+
 from pathlib import Path
 from typing import Any
 
@@ -107,7 +109,8 @@ def from_database(db_url: str, batch_id: int, station: str = "replay") -> Record
                 lost_samples=int(run.get("lost_samples") or 0), source_run_id=run["id"], outcome=outcome,
                 restart_after_t=program.get("comp_from_t") if program.get("programmed") else None,
                 program_error_kind=None if program.get("programmed") else program.get("error_kind"),
-                unplugged_at_end=run["state"] == "faulted" and "link lost" in (run.get("fault_reason") or "")))
+                unplugged_at_end=run["state"] == "faulted" and "link lost" in (run.get("fault_reason") or ""),
+                step_start_t=_step_starts(batch.get("step_windows") or {}, slot)))
         if not duts:
             raise StationError(f"batch {batch_id}: nothing to replay ({'; '.join(skipped) or 'no runs'})")
         where = batch.get("station") or "?"
@@ -118,6 +121,17 @@ def from_database(db_url: str, batch_id: int, station: str = "replay") -> Record
         db.dispose()
         if cleanup is not None:
             cleanup()
+
+
+def _step_starts(step_windows: dict, slot: str) -> dict[int, float]:
+    """{step: board time the step began at} for one slot, from a batch's step_windows
+    ({"<step>": {"<slot>": [from_s, to_s]}}); steps without a finite start are left out."""
+    out = {}
+    for k, by_slot in step_windows.items():
+        w = (by_slot or {}).get(slot)
+        if w and w[0] is not None and np.isfinite(float(w[0])):
+            out[int(k)] = float(w[0])
+    return out
 
 
 def run_outcome(db: Any, run: dict[str, Any]) -> dict[str, Any]:
@@ -154,12 +168,19 @@ def _odr_of(log: DutLog) -> float:
     return float(1.0 / np.median(dt))
 
 
-def log_outcome(log: DutLog) -> dict[str, Any]:
-    """The outcome to compare a log's replay with: the offline science on the file itself."""
-    from station.science.thermal_calibration import calibrate, fit_samples
+def log_outcome(log: DutLog, positions: list[int] | None = None) -> dict[str, Any]:
+    """The outcome to compare a log's replay with: the offline science on the file itself. A log
+    without a position column is placed as the station places a run of the profile (`positions`,
+    its steps' positions in order: station/science/placement.sequence_labels), so the samples a
+    turn or a settling plate measured are left out as the replaying station leaves them out."""
+    from station.science.placement import sequence_labels
+    from station.science.thermal_calibration import calibrate, fit_samples, placed_only
 
+    if log.position is None and positions:
+        log = dataclasses.replace(log, position=sequence_labels(log.time_s, log.acc_g, positions))
     ends = [s["t_end_s"] for s in calibrate(log)["segments"]]
-    res = calibrate(fit_samples(log.block(), ends))  # the station's rule (fit_samples)
+    placed, _ = placed_only(log.block(), log.position)
+    res = calibrate(fit_samples(placed, ends))  # the station's rule (fit_samples)
     by_method = {m: {ax: {k: v[k] for k in ("tdb_mg_per_c", "tdsf_ppm_per_c")} for ax, v in res[m]["axes"].items()}
                  for m in ("offline", "streaming")}
     return {"partial": True, "thermal_by_method": by_method}
@@ -170,6 +191,7 @@ def from_logs(paths: list[str | Path], profile: str | None = None, compare: bool
     if not paths:
         raise StationError("no log files given")
     duts, prof_meta = [], set()
+    logs: list[DutLog] = []
     seen: set[str] = set()
     for k, p in enumerate(paths):
         log = read_log(p)
@@ -186,13 +208,20 @@ def from_logs(paths: list[str | Path], profile: str | None = None, compare: bool
         ident = Identity(serial=serial[:32], sensor=(log.meta.get("sensor") or "LOG")[:16], fw="replay",
                          ug_per_lsb=LOG_UG_PER_LSB, t_lsb_per_c=LOG_T_LSB_PER_C, t_lsb_at_25c=0.0, odr_hz=_odr_of(log))
         acc, tc = to_counts(ident, np.round(log.acc_g, 7), np.round(log.temp_c, 4), str(p))
+        logs.append(log)
         duts.append(RecordedDut(
             slot=f"r{k + 1:02d}", serial=serial, link="serial", identity=ident, time_s=np.round(log.time_s, 6),
-            acc_counts=acc, temp_counts=tc, lamp=log.lamp, position=log.position,
-            outcome=log_outcome(log) if compare else {}))
+            acc_counts=acc, temp_counts=tc, lamp=log.lamp, position=log.position, outcome={}))
     if profile is None:
         if len(prof_meta) != 1:
             raise StationError("the logs name no single profile (# profile: ...): give --profile")
         profile = prof_meta.pop()
+    if compare:
+        from station.profiles import BUILTIN_PROFILES
+
+        prof = BUILTIN_PROFILES.get(profile)
+        positions = [s.position for s in prof.steps] if prof is not None else None
+        for d, log in zip(duts, logs):
+            d.outcome = log_outcome(log, positions)
     return Recording(f"{len(duts)} CSV log{'s' if len(duts) > 1 else ''}", profile, duts, {},
                      before_label="offline fit of the log")

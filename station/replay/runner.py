@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 # Sections of a station config that decide the outcome; links, tokens and names are the replay's own.
 OUTCOME_SECTIONS = ("limits", "profiles", "products")
 REPLAY_MIN_STALL_TIMEOUT_S = 60.0  # wall seconds of listening before a replayed board counts as silent
-TIMING_KEYS = ("stall_timeout_s", "identify_timeout_s", "fixture_timeout_s", "read_period_s")
+TIMING_KEYS = ("stall_timeout_s", "identify_timeout_s", "fixture_timeout_s", "read_period_s", "plate_again_after_s")
 
 
 def agree_window(speed: float) -> float:
