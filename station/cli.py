@@ -2,7 +2,8 @@
 
 Each subcommand lives in its own module under station/commands/ with two functions:
 `add_arguments(parser)` and `run(args) -> int`. A user's mistake raises StationError and becomes
-one line on stderr with exit code 2; no traceback.
+one line on stderr with exit code 2; no traceback. A reader that closes the pipe early (`| head`)
+ends any command quietly with exit code 141 (128 + SIGPIPE), handled here once for all commands.
 """
 
 from __future__ import annotations
@@ -51,7 +52,69 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# A closed pipe (`station calibrate LOG --json | head`) ends a command quietly with the exit code a
+# shell reports for a process killed by SIGPIPE, as `yes | head` or `cat big | head` do.
+SIGPIPE_EXIT = 128 + 13
+
+
 def main(argv: list[str] | None = None) -> int:
+    try:
+        try:
+            rc = _main(argv)
+        except SystemExit:  # argparse's --help and usage errors print, then exit
+            _flush()
+            raise
+        _flush()
+        return rc
+    except BrokenPipeError:
+        closed = [s for s in (sys.stdout, sys.stderr) if _is_closed_pipe(s)]
+        if not closed:  # a socket or pty of the station's own links: a real error, not the reader leaving
+            raise
+        for stream in closed:
+            _point_at_devnull(stream)
+        return SIGPIPE_EXIT
+
+
+def _flush() -> None:
+    """What is still buffered goes now, inside main's handler, not at interpreter exit (where a
+    closed pipe would print "Exception ignored ... BrokenPipeError")."""
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None and not stream.closed:
+            stream.flush()
+
+
+def _is_closed_pipe(stream) -> bool:
+    """stream's file is a pipe (or socket) whose reading end is gone (poll reports POLLERR)."""
+    import select
+
+    try:
+        fd = stream.fileno()
+    except (AttributeError, ValueError, OSError):  # None, closed, or not a file (a test's capture)
+        return False
+    if not hasattr(select, "poll"):  # no poll (Windows): a broken stdout is the usual cause
+        return True
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    try:
+        events = poller.poll(0)
+    except OSError:
+        return False
+    return any(ev & select.POLLERR for _fd, ev in events)
+
+
+def _point_at_devnull(stream) -> None:
+    """The stream's file descriptor now goes to /dev/null: what Python still holds for it, written at
+    exit, is dropped without a second error."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, stream.fileno())
+    finally:
+        os.close(devnull)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args._module is None:

@@ -110,6 +110,9 @@ class Timing(_Model):
     identify_timeout_s: float = Field(default=3.0, gt=0)
     fixture_timeout_s: float = Field(default=120.0, gt=0, description="wall seconds for a fixture move")
     read_period_s: float = Field(default=0.1, gt=0, le=5, description="wall seconds between block reads")
+    plate_again_after_s: float = Field(default=40.0, gt=0, description="SAMPLE seconds after the operator's Done "
+                                       "before a plate that the DUTs do not measure at the asked position is asked "
+                                       "for again, with what they face (a wrong turn is asked for at once)")
 
 
 class Token(_Model):
@@ -168,6 +171,10 @@ class ProfileConfig(_Model):
     analysis: Literal["thermal", "sfem", "none"] = "none"
     steps: list[StepConfig] = Field(min_length=1)
     program_verify: ProgramVerifyConfig | None = None
+    # SFEM only (station/profiles.py Profile): the verdict's reference temperature (default 25 C) and
+    # the fixture's direction error where a step cannot measure it (default: station/science/sfem.py)
+    sfem_reference_temp_c: float | None = Field(default=None, ge=-60.0, le=150.0)
+    sfem_ref_sigma_deg: float | None = Field(default=None, gt=0.0, le=20.0)
 
 
 class CertificateConfig(_Model):

@@ -71,12 +71,19 @@ class Profile:
     analysis: str = "none"  # what runs at the end: thermal (TDB/TDSF), sfem, none
     builtin: bool = field(default=True, compare=False)
     verify: VerifyCriteria = field(default_factory=VerifyCriteria)  # pass rule of a heat (verification) step
+    # SFEM (analysis sfem): the temperature whose step the verdict judges and the thermal model is
+    # centred on (None: contracts.types.T_REF_C, 25 C), and the fixture's reference direction error
+    # where a step has too few positions to measure it (None: station.science.sfem's documented default)
+    sfem_reference_temp_c: float | None = None
+    sfem_ref_sigma_deg: float | None = None
 
     def __post_init__(self) -> None:
         if not self.steps:
             raise ValueError("a profile needs at least one step")
         if self.analysis not in ANALYSES:
             raise ValueError(f"analysis must be one of {ANALYSES}, not {self.analysis!r}")
+        if self.sfem_ref_sigma_deg is not None and not self.sfem_ref_sigma_deg > 0:
+            raise ValueError("sfem_ref_sigma_deg must be > 0")
         for i, s in enumerate(self.steps):
             if s.require not in REQUIREMENTS:
                 raise ValueError(f"steps[{i}].require must be one of {REQUIREMENTS}, not {s.require!r}")
@@ -232,6 +239,8 @@ def with_program_verify(
         analysis=profile.analysis,
         builtin=profile.builtin,
         verify=criteria or VerifyCriteria(),
+        sfem_reference_temp_c=profile.sfem_reference_temp_c,
+        sfem_ref_sigma_deg=profile.sfem_ref_sigma_deg,
     )
 
 
@@ -256,7 +265,9 @@ def profile_from_config(name: str, cfg) -> Profile:
         )
         for s in cfg.steps
     )
-    prof = Profile(name, steps, description=cfg.description, analysis=cfg.analysis, builtin=False)
+    prof = Profile(name, steps, description=cfg.description, analysis=cfg.analysis, builtin=False,
+                   sfem_reference_temp_c=getattr(cfg, "sfem_reference_temp_c", None),
+                   sfem_ref_sigma_deg=getattr(cfg, "sfem_ref_sigma_deg", None))
     pv = getattr(cfg, "program_verify", None)
     if pv is not None:
         prof = with_program_verify(

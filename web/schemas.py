@@ -126,11 +126,19 @@ class BatchCreate(BaseModel):
 
 
 class RetestCreate(BaseModel):
-    """Retest the failed and error slots of an ended batch: same profile, work order, part, lot and
-    labels; the operator who starts it."""
+    """Retest the slots that ended error, fail or marginal in an ended batch: the same profile, work
+    order, part number, revision and lot; the operator who starts it; the parts' labels scanned
+    again."""
     model_config = ConfigDict(extra="forbid")
 
     operator: str = Field(min_length=1, max_length=100, description="operator name or badge id (required)")
+    labels: dict[Annotated[str, Field(min_length=1, max_length=64)], Annotated[str, Field(max_length=64)]] | None = Field(
+        default=None, description="slot -> serial on the part's label, scanned again for the retest (optional per "
+        "slot: a slot without one runs unchecked). null: the labels scanned for the batch, except a label its "
+        "board contradicted (a label mismatch), which is refused (409): scan that part's label again")
+    slots: list[Annotated[str, Field(min_length=1, max_length=64, pattern=r"\S")]] | None = Field(
+        default=None, min_length=1, max_length=1024, description="null: every slot that ended error, fail or "
+        "marginal; a list: some of those (another slot is a 409)")
 
     @field_validator("operator")
     @classmethod
@@ -138,6 +146,13 @@ class RetestCreate(BaseModel):
         if not v.strip():
             raise ValueError("must not be blank")
         return v.strip()
+
+    @field_validator("slots")
+    @classmethod
+    def _no_repeat(cls, v: list[str] | None) -> list[str] | None:
+        if v is not None and len(set(v)) != len(v):
+            raise ValueError("slots must not repeat a slot")
+        return v
 
 
 class PromptAnswer(BaseModel):

@@ -164,7 +164,8 @@ class DecisionOut(_Out):
     product: str | None = Field(default=None, description="the product (limits set) the DUT was judged as")
     limits_name: str | None = Field(default=None, description="limits set the DUT was judged by")
     limits_version: str | None = Field(default=None, description="version of that limits set")
-    attempt: int | None = Field(default=None, description="the serial's attempt number (retest: 2, 3, ...)")
+    attempt: int | None = Field(default=None, description="the serial's attempt number (retest: 2, 3, ...; 0: no "
+                                "attempt, the run was stopped for a label mismatch before it tested the part)")
     run_id: int | None = Field(default=None, description="the run judged")
 
 
@@ -178,7 +179,8 @@ class DecisionFields(_Out):
                               "'hold' for marginal, 'reject' for fail, 'retest' for error")
     tray: str | None = Field(default=None, description="where the operator puts the board")
     reason: str | None = Field(default=None, description="plain words, e.g. 'z TDSF -612 ppm/C, limit -500'")
-    attempt: int | None = Field(default=None, description="the serial's attempt number (retest: 2, 3, ...)")
+    attempt: int | None = Field(default=None, description="the serial's attempt number (retest: 2, 3, ...; 0: no "
+                                "attempt, the run was stopped for a label mismatch before it tested the part)")
     limits_name: str | None = Field(default=None, description="limits set the DUT was judged by")
     limits_version: str | None = Field(default=None, description="version of that limits set")
 
@@ -199,5 +201,6 @@ class TraceFields(_Out):
     lot: str = Field(default="", description="lot ('' when not given)")
 
 
-SFEM_HELP = ("SFEM result (sensors2023) as stored: one fit (station/science/sfem_model.py SfemFit.to_json plus "
-             "temperature_step) or {steps: [fit, ...], polynomial_coefficients}; null when the run has none")
+SFEM_HELP = ("SFEM result (sensors2023) as stored: the record contracts/sfem_result.py SfemResult (the JSON of "
+             "`station sfem --json`: the reference step's fit, steps, thermal, model_check; runs stored before it: one "
+             "fit or {steps: [fit, ...], polynomial_coefficients}); null when the run has none")

@@ -10,7 +10,7 @@ from pydantic import Field
 
 from web.schemas_common import (
     SFEM_HELP, CheckOut, DecisionFields, StoredDecision, ThermalAxes, ThermalByMethod, ThermalRow, TraceFields,
-    ProgramVerifyOut, _Out, free_form,
+    ProgramVerifyOut, _Out, free_form, one_of,
 )
 from web.schemas_thermal import SegmentRecord
 
@@ -74,7 +74,8 @@ class DutOut(_Results, StoredDecision):
     first_seen: str | None = Field(default=None, description="first tested (ISO 8601 UTC)")
     last_seen: str | None = Field(default=None, description="last tested (ISO 8601 UTC)")
     n_runs: int | None = Field(default=None, description="runs of real parts (replays not counted)")
-    attempts: int | None = Field(default=None, description="the same count: attempts at this serial")
+    attempts: int | None = Field(default=None, description="attempts at this serial: its runs that tested the part "
+                                 "(a run stopped for a label mismatch is in n_runs, not here)")
     result_run_id: int | None = Field(default=None, description="the run the results come from")
     run_id: int | None = Field(default=None, description="the same run (latest valid attempt, else latest with results)")
     batch_id: int | None = Field(default=None, description="that run's batch")
@@ -101,6 +102,12 @@ class RunOut(_Results, StoredDecision, TraceFields):
     label_serial: str | None = Field(default=None, description="serial scanned from the part's label, if any")
     sensor: str | None = Field(default=None, description="not sent at present (always null): see identity.sensor")
     identity: Identity | None = Field(default=None, description="what the board reported of itself")
+    software_version: str | None = Field(default=None, description="the station software's version that measured it "
+                                         "(null: not stored, a run from before schema 0009)")
+    firmware_version: str | None = Field(default=None, description="the board firmware's version, as its identity "
+                                         "reply reported it (null: the board reports none, or not stored)")
+    holder: str | None = one_of(("fixture", "operator"), "what turned the plate: 'fixture' (the motorized fixture) "
+                                "or 'operator' (a person turned it by hand); null: not stored", default=None)
     profile: str | None = Field(default=None, description="its batch's profile")
     operator: str | None = Field(default=None, description="its batch's operator")
     state: str | None = Field(default=None, description="connecting, running, done, faulted, interrupted")

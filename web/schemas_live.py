@@ -83,6 +83,10 @@ class Prompt(_Out):
     position: int | None = Field(default=None, description="plate position index to turn to")
     position_name: str | None = Field(default=None, description="plate position name to turn to, e.g. N")
     step_index: int | None = Field(default=None, description="the profile step that waits for it")
+    again: bool | None = Field(default=None, description="asked again while the step logs: after Done the DUTs do "
+                               "not measure the position (docs/design.md section 4, 'Where the plate is')")
+    reason: str | None = Field(default=None, description="why it is asked again, in words: 's03 still faces N 40 s "
+                               "after Done', 's01, s02 face +y, not P (a wrong turn?)', 's01 left P and faces N'")
     direction: list[float] | None = Field(default=None, min_length=3, max_length=3, description="the board's static "
                                           "reading at that position, in g, in its own frame (unit vector x, y, z; "
                                           "contracts/positions.py): the axis that reads +1 g points up")
@@ -213,6 +217,7 @@ class SlotStatus(DecisionFields):
                                  "never the serial's latest run, so an interrupted DUT shows its own data")
     steps_done: int = Field(default=0, description="profile steps this DUT completed (progress dots)")
     waiting_for: str | None = Field(default=None, description="what this DUT's current step waits for; "
+                                    "'plate at N' while it does not measure the confirmed position yet; "
                                     "'other DUTs' once it has what the step needs; null when not live")
 
 
@@ -320,7 +325,10 @@ class SlotOut(_Out):
     name: str | None = Field(default=None, description="the same name")
     link: str | None = Field(default=None, description="the board link, e.g. 'serial /dev/ttyUSB0'")
     kind: str | None = Field(default=None, description="not sent at present (always null): see `link`")
-    state: str | None = Field(default=None, description="the slot: idle, identified, busy, faulted, ...")
+    state: str | None = Field(default=None, description="the slot: identified (ready; also after its DUT faulted in "
+                              "a batch, once the batch ended and the board answered), busy, faulted (its board "
+                              "does not answer: fault_reason says why; a batch may still take it and tries to "
+                              "connect it again), disconnected")
     serial: str | None = Field(default=None, description="the board's serial once identified")
     sensor: str | None = Field(default=None, description="sensor type")
     batch_id: int | None = Field(default=None, description="the batch it belongs to (null: none)")

@@ -242,15 +242,23 @@ class SlotTrendOut(_Out):
 
 
 class YieldRowOut(_Out):
-    """Yield of one group of runs: pass / judged, every attempt counted."""
+    """Yield of one group of runs: pass / judged attempts, and first-pass and final yield of its
+    DUTs by the rule of GET /api/yield."""
 
     key: str = Field(description="the batch id, day (UTC), product, limits set or station")
-    judged: int = Field(description="judged runs")
+    judged: int = Field(description="judged runs (attempts; a label mismatch, attempt 0, is none)")
     passed: int = Field(description="verdict pass")
     marginal: int = Field(description="verdict marginal")
     failed: int = Field(description="verdict fail")
     errors: int = Field(description="verdict error")
-    yield_pct: float | None = Field(default=None, description="100 * passed / judged")
+    yield_pct: float | None = Field(default=None, description="100 * passed / judged (of the attempts)")
+    duts: int = Field(default=0, description="DUTs with a judged attempt in the group")
+    first_pass: int = Field(default=0, description="of them, DUTs whose first judged attempt passed")
+    final_pass: int = Field(default=0, description="of them, DUTs whose latest valid (non-error) attempt passed")
+    first_pass_pct: float | None = Field(default=None, description="first-pass yield, 100 * first_pass / duts "
+                                         "(GET /api/yield first_pass_yield, in %)")
+    final_pct: float | None = Field(default=None, description="final yield, 100 * final_pass / duts "
+                                    "(GET /api/yield final_yield, in %)")
 
 
 class FilterOption(_Out):
@@ -302,7 +310,8 @@ class SpcOut(_Out):
     yield_: dict[str, list[YieldRowOut]] = Field(default_factory=dict, alias="yield",
                                                  description="per batch, day (UTC), product, limits and station over "
                                                  "every run under the filters: judged, passed, marginal, failed, "
-                                                 "errors, yield_pct")
+                                                 "errors, yield_pct; duts, first_pass, final_pass, first_pass_pct, "
+                                                 "final_pct")
     columns: list[str] = Field(default_factory=list, description="the points table's columns = the CSV's header")
     filters: RecordsFilters = Field(description="the filters as understood")
     options: RecordsOptions = Field(description="the filter choices of the date range")
@@ -311,26 +320,29 @@ class SpcOut(_Out):
 class ParetoRowOut(_Out):
     """One row of the failure Pareto (station/records/pareto.py ParetoRow)."""
 
-    table: str = Field(description="'checks' (fail/error checks per parameter) or 'error causes' (runs judged error)")
+    table: str = Field(description="'checks' (fail/error checks per parameter) or 'causes' (runs judged fail or error, "
+                                   "one cause each)")
     rank: int = Field(description="1 = most frequent in its table")
     key: str = Field(description="parameter ('tdb_mg_per_c:x') or cause")
-    what: str = Field(description="in words: 'TDB x', 'faulted', 'not measured'")
-    fail: int = Field(description="checks with outcome fail")
-    error: int = Field(description="checks with outcome error, or runs judged error (error causes)")
+    what: str = Field(description="in words: 'TDB x' (checks); 'label mismatch', 'plate never arrived', 'link lost', "
+                                  "'not measured', 'limit: TDB' (causes)")
+    fail: int = Field(description="checks with outcome fail, or runs judged fail (causes)")
+    error: int = Field(description="checks with outcome error, or runs judged error (causes)")
     count: int = Field(description="fail + error")
     pct: float = Field(description="of the table's total, rounded to 0.1")
     cum_pct: float = Field(description="cumulative, rounded to 0.1")
-    example: str = Field(default="", description="one reason as the station wrote it (error causes)")
+    example: str = Field(default="", description="one reason as the station wrote it (causes)")
 
 
 class ParetoOut(_Out):
-    """Which check fails most, and why runs end in error (station/records/pareto.py)."""
+    """Which check fails most, and why runs do not pass, by cause (station/records/pareto.py, causes.py)."""
 
     runs: int = Field(description="judged runs under the filters")
     runs_failed: int = Field(description="of them, verdict fail")
     runs_error: int = Field(description="of them, verdict error")
     checks: list[ParetoRowOut] = Field(default_factory=list, description="most frequent first")
-    errors: list[ParetoRowOut] = Field(default_factory=list, description="most frequent first")
+    causes: list[ParetoRowOut] = Field(default_factory=list, description="one per run judged fail or error, by "
+                                       "name (station/records/causes.py), most frequent first")
     columns: list[str] = Field(default_factory=list, description="the table's columns = the CSV's header")
     filters: RecordsFilters = Field(description="the filters as understood")
     options: RecordsOptions = Field(description="the filter choices of the date range")

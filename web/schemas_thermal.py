@@ -74,6 +74,8 @@ class ResidualAxis(_Out):
     drift_error_sigma_mg: float | None = Field(default=None, description="its 1-sigma, mg")
     drift_error_fs_pct: float | None = Field(default=None, description="E in % of full scale")
     drift_error_fs_sigma_pct: float | None = Field(default=None, description="its 1-sigma, % of full scale")
+    drift_error_curvature_sigma_mg: float | None = Field(default=None, description="the curvature's part of "
+                                                         "drift_error_sigma_mg (1-sigma), mg")
     curvature_mg_per_c2: float | None = Field(default=None, description="residual curvature, mg/C^2")
     curvature_sigma_mg_per_c2: float | None = Field(default=None, description="its 1-sigma, mg/C^2")
     bow_mg: float | None = Field(default=None, description="residual bow over the range, mg")
@@ -106,6 +108,21 @@ class UncertaintyTerms(_Out):
     lag: list[float | None] | None = Field(default=None, description="sensor lag x, y, z, mg/C")
 
 
+class PartNoiseOut(_Out):
+    """The part's own noise level the budget used (station/science/part_noise.py)."""
+
+    source: str | None = Field(default=None, description="measured (on this part), class (the class constant: too "
+                               "little still data) or given (fixed by the caller)")
+    class_: str | None = Field(default=None, alias="class", description="the sensor class whose wander shape is used")
+    scale: float | None = Field(default=None, description="the part's white noise density / the class's: the "
+                                "factor on the class's random walk and flicker")
+    n_still_samples: int | None = Field(default=None, description="still samples it was measured on")
+    white_ug_per_sqrt_hz: list[float | None] | None = Field(default=None, description="white noise density x, y, z, "
+                                                            "ug/sqrt(Hz)")
+    wander_rw_g_per_sqrt_s: float | None = Field(default=None, description="the part's bias random walk, g/sqrt(s)")
+    wander_flicker_g: float | None = Field(default=None, description="the part's bias flicker floor, g")
+
+
 class UncertaintyBudget(_Out):
     """The budget behind the offline sigmas (station/science/offline_fit.py _uncertainty_doc)."""
 
@@ -114,6 +131,10 @@ class UncertaintyBudget(_Out):
     wander: str | None = Field(default=None, description="the bias-wander class used (by sensor)")
     wander_rw_g_per_sqrt_s: float | None = Field(default=None, description="bias random walk, g/sqrt(s)")
     wander_flicker_g: float | None = Field(default=None, description="bias flicker floor, g")
+    wander_flicker_tau_s: list[float] | None = Field(default=None, description="flicker time constants, s")
+    part_noise: PartNoiseOut | None = Field(default=None, description="the part's own noise level")
+    chord_x_c: dict[str, float] | None = Field(default=None, description="per orientation: what TD_i makes of a "
+                                               "bias curvature c2 (TD_i moves by c2 x this; C)")
     lag_sigma_s: float | None = Field(default=None, description="1-sigma of the sensor lag, s")
     orientations: dict[str, UncertaintyTerms] = Field(default_factory=dict, description="per orientation index")
     tdb_tdsf_corr: PerAxis | None = Field(default=None, description="correlation of TDB and TDSF errors per axis (-1..1)")
@@ -137,21 +158,22 @@ class ThermalCalibration(_Out):
     uncertainty: UncertaintyBudget | None = Field(default=None, description="the sigma budget")
 
 
-class SfemTemperature(_Out):
-    """One temperature step's sensor-frame fit (station/daemon/results.py sfem_result)."""
-
-    setpoint_c: float | None = Field(default=None, description="chamber set point, C (null: lamp only or ambient)")
-    lamp: bool | None = Field(default=None, description="the lamp was on")
-    temp_c: float | None = Field(default=None, description="mean temperature of the fit's samples, C")
-    n_positions: int | None = Field(default=None, description="static positions fitted")
-    fit: dict[str, Any] = free_form("the fit (station/science/sfem_model.py SfemFit.to_json: A, A_sigma, b, "
-                                    "misalignment, nonorthogonality, scale, residuals, rmse_*_mg, ...)")
-
-
 class SfemCalibration(_Out):
-    """SFEM result of one DUT."""
+    """SFEM result of one DUT: the record contracts/sfem_result.py SfemResult (the same JSON as
+    `station sfem --json`): the reference step's fit at the top level (A, b, scale, bias,
+    misalignment, nonorthogonality, rmse_*_mg, goodness_of_fit, ...) plus the record's keys."""
 
-    temperatures: list[SfemTemperature] = Field(description="one fit per temperature step")
+    shape: str = Field(description="the record's shape: sfem-record/1")
+    t_ref_c: float = Field(description="the headline and the verdict use the step nearest this temperature, C")
+    reference_step: int = Field(description="index in steps of the step nearest t_ref_c")
+    temp_c: float | None = Field(default=None, description="mean temperature of the reference step, C")
+    steps: list[dict[str, Any]] = free_form("one fit per temperature step, coldest first "
+                                            "(station/science/sfem_model.py SfemFit.to_json + temperature_step)")
+    thermal: dict[str, Any] | None = free_form("the polynomial thermal model (sensors2023 eq. 8, "
+                                               "station/science/sfem_thermal.py), with drift_at_t_ref in the "
+                                               "TDSF/TDB convention of martinez2022; null with one step", default=None)
+    model_check: dict[str, Any] | None = free_form("the worst step's residual against the noise, in words "
+                                                   "(station/science/sfem_goodness.py)", default=None)
 
 
 CalibrationResult = ThermalCalibration | SfemCalibration

@@ -1,27 +1,27 @@
-"""`station db upgrade|export|prune`: schema migration, one run's log CSV, sample retention.
+"""`station db upgrade|check|export|prune`: schema migration, one run's log CSV, sample retention.
 
-The database URL comes from --url, else $STATION_DB_URL, else `database_url` of --config FILE
-(station TOML), else the station's default sqlite:///var/station.db.
+The database URL comes from --url (a URL or a SQLite file path), else $STATION_DB_URL, else
+`database_url` of --config FILE (station TOML), else the station's default sqlite:///var/station.db.
+Only `upgrade` creates a database (that is its job); check, export and prune open an existing one
+(check and export read-only) and name where they looked when there is none
+(station/commands/db_source.py).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import tomllib
-from pathlib import Path
 
 from contracts.types import StationError
-
-DEFAULT_URL = "sqlite:///var/station.db"
+from station.commands.db_source import choose_from_args, open_existing, plain_url
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--url", help="database URL (default: $STATION_DB_URL or the config's database_url)")
+    parser.add_argument("--url", help="database URL or SQLite file (default: $STATION_DB_URL, the config's "
+                        "database_url, else ./var/station.db); only upgrade creates one")
     parser.add_argument("--config", metavar="FILE", help="station TOML config to take database_url from")
     sub = parser.add_subparsers(dest="db_command", metavar="ACTION")
     sub.required = True
-    sub.add_parser("upgrade", help="migrate the database to this software's schema")
+    sub.add_parser("upgrade", help="migrate the database to this software's schema (creating it if needed)")
     sub.add_parser("check", help="check the schema revision without changing anything")
     p = sub.add_parser("export", help="write one run's sample log (design 5.1 CSV)")
     p.add_argument("run_id", type=int, metavar="RUN_ID")
@@ -32,40 +32,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--vacuum", action="store_true", help="SQLite: give the freed space back to the file system")
 
 
-def database_url(args: argparse.Namespace) -> str:
-    if getattr(args, "url", None):
-        return args.url
-    if os.environ.get("STATION_DB_URL"):
-        return os.environ["STATION_DB_URL"]
-    if getattr(args, "config", None):
-        path = Path(args.config)
-        try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise StationError(f"{path}: no such file") from None
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-            raise StationError(f"{path}: cannot read config ({exc})") from None
-        url = data.get("database_url") or (data.get("db") or {}).get("url")
-        if url:
-            return str(url)
-    return DEFAULT_URL
-
-
 def run(args: argparse.Namespace) -> int:
     from db.database import Database
     from db.export import export_run_csv, prune
 
-    db = Database(database_url(args))
-    try:
-        if args.db_command == "upgrade":
+    choice = choose_from_args(args, "url", "--url")
+    if args.db_command == "upgrade":  # the one action that may create the database
+        try:
+            db = Database(choice.url)
+        except Exception as exc:  # noqa: BLE001 - a URL SQLAlchemy cannot parse or has no driver for
+            raise StationError(f"database {plain_url(choice.url)}: {type(exc).__name__}: {exc}") from None
+        try:
             before = db.current_revision()
             rev = db.upgrade()
-            print(f"database at schema revision {rev}" + ("" if before == rev else f" (was {before or 'empty'})"))
-            return 0
+        finally:
+            db.dispose()
+        print(f"database {plain_url(choice.url)} at schema revision {rev}"
+              + ("" if before == rev else f" (was {before or 'empty'})"))
+        return 0
+    db = open_existing(choice, write=args.db_command == "prune")  # checked: at this software's schema
+    try:
         if args.db_command == "check":
-            print(f"database at schema revision {db.check()} (current)")
+            print(f"database {plain_url(choice.url)} at schema revision {db.head_revision()} (current)")
             return 0
-        db.check()
         if args.db_command == "export":
             try:
                 path = export_run_csv(db, args.run_id, args.out)

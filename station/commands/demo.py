@@ -32,10 +32,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="fast-thermal", help="profile of the automatic batch")
     p.add_argument("--no-batch", action="store_true", help="do not start a batch automatically")
     p.add_argument("--once", action="store_true", help="run one batch headless, print the results and exit")
-    p.add_argument("--no-fixture", action="store_true", help="no motorized fixture: the operator is prompted "
-                   "(with --once a simulated operator confirms each prompt after --operator-delay)")
-    p.add_argument("--operator-delay", type=float, default=1.0, metavar="S",
-                   help="with --once --no-fixture: wall seconds the simulated operator takes to turn the plate")
+    p.add_argument("--no-fixture", action="store_true", help="no motorized fixture: a person is prompted to turn "
+                   "the plate (see --operator)")
+    p.add_argument("--operator", choices=("person", "page"), default="person",
+                   help="with --no-fixture: 'person' (default) a simulated person turns the plate and presses Done "
+                        "with human timing (seconds to minutes of sample time, sometimes Done first); 'page': the "
+                        "plate turns only when somebody presses Done on the page")
+    p.add_argument("--operator-seed", type=int, default=None, metavar="N",
+                   help="seed of the simulated person's timing (default: --seed)")
     p.add_argument("--host", default="127.0.0.1", help="HTTP host (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     p.add_argument("--no-web", action="store_true", help="do not serve the web page")
@@ -118,13 +122,13 @@ def results_table(status: dict, truths: dict | None = None) -> tuple[str, dict]:
                 entry.update(err_tdb_mg_per_c=e_tdb, err_tdsf_ppm_per_c=e_tdsf,
                              true_tdb_mg_per_c=[float(x) for x in t.tdb_mg_per_c],
                              true_tdsf_ppm_per_c=[float(x) for x in t.tdsf_ppm_per_c])
-        elif res.get("temperatures"):  # SFEM (sfem-24): the residual before -> after, per temperature
-            temps = res["temperatures"]
+        elif res.get("steps"):  # SFEM (sfem-24, contracts/sfem_result.py): the residual before -> after per step
+            temps = res["steps"]
             row += "SFEM " + "  ".join(
-                f"{t['temp_c']:.0f} C: {t['fit']['rmse_before_mg']:.1f} -> {t['fit']['rmse_after_mg']:.2f} mg"
-                for t in temps)
-            entry["sfem"] = [{"temp_c": t["temp_c"], "rmse_before_mg": t["fit"]["rmse_before_mg"],
-                              "rmse_after_mg": t["fit"]["rmse_after_mg"]} for t in temps]
+                f"{t['temp_c']:.0f} C: {t['rmse_before_mg']:.1f} -> {t['rmse_after_mg']:.2f} mg" for t in temps)
+            entry["sfem"] = [{"temp_c": t["temp_c"], "rmse_before_mg": t["rmse_before_mg"],
+                              "rmse_after_mg": t["rmse_after_mg"], "rmse_heldout_mg": t.get("rmse_heldout_mg")}
+                             for t in temps]
         elif s["fault_reason"]:
             row += s["fault_reason"]
         v = s.get("decision")
@@ -275,6 +279,8 @@ def run(args: argparse.Namespace) -> int:
         raise StationError("--can: at most 127 CAN boards on one bus")
     if args.speed <= 0:
         raise StationError("--speed must be > 0")
+    if args.once and args.no_fixture and args.operator == "page":
+        raise StationError("--once --no-fixture needs --operator person: nobody is at the page to press Done")
     if not args.no_batch or args.once:  # the demo's config has the built-in profiles only
         from station.profiles import check_profile_name
 
@@ -310,11 +316,16 @@ async def _main(args: argparse.Namespace) -> int:
         station = Station(cfg, db=db)
         server = task = None
         rc = 0
-        hands = confirming = None
-        if args.no_fixture:  # the simulated operator turns the plate when a prompt is confirmed
-            from drivers.sim.operator import operator_hands
+        hands = None
+        if args.no_fixture:  # without a fixture somebody turns the plate (drivers/sim/operator.py)
+            from drivers.sim.operator import Person, operator_hands
 
-            hands = asyncio.get_running_loop().create_task(operator_hands(station.bus, sim.world))
+            if args.operator == "person":
+                person = Person(sim.world, lambda b, pid: station.answer_prompt(b, pid, "done", by="simulated person"),
+                                seed=args.seed if args.operator_seed is None else args.operator_seed)
+                hands = asyncio.get_running_loop().create_task(person.run(station.bus))
+            else:
+                hands = asyncio.get_running_loop().create_task(operator_hands(station.bus, sim.world))
         try:
             await station.start()
             station.judge_interrupted(interrupted)  # a killed daemon's runs ended then: error verdicts
@@ -335,13 +346,6 @@ async def _main(args: argparse.Namespace) -> int:
                 print(f"station demo: batch {batch_id} ({args.profile}) started", flush=True)
             if args.once:
                 assert batch_id is not None
-                if args.no_fixture:  # headless: nobody is at the page, a simulated operator confirms
-                    from drivers.sim.operator import operator_confirms
-
-                    confirming = asyncio.get_running_loop().create_task(operator_confirms(
-                        lambda: station.prompt(batch_id),
-                        lambda pid: station.answer_prompt(batch_id, pid, "done", by="simulated operator"),
-                        delay_s=args.operator_delay))
                 t0 = time.monotonic()
                 done = asyncio.create_task(station.wait_batch(batch_id))
                 stopper = asyncio.create_task(stop.wait())
@@ -375,9 +379,8 @@ async def _main(args: argparse.Namespace) -> int:
             else:
                 await stop.wait()
         finally:
-            for helper in (hands, confirming):  # (not `task`: that name is the web server's)
-                if helper is not None:
-                    helper.cancel()
+            if hands is not None:  # (not `task`: that name is the web server's)
+                hands.cancel()
             await station.close("daemon shutdown")  # lamp off first, then the web server
             await stop_web(server, task)
             if hasattr(db, "dispose"):

@@ -64,7 +64,7 @@ def _fmt_value(entry: dict) -> str:
         return "-"
     if s is None:
         return f"{v:.6g}"
-    return f"{v:.6g} +- {s:.2g}"
+    return f"{v:.6g} +- {s:.2g} (1 sigma)"
 
 
 def format_report(doc: dict) -> str:

@@ -4,8 +4,9 @@ STDF V4 or OCP Test & Validation JSON lines for a factory's yield and traceabili
 (docs/exports.md).
 
 --db takes a SQLite file path or any SQLAlchemy URL; without it the URL comes from --config
-(`database_url`), $STATION_DB_URL or the station default, as for `station db`. A batch still
-running is refused (its verdicts are not final), as is an unknown id.
+(`database_url`), $STATION_DB_URL or the station default, as for `station db`; the database must
+exist (it is opened read-only, never created or migrated: station/commands/db_source.py). A batch
+still running is refused (its verdicts are not final), as is an unknown id.
 """
 
 from __future__ import annotations
@@ -24,23 +25,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     which = parser.add_mutually_exclusive_group(required=True)
     which.add_argument("--batch", type=int, metavar="ID", help="every DUT run of this batch")
     which.add_argument("--run", type=int, metavar="ID", help="this DUT run only")
-    parser.add_argument("--db", metavar="PATH", help="SQLite file or database URL (default: the config's, "
-                        "$STATION_DB_URL or sqlite:///var/station.db)")
+    parser.add_argument("--db", metavar="PATH", help="SQLite file or database URL, which must exist "
+                        "(default: $STATION_DB_URL, the config's, else ./var/station.db if it is there)")
     parser.add_argument("--config", metavar="FILE", help="station config to take database_url from")
     parser.add_argument("--out", metavar="FILE", required=True, help="file to write")
 
 
-def _url(args: argparse.Namespace) -> str:
-    from station.commands.certificate import db_url
-    from station.commands.db import database_url
-
-    if args.db:
-        return db_url(args.db)
-    return database_url(argparse.Namespace(config=getattr(args, "config", None)))
-
-
 def run(args: argparse.Namespace) -> int:
-    from db.database import Database
+    from station.commands.db_source import choose_from_args, open_existing
     from station.records.export_model import ExportNotFound, ExportNotReady, load_report
     from station.records.export_ocptv import write_ocptv
     from station.records.export_stdf import write_stdf
@@ -48,9 +40,8 @@ def run(args: argparse.Namespace) -> int:
     for ident in (args.batch, args.run):
         if ident is not None and ident < 1:
             raise StationError(f"an id is a positive number, not {ident}")
-    db = Database(_url(args))
+    db = open_existing(choose_from_args(args))
     try:
-        db.check()
         try:
             report = load_report(db, batch_id=args.batch, run_id=args.run)
         except (ExportNotFound, ExportNotReady) as exc:

@@ -28,9 +28,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_argument_group("source (one of)")
     src.add_argument("--batch", type=int, default=None, help="id of a stored batch (in --source-db, default --db)")
     src.add_argument("--logs", nargs="+", default=None, metavar="CSV", help="design-5.1 logs, one per DUT")
-    p.add_argument("--db", default=None, help="database the replay batch is stored in "
-                   "(default: the source database; sqlite:///./var/replay.db for logs)")
-    p.add_argument("--source-db", default=None, help="database holding --batch, e.g. a copy from another station")
+    p.add_argument("--db", default=None, help="database (URL or SQLite file) the replay batch is stored in "
+                   "(default: the source database; sqlite:///./var/replay.db for logs); with --batch and no "
+                   "--source-db it is also the source, which must exist")
+    p.add_argument("--source-db", default=None, help="database holding --batch, e.g. a copy from another station; "
+                   "only read, never created")
     p.add_argument("--profile", default=None, help="profile to run (default: the recorded one)")
     p.add_argument("--config", default=None, metavar="TOML",
                    help="take limits, products, profiles and timing from this station config instead")
@@ -62,10 +64,15 @@ def load_recording(args: argparse.Namespace):
     if (args.batch is None) == (args.logs is None):
         raise StationError("give exactly one source: --batch ID or --logs CSV...")
     if args.batch is not None:
-        src = args.source_db or args.db
-        if not src:
-            raise StationError("--batch needs the database it is in: --db or --source-db")
-        r = rec.from_database(src, args.batch)
+        from station.commands.db_source import choose, require_existing
+
+        flag, given = ("--source-db", args.source_db) if args.source_db else ("--db", args.db)
+        if not given:
+            raise StationError("no database given: --batch ID is read from the database it is in: give --db "
+                               "(or --source-db) PATH|URL; a replay has no default database")
+        src = choose(given, flag)
+        require_existing(src)  # the source is only read: a missing file is one line, nothing created
+        r = rec.from_database(src.url, args.batch)
         if args.profile:
             r.profile = args.profile
     else:
@@ -131,7 +138,12 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
     if args.speed <= 0:
         raise StationError("--speed must be > 0")
+    from station.commands.db_source import to_url
+
     recording = load_recording(args)
+    # a SQLite file path is taken as well as a URL; the replay's own --db (beside --source-db) is
+    # its results database and may be created, the source never is (load_recording)
+    args.db, args.source_db = (to_url(v) if v else v for v in (args.db, args.source_db))
     db_url = args.db or args.source_db or f"sqlite:///{Path('var').resolve() / 'replay.db'}"
     if recording.source_note and db_url == (args.source_db or args.db):
         raise StationError(f"batch {args.batch}: its database has an older schema and a replay never migrates "

@@ -29,6 +29,7 @@ from typing import Any, Iterable
 
 from contracts.json_safe import finite_or_none as _f
 from contracts.types import AXES
+from station.records.certificate_sfem import sfem_coefficients, sfem_lines
 
 COVERAGE_K = 2.0  # coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law)
 DEFAULT_GUARD_SIGMA = 2.0  # spec_limits.ProductSpec.guard_sigma's default, when the stored config lacks the set
@@ -134,7 +135,11 @@ class Certificate:
     guard_sigma_stored: bool = False  # False: the limits set is not in the stored config (default used)
     environment: Environment = field(default_factory=Environment)
     software_version: str = ""  # the issuing station software
+    # what measured the run, stored with it (dut_run, migration 0009); None: not stored (older run)
+    measured_software_version: str | None = None
+    holder: str | None = None  # 'fixture' (the motorized fixture turned the plate) or 'operator' (a person)
     schema_version: str | None = None  # the database schema the run was stored with
+    sfem_lines: list[str] = field(default_factory=list)  # the SFEM section (certificate_sfem.sfem_lines)
 
     def coefficient(self, name: str, axis: str) -> Coefficient | None:
         return next((c for c in self.coefficients if c.name == name and c.axis == axis), None)
@@ -178,19 +183,10 @@ def _coefficients(thermal_by_method: dict, preferred: str | None, sfem: dict | N
         out.append(Coefficient("TDSF", ax, _f(a.get("tdsf_ppm_per_c")), _f(a.get("tdsf_sigma_ppm_per_c")), "ppm/°C",
                                preferred or "", "clamped to 0 (not observable)" if a.get("tdsf_clamped") else "",
                                u_combined=_check_sigma(checks, "tdsf_ppm_per_c", ax)))
-    if isinstance(sfem, dict):
-        fit = sfem
-        steps = sfem.get("steps")
-        if isinstance(steps, list) and steps:
-            fit = steps[0] or {}  # the first temperature step (the polynomials are in the JSON record)
-        b = fit.get("b") or fit.get("bias_g") or fit.get("bias")
-        bs = fit.get("bias_sigma")
-        if isinstance(b, (list, tuple)) and len(b) == 3:
-            for k, (ax, v) in enumerate(zip(AXES, b)):
-                s = _f(bs[k]) if isinstance(bs, (list, tuple)) and len(bs) == 3 else None
-                out.append(Coefficient("SFEM bias", ax, None if _f(v) is None else _f(v) * 1e3,
-                                       None if s is None else s * 1e3, "mg", "sfem",
-                                       u_combined=_check_sigma(checks, "sfem_bias_mg", ax)))
+    # SFEM: the step nearest Tref and the thermal model's drift (station/records/certificate_sfem.py)
+    for name, ax, value, sigma, unit, note, check, k in sfem_coefficients(sfem):
+        u = None if check is None else _check_sigma(checks, check, ax)
+        out.append(Coefficient(name, ax, value, sigma, unit, "sfem", note, u_combined=None if u is None else u * k))
     return out
 
 
@@ -266,7 +262,7 @@ def build_certificate(run: dict, batch: dict, segments: list[dict], issued_at: d
     return Certificate(
         serial=str(run.get("serial") or identity.get("serial") or ""),
         sensor=str(identity.get("sensor") or run.get("sensor") or ""),
-        firmware=str(identity.get("fw") or identity.get("firmware") or "") or "not reported",
+        firmware=str(run.get("firmware_version") or identity.get("fw") or identity.get("firmware") or "") or "not reported",
         run_id=run_id,
         batch_id=int(run.get("batch_id") or 0),
         attempt=run.get("attempt"),
@@ -302,7 +298,10 @@ def build_certificate(run: dict, batch: dict, segments: list[dict], issued_at: d
         guard_sigma_stored=guard_stored,
         environment=_environment(segments, verification, snapshot),
         software_version=software_version,
+        measured_software_version=run.get("software_version") or None,
+        holder=run.get("holder") or None,
         schema_version=batch.get("schema_version"),
+        sfem_lines=sfem_lines(run.get("sfem")),
     )
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any, Iterable
 
+from contracts.positions import FACING_MAX_ANGLE_DEG
 from contracts.types import AXES, T_REF_C
 from station.records.certificate import COVERAGE_K, OUTCOME_ORDER, Certificate, _f
 from station.science.thermal_model import FULL_SCALE_MG
@@ -141,12 +142,37 @@ def traceability_statement(cert: Certificate) -> list[str]:
         "against a reference, so the coefficients are per board-reading degree and are NOT metrologically traceable "
         "to the SI kelvin; the board compensates with the same reading. Its scale error is the assumed systematic "
         "term u_sys, not a measured one. " + plate,
-        "Acceleration: the reference is gravity. The fixture holds each axis at ±0.577 g (nominal, the body "
-        "diagonal); local g is not measured and the fixture angles are not calibrated. TDB and TDSF are slopes of "
+        "Acceleration: the reference is gravity, at the profile's nominal positions (P and N: ±0.577 g on each axis, "
+        f"the body diagonal). {holder_statement(cert)} Local g is not measured. TDB and TDSF are slopes of "
         "the DUT's own output against its own temperature reading, in the DUT's nominal sensitivity "
         "(1 mg = 1e-3 of the nominal 1 g); they depend on g only through its constancy during the run and are NOT "
         "traceable to an SI acceleration standard. Times: the station's clock, UTC.",
     ]
+
+
+def holder_statement(cert: Certificate) -> str:
+    """What held the part while its positions were taken, as stored with the run (dut_run.holder)."""
+    if cert.holder == "fixture":
+        return "The station's motorized fixture turned the plate to each position; its angles are not calibrated."
+    if cert.holder == "operator":
+        return ("A person turned the plate to each position by hand (no fixture): the station took a sample at a "
+                "position only while the DUT's own gravity reading pointed within "
+                f"{FACING_MAX_ANGLE_DEG:g}° of it, so each angle is as the person set it, not calibrated.")
+    return "What turned the plate (a fixture or a person) is not stored with this run; the angles are not calibrated."
+
+
+def holder_words(cert: Certificate) -> str:
+    return {"fixture": "the station's motorized fixture", "operator": "a person, by hand (no fixture)"}.get(
+        cert.holder or "", "not stored with this run")
+
+
+def software_words(cert: Certificate) -> str:
+    """Which software measured the run (stored with it) and which issued this certificate."""
+    issued = (f"thermal-cal-station {cert.software_version or 'unknown'} issued this certificate "
+              f"(database schema {cert.schema_version or '-'})")
+    if cert.measured_software_version:
+        return f"thermal-cal-station {cert.measured_software_version} measured this run; {issued}"
+    return f"{issued}; the version that measured is not stored with this run"
 
 
 def environment_statement(cert: Certificate) -> list[str]:
@@ -338,8 +364,8 @@ def certificate_rows(cert: Certificate) -> list[Row]:
         ("Batch / run / attempt", f"{cert.batch_id} / {cert.run_id} / {cert.attempt or '-'}; {ver}"),
         ("Measured", f"{_when(cert.started_at)} to {_when(cert.ended_at)}"),
         ("Judged / issued", f"{_when(cert.judged_at)} / {_when(cert.issued_at)}"),
-        ("Software", f"thermal-cal-station {cert.software_version or 'unknown'} (issued this certificate); the version "
-                     f"that measured is not stored with the run (database schema {cert.schema_version or '-'})"),
+        ("Software", software_words(cert)),
+        ("Plate turned by", holder_words(cert)),
     ):
         rows += _field_rows(k, v)
     if cert.coefficients:
@@ -356,6 +382,8 @@ def certificate_rows(cert: Certificate) -> list[Row]:
     else:
         rows += [Row("gap"), Row("heading", ("Results: coefficients",), keep=True),
                  *_text_rows(["No coefficients stored for this run."])]
+    if cert.sfem_lines:  # station/records/certificate_sfem.py
+        rows += _section("SFEM (sensors2023): step judged, thermal model, model check", cert.sfem_lines)
     if cert.program_verify or cert.verification:
         rows += _pv_rows(cert)
     head = Row("table_head", ("outcome", "measurement", "axis", "value", "unit", "limit(s)", "1σ",

@@ -35,6 +35,7 @@ TEST_NUMBERS = {
     "tdb_mg_per_c": 1000, "tdsf_ppm_per_c": 1010, "fit_agreement_tdb_mg_per_c": 1020,
     "fit_agreement_tdsf_ppm_per_c": 1030, "drift_error_fs_pct": 1040, "drift_error_mg": 1050, "bow_mg": 1060,
     "ramp_residual_rms_mg": 1070, "noise_ug_per_sqrt_hz": 1080, "sfem_bias_mg": 2000, "sfem_scale_error_pct": 2010,
+    "sfem_heldout_rmse_mg": 2020, "sfem_residual_ratio": 2030,
     "link_errors": 3000, "lost_samples_pct": 3010, "program_crc_match": 4000, "compensation_on": 4010,
     "verified_drift_error_fs_pct": 4020, "verify_failed_axes": 4030,
 }
@@ -82,7 +83,7 @@ class ExportPart:
     label_serial: str
     sensor: str
     firmware: str
-    attempt: int
+    attempt: int  # 0: a run stopped for a label mismatch (never tested the part), no attempt
     state: str  # the run's end state: done, faulted, interrupted, ...
     verdict: str  # pass, marginal, fail, error
     grade: str
@@ -254,7 +255,7 @@ def build_report(batch: dict, runs: list[dict], scope: str = "batch", software_v
             run_id=int(r["id"]), slot=slot, site=site_of[slot], serial=_text(r.get("serial")),
             label_serial=_text(r.get("label_serial") or labels.get(slot)),
             sensor=_text(identity.get("sensor")), firmware=_text(identity.get("fw") or identity.get("firmware")),
-            attempt=int(r.get("attempt") or 1), state=_text(r.get("state")), verdict=verdict, grade=grade,
+            attempt=int(r["attempt"]) if r.get("attempt") is not None else 1, state=_text(r.get("state")), verdict=verdict, grade=grade,
             tray=_text(r.get("tray")), reason=reason, limits_name=_text(r.get("limits_name")),
             limits_version=_text(r.get("limits_version")), started_at=_time(r.get("started_at")),
             ended_at=_time(r.get("ended_at")), judged_at=_time(r.get("judged_at")), tests=_tests(checks),

@@ -25,6 +25,8 @@ WORDS: dict[str, tuple[str, str]] = {
     "link_errors": ("link errors", "frames"),
     "sfem_bias_mg": ("SFEM bias", "mg"),
     "sfem_scale_error_pct": ("SFEM scale error", "%"),
+    "sfem_heldout_rmse_mg": ("SFEM held-out |a| - 1 g RMSE", "mg"),
+    "sfem_residual_ratio": ("SFEM residual / noise", "x noise"),
     "verified_drift_error_fs_pct": ("verified drift error E_FS", "%FS"),
     "verify_failed_axes": ("axes failing verification", "axes"),
     "program_crc_match": ("readback CRC equal to written", "1 = yes"),

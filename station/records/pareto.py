@@ -1,4 +1,4 @@
-"""Failure Pareto of judged runs: which check fails most, and why runs end in error. Pure.
+"""Failure Pareto of judged runs: which check fails most, and why runs do not pass. Pure.
 
 Two tables, each sorted by count (descending; ties by name) with its own percent and cumulative
 percent, because the engineer's question is "fix what first": the first rows that reach ~80 %
@@ -8,42 +8,42 @@ are the work.
   `fail` or `error` (an error check is a required measurement that was not measured). Each check
   counted once per run; a run failing on three axes counts on three rows, so the percentages are
   of failing checks, not of runs.
-- error causes: one per run whose verdict is `error`, in the station's words: the run's end state
-  when it did not finish (`faulted`, `aborted`, `interrupted`), `not measured` when it finished
-  but a required measurement is missing, `no spec limits` when no limits set matched the part,
-  else the verdict's first reason with its numbers masked (so "timeout after 10.2 s" and "after
-  12 s" are one cause).
+- causes: one per run judged `fail` or `error`, by name (station/records/causes.py): an error by
+  the station's words for it ("label mismatch", "plate never arrived", "link lost", "no samples",
+  "analysis", "cannot do it (operator)", "results not stored", "not measured", ...), a fail by the
+  measurement that failed it ("limit: TDB"). The `fail` and `error` columns count the runs of each
+  verdict; `example` is one reason as the station wrote it.
 
-Marginal checks are not failures and are not counted.
+Marginal checks and runs are not failures and are not counted.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import re
 from dataclasses import asdict, dataclass, field
 from typing import Iterable
 
+from station.records.causes import run_cause
 from station.records.parameter_names import words
 
 CHECKS = "checks"
-ERRORS = "error causes"
+CAUSES = "causes"
 CSV_COLUMNS = ("table", "rank", "what", "fail", "error", "count", "%", "cumulative %")
 
 
 @dataclass(frozen=True)
 class ParetoRow:
-    table: str  # CHECKS or ERRORS
+    table: str  # CHECKS or CAUSES
     rank: int  # 1 = most frequent
     key: str  # parameter ("tdb_mg_per_c:x") or cause
-    what: str  # in words ("TDB x", "faulted")
+    what: str  # in words ("TDB x", "label mismatch")
     fail: int
     error: int
     count: int  # fail + error
     pct: float  # of the table's total, rounded to 0.1 (the page and the CSV show this number)
     cum_pct: float
-    example: str = ""  # one reason as the station wrote it (error causes)
+    example: str = ""  # one reason as the station wrote it (causes)
 
 
 @dataclass
@@ -52,38 +52,19 @@ class Pareto:
     runs_failed: int
     runs_error: int
     checks: list[ParetoRow] = field(default_factory=list)
-    errors: list[ParetoRow] = field(default_factory=list)
+    causes: list[ParetoRow] = field(default_factory=list)
 
     def rows(self) -> list[ParetoRow]:
-        return self.checks + self.errors
+        return self.checks + self.causes
 
     def to_json(self) -> dict:
         return {"runs": self.runs, "runs_failed": self.runs_failed, "runs_error": self.runs_error,
-                "checks": [asdict(r) for r in self.checks], "errors": [asdict(r) for r in self.errors]}
+                "checks": [asdict(r) for r in self.checks], "causes": [asdict(r) for r in self.causes]}
 
 
 def _param(c: dict) -> str:
     m = str(c.get("measurement") or "")
     return f"{m}:{c['axis']}" if c.get("axis") else m
-
-
-_NUM = re.compile(r"[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
-
-
-def error_cause(run: dict) -> tuple[str, str]:
-    """(cause, example reason) of a run judged `error` (see the module doc)."""
-    reasons = [str(r) for r in (run.get("reasons") or []) if r]
-    example = reasons[0] if reasons else ""
-    state = str(run.get("state") or "")
-    if state and state != "done":
-        return state, example
-    checks = [c for c in run.get("checks") or [] if isinstance(c, dict)]
-    if any(c.get("outcome") == "error" for c in checks):
-        missing = next(c for c in checks if c.get("outcome") == "error")
-        return "not measured", str(missing.get("reason") or example)
-    if any("no spec limits" in r for r in reasons):
-        return "no spec limits", example
-    return (_NUM.sub("N", example)[:80] or "unknown"), example
 
 
 def _ranked(table: str, counts: dict[str, list[int]], names: dict[str, str], examples: dict[str, str]) -> list[ParetoRow]:
@@ -114,17 +95,17 @@ def pareto(runs: Iterable[dict]) -> Pareto:
                 p = _param(c)
                 names.setdefault(p, words(p))
                 checks.setdefault(p, [0, 0])[0 if c["outcome"] == "fail" else 1] += 1
-        if verdict == "error":
-            n_error += 1
-            cause, example = error_cause(r)
-            causes.setdefault(cause, [0, 0])[1] += 1
+        n_error += verdict == "error"
+        if verdict in ("fail", "error"):
+            cause, example = run_cause(r)
+            causes.setdefault(cause, [0, 0])[0 if verdict == "fail" else 1] += 1
             examples.setdefault(cause, example)
     return Pareto(n, n_fail, n_error, _ranked(CHECKS, checks, names, {}),
-                  _ranked(ERRORS, causes, {k: k for k in causes}, examples))
+                  _ranked(CAUSES, causes, {k: k for k in causes}, examples))
 
 
 def csv_text(p: Pareto) -> str:
-    """The rows the Records view shows, in its columns (checks first, then error causes)."""
+    """The rows the Records view shows, in its columns (checks first, then causes)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
@@ -133,4 +114,4 @@ def csv_text(p: Pareto) -> str:
     return buf.getvalue()
 
 
-__all__ = ["ParetoRow", "Pareto", "pareto", "error_cause", "csv_text", "CSV_COLUMNS", "CHECKS", "ERRORS"]
+__all__ = ["ParetoRow", "Pareto", "pareto", "run_cause", "csv_text", "CSV_COLUMNS", "CHECKS", "CAUSES"]

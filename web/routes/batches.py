@@ -43,13 +43,16 @@ async def start_batch(body: BatchCreate, request: Request, response: Response):
 @router.post("/{batch_id}/retest", status_code=201, response_model=BatchCreated,
              dependencies=[Depends(require_control)])
 async def retest_batch(body: RetestCreate, request: Request, response: Response, batch_id: int = BatchId):
-    """Start a batch of only the slots that ended fail or error in this (ended) batch, with its
-    profile, work order, part number, revision, lot and those slots' label serials. 409 while it
-    runs, when it has no failed/error slot, or when another batch runs."""
+    """Start a batch of only the slots that ended error, fail or marginal in this (ended) batch
+    (or the `slots` given of those), with its profile, work order, part number, revision and lot,
+    and the parts' labels scanned again (`labels`). Without `labels` the batch's own labels are
+    kept, but a label that did not match its board is refused: scan it again. 409 while it runs,
+    when it has no such slot, for a slot that is not one of them, for a refused label, or when
+    another batch runs."""
     station = request.app.state.station
     await _no_batch_running(station)
     new_id = await call(station.retest_batch, batch_id, body.operator, by=f"REST: {audit.actor_of(request)}",
-                        conflict=True)
+                        labels=body.labels, slots=body.slots, conflict=True)
     response.headers["Location"] = f"/api/batches/{new_id}"
     return {"id": int(new_id)}
 

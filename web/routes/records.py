@@ -176,8 +176,9 @@ async def spc_csv(request: Request, f: Filters = Depends(filters), group: str | 
 
 @router.get("/records/pareto", response_model=ParetoOut, dependencies=[Depends(require_read)])
 async def failure_pareto(request: Request, f: Filters = Depends(filters)):
-    """Failure Pareto under the filters: fail/error checks per parameter, and the causes of runs
-    judged error (faulted, not measured, ...), each most frequent first with cumulative percent."""
+    """Failure Pareto under the filters: fail/error checks per parameter, and one cause per run
+    judged fail or error, by name (label mismatch, plate never arrived, link lost, not measured,
+    limit: TDB, ...), each most frequent first with cumulative percent."""
     from station.records import pareto
     runs, options = await _runs(request, f)
     out = pareto.pareto(runs).to_json()
@@ -187,7 +188,7 @@ async def failure_pareto(request: Request, f: Filters = Depends(filters)):
 
 @router.get("/records/pareto.csv", dependencies=[Depends(require_read)], response_class=Response, responses=CSV_OK)
 async def failure_pareto_csv(request: Request, f: Filters = Depends(filters)):
-    """The Pareto table of /api/records/pareto under the same query (checks, then error causes)."""
+    """The Pareto table of /api/records/pareto under the same query (checks, then causes)."""
     from station.records import pareto
     runs, _options_ = await _runs(request, f)
     return Response(pareto.csv_text(pareto.pareto(runs)), media_type="text/csv",

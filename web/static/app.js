@@ -20,7 +20,8 @@ const S = {
   operator: "",            // the person at the station: memory and sessionStorage only (start.js)
   formOpen: false,         // the start form opened over an ended batch ("New batch")
   lastState: null,         // the batch state last shown: an end seen live calls for attention
-  retestable: false,       // the ended batch has fail/error slots
+  retestable: false,       // the ended batch has error, fail or marginal slots
+  retest: null,            // the start form is a retest of {batchId, slots} (start.js)
 };
 
 const VERDICT_FIELDS = ["verdict", "grade", "tray", "reason", "attempt", "limits_name", "limits_version"];
@@ -172,7 +173,7 @@ function applyBatch(b, askedAt = Infinity) {
   $("batch-error").textContent = b.error || "";  // e.g. "aborted by Ana at 2026-11-23 14:02:05 UTC"
   $("batch-note").textContent = b.note || "";
   $("batch-note").classList.toggle("hidden", !b.note);
-  $("batch-elapsed").textContent = clock(b.elapsed_s);
+  $("batch-elapsed").textContent = clock(b.elapsed_s ?? storedElapsed(b));
   $("batch-waiting").textContent = b.waiting_for || "–";
   S.batchSlots = (b.slots || []).map((sl) => sl.slot);
   const counts = { running: 0, done: 0, faulted: 0 };
@@ -200,10 +201,9 @@ function applyBatch(b, askedAt = Infinity) {
     if (["done", "interrupted", "faulted"].includes(s.state) && !s.plotUrl) loadPlot(sl.slot);
   }
   const c = b.counts || counts;  // the station's own count: no DUT runs once the batch ended
-  $("batch-counts").textContent = `${c.running || 0} running · ${c.done || 0} done · ${c.faulted || 0} faulted`
-    + (c.interrupted ? ` · ${c.interrupted} interrupted` : "");
+  renderCounts(c, b, FINAL.has(b.state));  // cards.js: names the faulted slots ("1 faulted: s03")
   S.finalBatch = FINAL.has(b.state);
-  S.retestable = S.finalBatch && (b.slots || []).some((sl) => sl.verdict === "fail" || sl.verdict === "error");
+  S.retestable = S.finalBatch && (b.slots || []).some((sl) => RETEST_VERDICTS.has(sl.verdict));  // start.js
   const left = b.time_left || {};
   $("step-left").textContent = S.finalBatch ? "–" : clock(left.step_wall_s);
   $("batch-left").textContent = S.finalBatch ? "–" : clock(left.batch_wall_s);
@@ -366,7 +366,8 @@ async function showDut(serial) {
         el("div", { class: "muted" }, `batch ${r.batch_id ?? "–"} · slot ${r.slot ?? "–"} · ${r.profile ?? ""}`),
         el("div", { class: "muted" }, `${localTime(r.started_at)} → ${localTime(r.finished_at)}`),
         r.verdict ? el("div", { class: "run-verdict v-" + r.verdict, "data-verdict": r.verdict },
-          `${VERDICT_WORD[r.verdict] || r.verdict}${r.grade ? " · grade " + r.grade : ""} · attempt ${r.attempt ?? "?"}`
+          `${VERDICT_WORD[r.verdict] || r.verdict}${r.grade ? " · grade " + r.grade : ""}`
+          + (r.attempt === 0 ? " · no attempt (the part was not tested)" : ` · attempt ${r.attempt ?? "?"}`)
           + (r.reason ? " · " + r.reason : "") + (r.limits_name ? ` · limits ${r.limits_name} v${r.limits_version}` : "")) : null,
         r.fault_reason ? el("div", { class: "fault" }, "Fault: " + r.fault_reason) : null,
         (r.thermal || r.sfem) ? resultTable(storedResult(r)) : el("div", { class: "muted" }, "no result"),

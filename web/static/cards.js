@@ -92,7 +92,27 @@ function clock(sec) {
   return (h ? h + ":" + String(m).padStart(2, "0") : String(m)) + ":" + String(r).padStart(2, "0");
 }
 
-// Which slot goes to which tray: one row per tray, the slots in it.
+// Exceptions first: what needs a person's hands (error, fail, hold) before what goes on.
+const VERDICT_RANK = { error: 0, fail: 1, marginal: 2, pass: 3 };
+const verdictRank = (v) => VERDICT_RANK[v] ?? 4;
+const slotRank = (n) => (S.order.includes(n) ? S.order.indexOf(n) : 1e6);
+const bySlot = (a, b) => slotRank(a.slot) - slotRank(b.slot) || String(a.slot).localeCompare(String(b.slot), undefined, { numeric: true });
+
+// A reason without what the slot beside it already says: its end ("faulted: ", the verdict word says
+// it) and the link ("serial /dev/pts/7: link lost: ..." -> "link lost: ..."); a label mismatch in a
+// few words. The card and the title keep the whole text.
+function shortReason(r) {
+  const s = String(r || "").replace(/^faulted: /, "").replace(/^(?:serial \S+|can \S+ node \d+): /, "");
+  const m = /^label serial '(.*?)' does not match the board's own serial '(.*?)'/.exec(s);
+  if (m) return `label ${m[1]} ≠ board ${m[2]}`;
+  const cannot = / could not (?:.*: )?(turn the plate to \S+: .*)$/.exec(s);  // who said it is in the tooltip
+  if (cannot) return `could not ${cannot[1]}`;
+  return s.replace(/^step '[^']*': (?=plate never arrived|its output never faced)/, "").replace(/ ?\+-/g, "±");
+}
+
+// Which slot goes to which tray: one row per tray and verdict, exceptions first (error, fail,
+// marginal/hold, then pass), each slot with its verdict colour; an exception's slot with its
+// reason, so that every slot's verdict and what to do with it show on the 800x480 kiosk.
 function renderSorting(b) {
   const box = $("sorting");
   const list = S.sorting || [];
@@ -100,18 +120,74 @@ function renderSorting(b) {
   if (!list.length) return;
   const trays = new Map();
   for (const e of list) {
-    const key = e.tray || e.grade || e.verdict;
-    if (!trays.has(key)) trays.set(key, []);
-    trays.get(key).push(e);
+    const tray = e.tray || e.grade || e.verdict || "–";
+    const key = tray + "\u0000" + (e.verdict || "");
+    if (!trays.has(key)) trays.set(key, { tray, verdict: e.verdict, slots: [] });
+    trays.get(key).slots.push(e);
   }
-  const rank = { pass: 0, marginal: 1, fail: 2, error: 3 };
-  const rows = [...trays.entries()].sort((a, b2) => (rank[a[1][0].verdict] - rank[b2[1][0].verdict]) || a[0].localeCompare(b2[0]));
-  $("trays").replaceChildren(...rows.map(([tray, es]) => el("div", { class: "tray-row v-" + es[0].verdict, "data-tray": tray },
-    el("div", { class: "tray-name" }, tray, el("span", { class: "tray-verdict" }, VERDICT_WORD[es[0].verdict] || es[0].verdict || "")),
-    el("div", { class: "tray-slots" }, ...es.map((e) => el("span", { class: "tray-slot", "data-slot": e.slot, title: e.reason || "" },
-      e.slot, el("small", {}, " " + (e.serial || ""))))))));
+  const rows = [...trays.values()].sort((a, c) => (verdictRank(a.verdict) - verdictRank(c.verdict)) || a.tray.localeCompare(c.tray));
+  $("trays").replaceChildren(...rows.map((r) => {
+    const exception = r.verdict !== "pass";
+    const slots = r.slots.slice().sort(bySlot);
+    return el("div", { class: "tray-row v-" + r.verdict + (exception ? " exception" : ""), "data-tray": r.tray, "data-verdict": r.verdict },
+      el("div", { class: "tray-head" },
+        el("span", { class: "tray-name" }, r.tray),
+        el("span", { class: "tray-tags" },
+          el("span", { class: "tray-verdict" }, VERDICT_WORD[r.verdict] || r.verdict || ""),
+          el("span", { class: "tray-count", title: `${slots.length} part${slots.length === 1 ? "" : "s"}` }, "× " + slots.length))),
+      el("div", { class: "tray-slots" }, ...slots.map((e) => el("span", {
+        class: "tray-slot v-" + e.verdict, "data-slot": e.slot, "data-verdict": e.verdict,
+        title: `${e.slot} ${e.serial || ""}: ${VERDICT_WORD[e.verdict] || e.verdict} → ${r.tray}` + (e.reason ? ` · ${e.reason}` : ""),
+      }, el("b", { class: "tray-slot-name" }, e.slot), el("small", {}, " " + (e.serial || "")),
+      exception && e.reason ? el("span", { class: "tray-why" }, shortReason(e.reason)) : null))));
+  }));
   const d = (b && b.decision && b.decision.verdicts) || {};
   $("yield-line").textContent = `${d.pass || 0} pass · ${d.marginal || 0} marginal · ${d.fail || 0} fail · ${d.error || 0} error`;
+}
+
+// The batch's outcome from its verdicts: all pass (green), some pass (amber), none pass (red),
+// in words as well ("0 of 11 pass"); null before any verdict (a running batch, a validation batch).
+function batchOutcome(b) {
+  const v = (b && b.decision && b.decision.verdicts) || {};
+  const judged = ["pass", "marginal", "fail", "error"].reduce((n, k) => n + (v[k] || 0), 0);
+  if (!judged) return null;
+  const pass = v.pass || 0;
+  const kind = pass === judged ? "all" : (pass === 0 ? "none" : "some");
+  return { kind, pass, judged, counts: v, words: kind === "all" ? `all ${judged} pass` : `${pass} of ${judged} pass` };
+}
+
+// "11 running · 0 done · 1 faulted: s03" - which slot (a tap takes you to its card), and the reasons
+// on a line of their own, while the batch runs; at the end the sorting view names them with theirs.
+function renderCounts(c, b, final) {
+  const faulted = (b.slots || []).filter((sl) => sl.state === "faulted").sort(bySlot);
+  const box = $("batch-counts");
+  const text = `${c.running || 0} running · ${c.done || 0} done · ${c.faulted || 0} faulted`;
+  const names = final ? [] : faulted.flatMap((sl, i) => [i ? ", " : "", el("button", {
+    type: "button", class: "fault-slot", "data-slot": sl.slot, title: sl.error || "faulted",
+    onclick: () => showSlotCard(sl.slot),
+  }, sl.slot)]);
+  box.replaceChildren(text, ...(names.length ? [": ", ...names] : []), c.interrupted ? ` · ${c.interrupted} interrupted` : "");
+  const line = $("batch-faults");
+  const live = !final && faulted.length;
+  line.classList.toggle("hidden", !live);
+  line.replaceChildren(...(live ? faulted.map((sl) => el("button", {
+    type: "button", class: "fault-line", "data-slot": sl.slot, title: sl.error || "", onclick: () => showSlotCard(sl.slot),
+  }, el("b", {}, sl.slot), " " + (shortReason(sl.error) || "faulted"))) : []));
+}
+
+// A stored batch (the daemon no longer holds it) has no clock of its own: its start to its end.
+function storedElapsed(b) {
+  const t0 = Date.parse(b.created_at || ""), t1 = Date.parse(b.ended_at || "");
+  return Number.isFinite(t0) && Number.isFinite(t1) && t1 >= t0 ? (t1 - t0) / 1000 : null;
+}
+
+function showSlotCard(slot) {
+  const card = document.querySelector(`.slot-card[data-slot="${CSS.escape(slot)}"]`);
+  if (!card) return;
+  card.scrollIntoView({ block: "start", behavior: "smooth" });
+  card.classList.remove("flash");
+  void card.offsetWidth;  // restart the animation
+  card.classList.add("flash");
 }
 
 function axesOf(o) {
@@ -141,6 +217,10 @@ function tdsfCell(a) {
     fmt(a.tdsf_ppm_per_c, 1) + " ", el("span", { class: "clamped-flag" }, "(clamped: not observable)"));
 }
 
+function sigmaText(sigma, digits) {
+  return sigma === null || sigma === undefined ? "–" : fmt(sigma, digits);
+}
+
 function resultTable(result) {
   const wrap = el("div", { class: "result" });
   if (result.axes) {
@@ -152,6 +232,13 @@ function resultTable(result) {
     wrap.append(el("table", { class: "results" },
       el("thead", {}, el("tr", {}, el("th", {}, "axis"), el("th", {}, "TDB mg/°C"), el("th", {}, "TDSF ppm/°C"))),
       el("tbody", {}, ...rows)));
+    // every ± on the page is the part's own 1 sigma (docs/verdicts.md "Uncertainty budget"); the
+    // verdict's guard band is k = 2 of it. A line under the table, so a card keeps its width.
+    const sig = (key, digits) => ["x", "y", "z"].map((ax) => sigmaText((result.axes[ax] || {})[key], digits)).join(" / ");
+    if (["x", "y", "z"].some((ax) => (result.axes[ax] || {}).tdb_sigma_mg_per_c != null)) {
+      wrap.append(el("div", { class: "sigmas" },
+        `± 1σ (this part's): TDB ${sig("tdb_sigma_mg_per_c", 4)} · TDSF ${sig("tdsf_sigma_ppm_per_c", 1)}`));
+    }
     let note = (result.method || "") + (result.method === "offline" ? " fit" : "");
     if (result.streaming && result.method !== "streaming") {
       note += " · streaming TDB " + ["x", "y", "z"].map((ax) => fmt((result.streaming[ax] || {}).tdb_mg_per_c, 3)).join(" / ");
@@ -160,8 +247,13 @@ function resultTable(result) {
   }
   if (result.sfem) {
     const sf = result.sfem;
-    const t = (sf.temperatures && sf.temperatures[0] && sf.temperatures[0].fit) || sf.fit || sf;
-    wrap.append(el("div", { class: "sfem" }, `SFEM: RMSE ${fmt(t.rmse_before_mg, 2)} → ${fmt(t.rmse_after_mg, 2)} mg`));
+    // the record (contracts/sfem_result.py): the step nearest Tref at the top, the model check's words
+    const at = sf.temp_c === null || sf.temp_c === undefined ? "" : ` at ${fmt(sf.temp_c, 1)} °C`;
+    wrap.append(el("div", { class: "sfem" }, `SFEM${at}: RMSE ${fmt(sf.rmse_before_mg, 2)} → ${fmt(sf.rmse_after_mg, 2)} mg`));
+    const check = sf.model_check || {};
+    if (check.words && check.words !== "not testable") {
+      wrap.append(el("div", { class: "sfem-check" + (check.misses_effect ? " warn" : "") }, check.words));
+    }
   }
   return wrap;
 }
@@ -220,17 +312,37 @@ function renderSteps(b) {
 }
 
 // Overall progress (`progress` 0..1) and the batch's time left (only decreases: the station's).
+// At the end the bar shows the outcome: its fill split by verdict (pass green, marginal amber, fail
+// red, error pink) and the words "finished · 0 of 11 pass"; the state chip takes the outcome's
+// colour (a finished batch in which nothing passed is red, never green).
 function renderProgress(b, final) {
-  let f = Number(b.progress);
+  let f = Number(b.progress), known = true;
   if (b.progress === null || b.progress === undefined || !Number.isFinite(f)) {
     const steps = Array.isArray(b.steps) ? b.steps : [];
-    f = steps.length ? steps.filter((s) => s.state === "done").length / steps.length : 0;  // a failed batch: what it did
+    if (steps.length) f = steps.filter((s) => s.state === "done").length / steps.length;  // a failed batch: what it did
+    else if (final) { f = 1; known = b.state === "finished"; }  // a stored batch (no step list): its outcome, whole width
+    else f = 0;
   }
   f = Math.min(1, Math.max(0, f));
   const pct = Math.floor(f * 100);
-  $("progress-bar").style.width = (f * 100).toFixed(1) + "%";
+  const bar = $("progress-bar");
+  bar.style.width = (f * 100).toFixed(1) + "%";
   $("progress").setAttribute("aria-valuenow", String(pct));
   $("progress").dataset.state = b.state;
+  const out = final ? batchOutcome(b) : null;
+  bar.replaceChildren(...(out ? ["pass", "marginal", "fail", "error"].filter((k) => out.counts[k]).map((k) => {
+    const seg = el("span", { class: "outcome-seg v-" + k, "data-verdict": k });
+    seg.style.flexGrow = String(out.counts[k]);
+    return seg;
+  }) : []));
+  for (const id of ["progress", "batch-state"]) {
+    if (out) $(id).dataset.outcome = out.kind; else delete $(id).dataset.outcome;
+  }
+  $("batch-outcome-kv").classList.toggle("hidden", !out);
+  $("batch-outcome").textContent = out ? out.words : "";
+  if (out) $("batch-outcome").dataset.outcome = out.kind;
   const left = (b.time_left || {}).batch_wall_s;
-  $("progress-text").textContent = `${pct} %` + (final ? ` · ${b.state}` : (left !== null && left !== undefined ? ` · ${clock(left)} left` : ""));
+  $("progress-text").textContent = (known ? `${pct} %` : "") + (final ? (known ? " · " : "") + b.state + (out ? ` · ${out.words}` : "")
+    : (left !== null && left !== undefined ? ` · ${clock(left)} left` : ""));
+  $("batch-error").title = b.error || "";  // the kiosk shows it on one line
 }

@@ -249,7 +249,7 @@ function diagRender(doc) {
 function diagValue(e) {
   if (e.value === null || e.value === undefined) return "–";
   return e.sigma === null || e.sigma === undefined ? `${Number(e.value).toPrecision(5)}`
-    : `${Number(e.value).toPrecision(5)} ± ${Number(e.sigma).toPrecision(2)}`;
+    : `${Number(e.value).toPrecision(5)} ± ${Number(e.sigma).toPrecision(2)} (1σ)`;
 }
 
 function diagP(p) {

@@ -267,18 +267,24 @@ async function spcShow(opts = {}) {
   }
   document.getElementById("spc-points-count").textContent = String(r.points.length);
   const yt = document.getElementById("yield-table");
-  yt.replaceChildren(el("tr", {}, ...["yield by", "group", "judged", "pass", "marginal", "fail", "error", "yield"].map((t) => el("th", {}, t))));
+  // per group: the judged attempts by verdict, then its DUTs' first-pass and final yield (GET /api/yield's rule)
+  const pct = (v) => (given(v) ? fmt(v, 1) + " %" : "–");
+  yt.replaceChildren(el("tr", {}, ...[["yield by"], ["group"], ["judged", "judged attempts"], ["pass"], ["marginal"], ["fail"], ["error"],
+    ["DUTs", "DUTs with a judged attempt in the group"], ["first pass", "DUTs whose first judged attempt passed"],
+    ["final", "DUTs whose latest valid (non-error) attempt passed"]].map(([t, title]) => el("th", { title }, t))));
   for (const by of ["batch", "day", "product", "limits", "station"]) {
     for (const y of r.yield[by] || []) {
       yt.append(el("tr", { "data-by": by }, el("td", {}, by), el("td", {}, y.key), el("td", {}, y.judged), el("td", {}, y.passed),
-        el("td", {}, y.marginal), el("td", {}, y.failed), el("td", {}, y.errors), el("td", {}, y.yield_pct === null ? "–" : fmt(y.yield_pct, 1) + " %")));
+        el("td", {}, y.marginal), el("td", {}, y.failed), el("td", {}, y.errors), el("td", { class: "duts" }, y.duts),
+        el("td", { class: "first-pass", title: `${y.first_pass} of ${y.duts} DUTs` }, pct(y.first_pass_pct)),
+        el("td", { class: "final", title: `${y.final_pass} of ${y.duts} DUTs` }, pct(y.final_pct))));
     }
   }
 }
 
 // ---- failure Pareto: bars + cumulative line --------------------------------------------------------
 function paretoChart(title, rows) {
-  const W = 460, H = 250, box = { L: 40, R: 40, T: 22, B: 78 }, MAX = 12;
+  const W = 460, H = 270, box = { L: 40, R: 40, T: 22, B: 98 }, MAX = 12;
   const svg = frame(title, W, H, box);
   const shown = rows.slice(0, MAX), top = Math.max(1, ...shown.map((r) => r.count)), hh = H - box.T - box.B;
   const bw = (W - box.L - box.R) / Math.max(1, shown.length);
@@ -288,11 +294,13 @@ function paretoChart(title, rows) {
   for (const pct of [0, 50, 100]) svg.append(svgEl("text", { x: W - box.R + 4, y: cy(pct) + 3, class: "spc-tick" }, `${pct} %`));
   shown.forEach((r, i) => {
     const x = box.L + i * bw;
-    svg.append(svgEl("rect", { x: x + 2, width: Math.max(1, bw - 4), y: box.T + (1 - r.count / top) * hh, height: (r.count / top) * hh,
-      class: "pareto-bar", "data-what": r.what }));
+    const bar = svgEl("rect", { x: x + 2, width: Math.max(1, bw - 4), y: box.T + (1 - r.count / top) * hh, height: (r.count / top) * hh,
+      class: "pareto-bar", "data-what": r.what });
+    bar.append(svgEl("title", {}, `${r.what}: ${r.count} (${r.pct.toFixed(1)} %)` + (r.example ? ` · e.g. ${r.example}` : "")));
+    svg.append(bar);
     const lx = x + bw / 2, ly = H - box.B + 10;
     svg.append(svgEl("text", { x: lx, y: ly, class: "spc-tick", "text-anchor": "end", transform: `rotate(-35 ${lx} ${ly})` },
-      r.what.length > 22 ? r.what.slice(0, 21) + "…" : r.what));
+      r.what.length > 28 ? r.what.slice(0, 27) + "…" : r.what));
   });
   if (shown.length) {
     const pts = shown.map((r, i) => `${box.L + (i + 0.5) * bw},${cy(r.cum_pct)}`);
@@ -314,10 +322,10 @@ async function paretoShow() {
     if (seq !== REC_STATE.paretoSeq) return;
     status.textContent = `${p.runs} judged runs: ${p.runs_failed} failed, ${p.runs_error} error.`;
     document.getElementById("pareto-charts").replaceChildren(
-      paretoChart("Failing checks (fail + error)", p.checks), paretoChart("Why runs end in error", p.errors));
+      paretoChart("Failing checks (fail + error)", p.checks), paretoChart("Why runs do not pass (one cause per run)", p.causes));
     const t = document.getElementById("pareto-table");
     t.replaceChildren(el("tr", {}, ...p.columns.map((c) => el("th", {}, c))));
-    for (const r of [...p.checks, ...p.errors]) {
+    for (const r of [...p.checks, ...p.causes]) {
       t.append(el("tr", { "data-table": r.table, title: r.example || "" }, ...[r.table, r.rank, r.what, r.fail, r.error, r.count,
         r.pct.toFixed(1), r.cum_pct.toFixed(1)].map((v) => el("td", {}, String(v)))));
     }

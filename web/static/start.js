@@ -8,6 +8,9 @@
 "use strict";
 
 const TRACE_FIELDS = [["work-order", "work_order"], ["part-number", "part_number"], ["part-revision", "part_revision"], ["lot", "lot"]];
+// The verdicts "Retest failed" takes again (station/daemon/batches.py RETEST_VERDICTS): error, fail,
+// and marginal, whose tray is "hold (review / retest)": a retest is the way out of hold.
+const RETEST_VERDICTS = new Set(["error", "fail", "marginal"]);
 
 function operatorName() { return (S.operator || "").trim(); }
 
@@ -48,20 +51,27 @@ function describeProfile() {
   box.textContent = `${p.description || p.name} · ${p.n_steps ?? "?"} steps · ${yields[p.analysis] || p.analysis || ""}`;
 }
 
-// One row per slot: the tick box and the label serial of the part in it.
-function renderSlotPicks(slots) {
+// One row per slot: the tick box and the label serial of the part in it. A ready slot is ticked; a
+// faulted one (its board did not answer at the last batch's end: link lost, port gone) shows why and
+// can still be ticked: the batch's connect tries it again. `retest` (a Set): the retest form, only
+// those slots ticked and choosable, their labels empty to be scanned again. Without it the form is
+// a new batch's (and leaves a retest).
+function renderSlotPicks(slots, retest = null) {
+  if (!retest) setRetest(null);
   $("slot-picks").replaceChildren(...slots.map((s) => {
-    const on = s.state !== "faulted" && s.state !== "disconnected";
+    const on = retest ? retest.has(s.slot) : s.state !== "faulted" && s.state !== "disconnected";
     const label = el("input", { type: "text", class: "label-serial scan", "data-slot": s.slot, maxlength: "64", autocomplete: "off",
       placeholder: "label serial", "aria-label": `label serial of the part in ${s.slot}`, disabled: on ? null : "disabled" });
     const box = el("input", { type: "checkbox", value: s.slot, checked: on ? "checked" : null,
-      onchange: () => { label.disabled = !box.checked; } });
-    return el("div", { class: "slot-row" }, el("label", { class: "slot-pick" }, box, s.slot), label);
+      disabled: retest && !on ? "disabled" : null, onchange: () => { label.disabled = !box.checked; } });
+    const row = el("div", { class: "slot-row", "data-state": s.state || "" }, el("label", { class: "slot-pick" }, box, s.slot), label);
+    if (s.state !== "faulted" || !s.fault_reason) return row;
+    return el("div", { class: "slot-cell" }, row, el("div", { class: "muted slot-why", "data-slot": s.slot }, s.fault_reason));
   }));
 }
 
 function pickAll(on) {
-  for (const i of document.querySelectorAll("#slot-picks input[type=checkbox]")) {
+  for (const i of document.querySelectorAll("#slot-picks input[type=checkbox]:not(:disabled)")) {
     i.checked = on;
     i.dispatchEvent(new Event("change"));
   }
@@ -69,7 +79,7 @@ function pickAll(on) {
 
 // The scan order: operator, work order, part, revision, lot, then the chosen slots' labels, then Start.
 function scanOrder() {
-  return [$("operator"), ...TRACE_FIELDS.map(([id]) => $(id)),
+  return [$("operator"), ...TRACE_FIELDS.map(([id]) => $(id)).filter((i) => !i.disabled),
     ...document.querySelectorAll("#slot-picks input.label-serial:not(:disabled)"), $("start")];
 }
 
@@ -115,14 +125,16 @@ async function began(id, slots) {
   refreshSlotStates();  // a slot left out of this batch shows its own state, not the last batch's
 }
 
-function refreshSlotStates() {
+function refreshSlotStates(picks = false) {
   return api("/api/slots").then((slots) => {
+    if (picks) renderSlotPicks(slots);
     for (const s of slots) if (!inBatch(s.slot)) slotState(s.slot).state = s.state;
     renderSlots();
   }).catch(() => {});
 }
 
 async function startBatch() {
+  if (S.retest) { await startRetest(); return; }
   const picks = [...document.querySelectorAll("#slot-picks input[type=checkbox]:checked")].map((i) => i.value);
   const all = document.querySelectorAll("#slot-picks input[type=checkbox]").length;
   if (!requireOperator("start a batch")) { $("operator").focus(); return; }
@@ -140,15 +152,41 @@ async function startBatch() {
   }
 }
 
-// Retest only the failed and error slots of the ended batch (same profile, work order, part, lot,
-// labels): the station builds it from the stored batch (POST /api/batches/{id}/retest).
+// "Retest failed": the start form for the slots of the ended batch that ended error, fail or marginal,
+// read from the station (a fresh tab knows nothing else): only those ticked, their labels empty to be
+// scanned again (a label mismatch is mended so), the operator's name required, the profile, work
+// order, part and lot of that batch kept (shown, not editable). Start sends
+// POST /api/batches/{id}/retest {operator, labels, slots}.
+function setRetest(rt) {
+  S.retest = rt;
+  const on = !!rt;
+  $("profile").disabled = on;
+  for (const [id] of TRACE_FIELDS) $(id).disabled = on;
+  $("start").textContent = on ? "Start retest" : "Start batch";
+  $("start-mode").textContent = on ? `Retest of batch ${rt.batchId}: ${rt.slots.join(", ")} (ended ${rt.verdicts}).`
+    + " Scan each part's label again." : "";
+  $("start-mode").classList.toggle("hidden", !on);
+}
+
 async function retestFailed() {
   if (!S.batchId || !S.finalBatch) return;
-  if (!requireOperator("retest")) { openStartForm(); $("operator").focus(); return; }
   $("retest").disabled = true;
   try {
-    const r = await api(`/api/batches/${S.batchId}/retest`, { method: "POST", body: { operator: operatorName() } });
-    await began(r.id, null);
+    const [b, slots] = await Promise.all([api(`/api/batches/${S.batchId}`), api("/api/slots")]);
+    const again = (b.slots || []).filter((sl) => RETEST_VERDICTS.has(sl.verdict));
+    if (!again.length) { message(`Batch ${b.id} has no slot that ended error, fail or marginal.`); return; }
+    $("profile").value = b.profile;
+    describeProfile();
+    for (const [id, key] of TRACE_FIELDS) $(id).value = b[key] || "";
+    renderSlotPicks(slots, new Set(again.map((sl) => sl.slot)));
+    setRetest({ batchId: b.id, slots: again.map((sl) => sl.slot),
+      verdicts: [...new Set(again.map((sl) => sl.verdict))].join(", ") });
+    message("");
+    S.formOpen = true;
+    showControls();
+    window.scrollTo(0, 0);
+    const first = document.querySelector("#slot-picks input.label-serial:not(:disabled)");
+    (operatorName() ? first : $("operator")).focus();
   } catch (e) {
     message("Could not retest: " + e.message);
   } finally {
@@ -156,17 +194,40 @@ async function retestFailed() {
   }
 }
 
+async function startRetest() {
+  const rt = S.retest;
+  const picks = [...document.querySelectorAll("#slot-picks input[type=checkbox]:checked")].map((i) => i.value);
+  if (!requireOperator("retest")) { $("operator").focus(); return; }
+  if (!picks.length) { message("Choose at least one slot."); return; }
+  const labels = {};
+  for (const i of document.querySelectorAll("#slot-picks input.label-serial:not(:disabled)")) {
+    if (i.value.trim()) labels[i.dataset.slot] = i.value.trim();
+  }
+  $("start").disabled = true;
+  try {
+    const r = await api(`/api/batches/${rt.batchId}/retest`, { method: "POST", body: { operator: operatorName(), labels, slots: picks } });
+    for (const i of document.querySelectorAll("#slot-picks input.label-serial")) i.value = "";
+    setRetest(null);
+    await began(r.id, picks);
+  } catch (e) {
+    message("Could not retest: " + e.message);
+  } finally {
+    $("start").disabled = false;
+  }
+}
+
 // "New batch": the form opens above the ended batch, whose verdicts stay below until Start.
 function openStartForm() {
   S.formOpen = true;
   showControls();
-  refreshSlotStates();
+  refreshSlotStates(true);  // the picks as the slots are now (a slot ready again after a fault is ticked)
   window.scrollTo(0, 0);
   (operatorName() ? $("work-order") : $("operator")).focus();
 }
 
 function closeStartForm() {
   S.formOpen = false;
+  if (S.retest) setRetest(null);
   showControls();
 }
 
