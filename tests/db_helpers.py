@@ -103,12 +103,16 @@ THERMAL_JSON = {
     },
 }
 
-SFEM_JSON = {
+SFEM_JSON = {  # the SFEM record (contracts/sfem_result.py SfemResult), two steps and a thermal model
+    "shape": "sfem-record/1",
+    "t_ref_c": 25.0,
     "steps": [
-        {"temperature_step": 0, "temp_c": 25.0, "A": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-         "b": [0.01, -0.02, 0.03], "rmse_before_mg": 12.0, "rmse_after_mg": 0.9},
-        {"temperature_step": 1, "temp_c": 45.0, "A": [[1.001, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.999]],
-         "b": [0.011, -0.021, 0.031], "rmse_before_mg": 13.0, "rmse_after_mg": 1.0},
+        {"temperature_step": 0, "temp_c": 25.0, "n_positions": 24, "A": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+         "b": [0.01, -0.02, 0.03], "bias": [0.01, -0.02, 0.03], "bias_sigma": [1e-5, 1e-5, 1e-5],
+         "scale": [1.0, 1.0, 1.0], "scale_sigma": [1e-5, 1e-5, 1e-5], "rmse_before_mg": 12.0, "rmse_after_mg": 0.9},
+        {"temperature_step": 1, "temp_c": 45.0, "n_positions": 24, "A": [[1.001, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.999]],
+         "b": [0.011, -0.021, 0.031], "bias": [0.011, -0.021, 0.031], "bias_sigma": [1e-5, 1e-5, 1e-5],
+         "scale": [1.001, 1.0, 0.999], "scale_sigma": [1e-5, 1e-5, 1e-5], "rmse_before_mg": 13.0, "rmse_after_mg": 1.0},
     ],
-    "polynomial_coefficients": {"scale_x": [1.0, 1e-5, 0.0, 0.0]},
+    "thermal": {"degree": 1, "t_ref_c": 25.0, "coef": {"scale": [[1.0, 1.0, 1.0], [1e-5, 0.0, 0.0]]}},
 }

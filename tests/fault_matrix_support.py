@@ -16,6 +16,8 @@ and checked against the slot's `Expect`:
   faulted  never `pass` in any place (no record that ever said pass), the final verdict's reason
            names the fault (one of `keywords`)
   healthy  in a finished batch: pass/marginal/fail (judged per its data, not error), in every place
+  unharmed the batch must finish and the DUT be judged as healthy (a person's mistake, a fixture
+           that reports "reached" early: nothing that may fault a good part)
   any      a `pass` anywhere must be backed by the run's evidence (done, result present; program
            and verify: CRC written == read back, compensation on, verified E per axis; sfem: the
            three temperature steps)
@@ -75,6 +77,10 @@ ROWS = [
     "relay failure",
     "relay failure, verify heat",
     "full disk",
+    "person: Done before turning the plate",
+    "person: wrong turn, then corrected",
+    "person: plate never arrives",
+    "fixture reports reached early",
     "healthy DUTs (finished batches)",
 ]
 
@@ -161,6 +167,8 @@ class Expect:
     # faulted | healthy | retried (one transient write fault: programmed on a retry, judged per its data)
     # | recovered (SIGKILL + resume: judged per its data) | judged (a verdict; a pass must be backed)
     # | faulted-if-failed (faulted if the batch failed, else recovered)
+    # | unharmed (what happened must harm no DUT: the batch finishes, every DUT pass/marginal/fail in
+    #   every place, counted in the row's own cell: a person's mistake, a fixture reporting early)
     kind: str = "faulted"
     keywords: tuple[str, ...] = ()  # the final verdict's reason names the fault (any of these, lower case)
 
@@ -176,6 +184,8 @@ class Plan:
     expects: dict[str, Expect]  # by slot
     arm: Callable[[SimStation], None] | None = None  # before the daemon starts
     inject: Callable[["Ctx"], Awaitable[None]] | None = None  # a task beside the batch
+    # the person at the plate (no fixture): runs beside the whole batch, cancelled when it ends
+    hands: Callable[["Ctx"], Awaitable[None]] | None = None
     disk_mb: int | None = None  # database on a tmpfs of this size (full-disk cells)
     kill: Callable[["KillCtx"], Awaitable[None]] | None = None  # SIGKILL cell: waits, returns -> SIGKILL
     timeout_s: float = 150.0
@@ -410,7 +420,8 @@ def pass_evidence_status(s: dict, profile: str) -> list[str]:
         miss.append(f"state {s.get('state')!r} ({s.get('fault_reason')})")
     res = s.get("result") or {}
     if profile == "sfem-24":
-        temps = {round(t.get("setpoint_c") or -1) for t in res.get("temperatures") or []}
+        # the SFEM record (contracts/sfem_result.py): one step per chamber temperature, self-heating above it
+        temps = {sp for t in res.get("steps") or [] for sp in (25, 45, 65) if 0 <= (t.get("temp_c") or -99) - sp < 10}
         if not {25, 45, 65} <= temps:
             miss.append(f"SFEM temperature steps {sorted(temps)} (25/45/65 required)")
     else:
@@ -533,15 +544,18 @@ async def collect_and_check(plan: Plan, st: Any, db: Any, bid: int, status: dict
                     probs.append(f"{slot}: {where} reason does not name the fault ({'/'.join(exp.keywords)}): {r[:200]!r}")
         elif exp.kind == "judged":  # e.g. a power cycle the write path survives: a verdict, backed if pass
             pass
-        elif exp.kind in ("healthy", "retried", "recovered"):
+        elif exp.kind in ("healthy", "retried", "recovered", "unharmed"):
             ok = ("pass", "marginal", "fail")
+            if exp.kind == "unharmed" and not finished:
+                probs.append(f"{slot} (unharmed): the batch {status['state']} ({status.get('error') or '-'}); "
+                             f"DUT {s.get('state')}: {(s.get('fault_reason') or '')[:200]}")
             if exp.kind == "retried":  # a single transient write fault: the 3 tries absorb it
                 p = s.get("program") or {}
                 if not (p.get("programmed") and p.get("comp") and p.get("crc") and p.get("crc") == p.get("readback_crc")
                         and int(p.get("attempts") or 0) >= 2):
                     probs.append(f"{slot} (retried): the retry did not program the board: "
                                  f"{ {k: p.get(k) for k in ('programmed', 'comp', 'crc', 'readback_crc', 'attempts', 'error')} }")
-            if finished or exp.kind == "recovered":
+            if finished or exp.kind in ("recovered", "unharmed"):
                 for where, v in (("status", st_verdict), ("db", final["db"]), ("mes", final["mes"]),
                                  ("webhook", final["webhook"])):
                     if v not in ok:
@@ -618,6 +632,7 @@ async def _run_plan(plan: Plan, tmp: Path, mount: Path | None) -> None:
             sim.pace = ctx.lead_pace
             extra: list[str] = []
             inj = asyncio.create_task(plan.inject(ctx)) if plan.inject is not None else None
+            hands = asyncio.create_task(plan.hands(ctx)) if plan.hands is not None else None
             try:
                 status = await st.wait_batch(bid, timeout_s=plan.timeout_s)
             except (asyncio.TimeoutError, TimeoutError):
@@ -626,6 +641,10 @@ async def _run_plan(plan: Plan, tmp: Path, mount: Path | None) -> None:
                              f"{late['step_index']}): aborted by the test")
                 st.abort(bid, "fault matrix: batch timed out")
                 status = await st.wait_batch(bid, timeout_s=60)
+            if hands is not None:
+                hands.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await hands
             if inj is not None:
                 if not inj.done():
                     inj.cancel()

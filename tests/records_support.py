@@ -172,7 +172,8 @@ def spc_line_lots() -> list[Lot]:
 
     A  ACC-100 rev A, WO-1, limits LIS3DSH v1 (TDB ±1.5), 2026-11-18: 15 parts near 0.2 mg/C, then
        a shift to 0.6 (rule 2 fires on the 9th after it), then 1.2, 1.6 (above its USL), 1.2; and
-       three runs in error: two faulted, one with TDB y not measured (its TDB x 0.1 is a point).
+       three runs in error: two faulted (no samples; link lost), one with TDB y not measured (its
+       TDB x 0.1 is a point).
     B  ACC-100 rev A, WO-2, limits LIS3DSH v2 (TDB ±1.0), 2026-11-19: 12 parts near 0.7, two at 1.1
        (out of ITS spec, inside v1's): n=12, no Cpk.
     C  ACC-200 rev B, WO-3, limits ADXL355 v1 (TDB ±1.5), 2026-11-20: 28 parts spread wide
@@ -188,8 +189,9 @@ def spc_line_lots() -> list[Lot]:
     d = [round(0.3 + rng.uniform(-0.05, 0.05), 4) for _ in range(6)]
     return [
         Lot(Trace(work_order="WO-1", part_number="ACC-100", part_revision="A"), a, "1", judged_day="2026-11-18",
-            error_slots=[("faulted", "s31: board stopped answering after 12 s"),
-                         ("faulted", "s32: board stopped answering after 15 s"), ("done", "")]),
+            error_slots=[("faulted", "serial /dev/ttyACM30: no samples for 12.0 s"),  # the daemon's own words
+                         ("faulted", "serial /dev/ttyACM31: link lost: device reports readiness to read but "
+                                     "returned no data"), ("done", "")]),
         Lot(Trace(work_order="WO-2", part_number="ACC-100", part_revision="A"), b, "2", tdb_limit=1.0,
             judged_day="2026-11-19"),
         Lot(Trace(work_order="WO-3", part_number="ACC-200", part_revision="B"), c, "1", limits_name="ADXL355",

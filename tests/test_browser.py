@@ -128,6 +128,11 @@ def test_operator_runs_a_batch_from_the_page(tmp_path):
                         assert ("clamped" in tdsf_text) == bool(dut["thermal"][ax].get("tdsf_clamped")), tdsf_text
                         assert shown_tdb == pytest.approx(dut["thermal"][ax]["tdb_mg_per_c"], abs=0.0006)
                         assert shown_tdsf == pytest.approx(dut["thermal"][ax]["tdsf_ppm_per_c"], abs=0.06)
+                    # the part's own 1 sigma, labelled, as the API stores it
+                    sig = c.locator(".result .sigmas").inner_text()
+                    assert sig.startswith("± 1σ (this part's): TDB "), sig
+                    shown = [float(v) for v in sig.split("TDB ")[1].split(" ·")[0].split(" / ")]
+                    assert shown == pytest.approx([dut["thermal"][ax]["tdb_sigma_mg_per_c"] for ax in "xyz"], abs=6e-5)
             assert "Fault" not in page.inner_text("#slots")
             for slot in SELECTED:  # progress dots: every step of the profile done
                 assert card(page, slot).locator(".dot.on").count() == 4

@@ -6,8 +6,12 @@
    serials typed like a barcode scanner (fill + Enter; Enter never starts a batch); one wrong label
    stops its slot with the reason on its card. While it runs at 800x480: a compact header, the step
    list, the progress bar and a slot card in view. At the end the verdicts are on top without
-   scrolling (title flash and a tone); a reload (with no batch id stored) shows the batch again;
-   "Retest failed" starts a batch of only the failed/error slots with the same work order.
+   scrolling (title flash and a tone); a reload (with no batch id stored) shows the batch again.
+   Then a FRESH tab (a new browser context: nothing of the first session) signs in: "New batch" ticks
+   every slot (the mismatched one is ready again), "Retest failed" opens the form with only the
+   slots that ended error, fail or marginal ticked, their labels empty and the operator's name
+   required, the work order, part and lot kept; the right label scanned, the retest runs only those
+   slots, each judged on its merit, and the mismatched serial's first real run is attempt 1.
 2. A plate turned by hand: each prompt shows a picture of the position (checked against
    contracts/positions.py for all 32 positions), a tone and a title flash (and none when muted);
    "Cannot do it" needs the operator's words and ends the DUTs as error with them.
@@ -242,19 +246,7 @@ def test_scanned_batch_labels_steps_end_reload_and_retest(tmp_path):
             assert storage(page)["session"] == "Ana Lopez"  # the same person, same tab
             shot(page, "reload-800x480")
 
-            # retest only the failed and error slots: same work order, part, lot and labels
-            page.click("#retest")
-            page.wait_for_function(f"() => Number(document.querySelector('#batch-id').textContent) > {batch_id}")
-            retest_id = int(page.inner_text("#batch-id"))
-            rt = status(live, retest_id)
-            assert sorted(s["slot"] for s in rt["slots"]) == failed
-            assert (rt["work_order"], rt["part_number"], rt["part_revision"], rt["lot"]) == tuple(trace.values())
-            assert rt["labels"] == {k: v for k, v in labels.items() if k in failed}
-            assert rt["operator"] == "Ana Lopez"
-            page.wait_for_function("() => document.querySelector('#batch-state').dataset.state !== 'running'"
-                                   " || document.querySelectorAll('.slot-card .fault').length > 0")
-            shot(page, "retest-800x480")
-            wait_for(lambda: status(live, retest_id)["state"] in ("finished", "failed", "aborted"), 60, what="retest end")
+            fresh_retest(page, live, batch_id, st, serials, trace)
 
             # sign-out: the name is gone from the page and the browser
             page.click("#sign-out")
@@ -268,6 +260,107 @@ def test_scanned_batch_labels_steps_end_reload_and_retest(tmp_path):
         except BaseException:
             shot(page, "failure-1")
             raise
+
+
+def fresh_retest(page, live, batch_id: int, st: dict, serials: dict, trace: dict) -> None:
+    """"Retest failed" in a fresh tab mends the label mismatch of s3 (see the module's doc)."""
+    def all_judged(bid: int):
+        x = status(live, bid)
+        return x if x["state"] in ("finished", "failed", "aborted") and all(s["verdict"] for s in x["slots"]) else None
+
+    st = wait_for(lambda: all_judged(batch_id), 30, what="every verdict of the first batch")
+    again = [s["slot"] for s in st["slots"] if s["verdict"] in ("error", "fail", "marginal")]  # the station's order
+    assert "s3" in again
+    ctx = page.context.browser.new_context(viewport={"width": 800, "height": 480})
+    fresh = ctx.new_page()
+    errors: list[str] = []
+    fresh.on("pageerror", lambda e: errors.append(f"{e} at {getattr(e, 'stack', '')}"))
+    fresh.set_default_timeout(20_000)
+    refused = watch_csp(fresh)
+    checked = "() => [...document.querySelectorAll('#slot-picks input[type=checkbox]:checked')].map(i => i.value).sort()"
+    try:
+        sign_in(fresh, live.url)
+        fresh.wait_for_function(f"() => document.querySelector('#batch-id').textContent === '{batch_id}'")
+        fresh.wait_for_function("() => document.querySelector('#batch-state').textContent === 'finished'")
+        assert storage(fresh) == {"local": None, "session": None, "field": ""}  # nobody signed in here yet
+        # the slot whose label was wrong is ready again: a new batch's form ticks every slot
+        fresh.click("#new-batch")
+        fresh.wait_for_selector("#start-panel:not(.hidden)")
+        fresh.wait_for_function(f"() => ({checked})().length === {len(st['slots'])}")
+        assert fresh.is_hidden("#start-mode") and fresh.inner_text("#start") == "Start batch"
+        fresh.click("#start-cancel")
+        fresh.wait_for_selector("#start-panel", state="hidden")
+
+        # Retest failed: only those slots ticked (the others cannot be), labels empty, trace kept
+        fresh.click("#retest")
+        fresh.wait_for_selector("#start-panel:not(.hidden)")
+        fresh.wait_for_function("() => !document.querySelector('#start-mode').classList.contains('hidden')")
+        assert fresh.evaluate(checked) == sorted(again)
+        assert sorted(fresh.evaluate("() => [...document.querySelectorAll('#slot-picks input[type=checkbox]:not(:disabled)')]"
+                                     ".map(i => i.value)")) == sorted(again)
+        labels = fresh.evaluate("() => Object.fromEntries([...document.querySelectorAll('#slot-picks input.label-serial:not(:disabled)')]"
+                                ".map(i => [i.dataset.slot, i.value]))")
+        assert labels == {k: "" for k in again}, labels
+        assert f"Retest of batch {batch_id}: {', '.join(again)}" in fresh.inner_text("#start-mode")
+        assert fresh.inner_text("#start") == "Start retest"
+        assert fresh.input_value("#profile") == "fast-thermal" and fresh.is_disabled("#profile")
+        for field, code in trace.items():
+            assert fresh.input_value(f"#{field}") == code and fresh.is_disabled(f"#{field}")
+        assert focused(fresh) == "operator"
+        shot(fresh, "retest-form-800x480")
+        fresh.click("#start")  # no name: nothing is started
+        assert "Operator name required to retest" in fresh.inner_text("#message")
+        assert [b["id"] for b in batches(live)] == [batch_id]
+
+        # scanned like a scanner: the name, then each retested part's label (the right one now)
+        fresh.fill("#operator", "Bea Ruiz")
+        fresh.press("#operator", "Enter")
+        for slot in again:
+            assert focused(fresh) == slot
+            fresh.keyboard.type(serials[slot])
+            fresh.keyboard.press("Enter")
+        assert focused(fresh) == "start"
+        assert [b["id"] for b in batches(live)] == [batch_id]  # Enter never starts it
+        fresh.click("#start")
+        fresh.wait_for_function(f"() => Number(document.querySelector('#batch-id').textContent) > {batch_id}")
+        retest_id = int(fresh.inner_text("#batch-id"))
+        rt = status(live, retest_id)
+        assert [s["slot"] for s in rt["slots"]] == again
+        assert rt["labels"] == {k: serials[k] for k in again} and rt["operator"] == "Bea Ruiz"
+        assert (rt["work_order"], rt["part_number"], rt["part_revision"], rt["lot"]) == tuple(trace.values())
+        assert rt["profile"] == "fast-thermal"
+        assert fresh.is_hidden("#start-panel")
+
+        end = wait_for(lambda: all_judged(retest_id), 90, what="the retest's end and verdicts")
+        assert end["state"] == "finished", end.get("error")
+        s3 = next(s for s in end["slots"] if s["slot"] == "s3")
+        assert s3["state"] == "done" and s3["verdict"] in ("pass", "marginal", "fail"), s3  # on its merit
+        assert s3["attempt"] == 1 and s3["samples"] > 0
+        card = fresh.locator('.slot-card[data-slot="s3"] .verdict-word')
+        card.wait_for()
+        fresh.wait_for_function(f"() => document.querySelector('.slot-card[data-slot=\"s3\"] .verdict-word')"
+                                f".textContent === '{s3['verdict'].upper()}'")
+        shot(fresh, "retest-end-800x480")
+
+        # the serial's attempts: the mismatched run is in its history but is no attempt
+        live.flush_db()
+        dut = httpx.get(f"{live.url}/api/duts/{serials['s3']}", headers=auth("operator"), timeout=10).json()
+        assert (dut["attempts"], dut["n_runs"], dut["attempt"], dut["verdict"]) == (1, 2, 1, s3["verdict"]), dut
+        runs = httpx.get(f"{live.url}/api/duts/{serials['s3']}/runs", headers=auth("operator"), timeout=10).json()
+        assert [(r["batch_id"], r["attempt"]) for r in runs] == [(retest_id, 1), (batch_id, 0)]
+        first = {s["slot"]: s["verdict"] for s in st["slots"] if s["slot"] != "s3"}
+        first["s3"] = s3["verdict"]  # its first run that tested the part
+        final = {**first, **{s["slot"]: s["verdict"] for s in end["slots"] if s["verdict"] != "error"}}
+        y = httpx.get(f"{live.url}/api/yield", headers=auth("mes"), timeout=10).json()
+        assert y["duts"] == len(st["slots"]) and y["first_pass"] == sum(v == "pass" for v in first.values()), (y, first)
+        assert y["final_pass"] == sum(v == "pass" for v in final.values()), (y, final)
+        assert not errors, errors
+        assert not refused, refused
+    except BaseException:
+        shot(fresh, "failure-retest")
+        raise
+    finally:
+        ctx.close()
 
 
 def test_prompt_picture_mute_and_cannot_do_it(tmp_path):

@@ -89,3 +89,55 @@ def test_records_view_spc_yield_audit_and_certificate(tmp_path):
     finally:
         stop_server()
         db.dispose()
+
+
+def test_records_view_pareto_causes_by_name_and_first_pass_and_final_yield(tmp_path):
+    """Issue 34: the Pareto's second chart and table count one cause per failed or error run by name
+    (a label mismatch, a lost link, the limit that failed), never "faulted"; the yield table shows
+    first-pass and final yield per group, equal to GET /api/yield for each batch."""
+    pytest.importorskip("playwright.sync_api")
+    from end_view_support import Slot, mixed_slots, write_ended_batch
+
+    ARTIFACTS.mkdir(exist_ok=True)
+    db = Database(f"sqlite:///{tmp_path / 'causes.db'}", station="line-3")
+    db.upgrade()
+    first = write_ended_batch(db, mixed_slots())
+    again = {"s03": "pass A", "s05": "pass A", "s06": "fail TDSF", "s08": "pass B", "s10": "marginal", "s12": "pass A"}
+    second = write_ended_batch(db, [Slot(k, v) for k, v in again.items()])  # the retest of its exceptions
+    app = create_app(IdleStation(db), repo=DbRepository(db), outbox=False,
+                     tokens=TokenStore([(ADMIN, "admin", "lead")]))
+    url, stop_server = serve_in_thread(app)
+    try:
+        api = {b: httpx.get(f"{url}/api/yield", params={"batch_id": b}, headers={"Authorization": f"Bearer {ADMIN}"},
+                            timeout=30).json() for b in (first["batch"], second["batch"])}
+        with chromium_page(1280, 800) as (page, errors):
+            page.goto(url + "/")
+            page.fill("#token", ADMIN)
+            page.click("#save-token")
+            page.wait_for_selector("#whoami >> text=lead (admin)")
+            page.click("#tab-records")
+            page.wait_for_selector("#pareto-table tr[data-table=causes]")
+            page.wait_for_selector("#yield-table tr[data-by=batch]")
+            causes = page.evaluate("() => [...document.querySelectorAll('#pareto-table tr[data-table=causes]')]"
+                                   ".map((tr) => [...tr.children].map((td) => td.textContent))")
+            assert [(c[2], c[3], c[4]) for c in causes] == [
+                ("limit: TDSF", "2", "0"), ("label mismatch", "0", "1"), ("limit: TDB", "1", "0"), ("link lost", "0", "1")]
+            bars = page.evaluate("() => [...document.querySelectorAll('#pareto-charts svg')[1].querySelectorAll('rect.pareto-bar')]"
+                                 ".map((r) => r.dataset.what)")
+            assert bars == ["limit: TDSF", "label mismatch", "limit: TDB", "link lost"]
+            head = page.evaluate("() => [...document.querySelectorAll('#yield-table tr:first-child th')].map((t) => t.textContent)")
+            assert head[-3:] == ["DUTs", "first pass", "final"], head
+            rows = {r[1]: r for r in page.evaluate(
+                "() => [...document.querySelectorAll('#yield-table tr[data-by=batch]')].map((tr) => [...tr.children]"
+                ".map((td) => td.textContent))")}
+            for b, y in api.items():
+                row = rows[str(b)]
+                assert row[-3:] == [str(y["duts"]), f"{100 * y['first_pass_yield']:.1f} %", f"{100 * y['final_yield']:.1f} %"], (row, y)
+            assert rows[str(first["batch"])][-3:] == ["11", "54.5 %", "81.8 %"]  # 6 and 9 of its 11 DUTs
+            page.locator("#pareto-panel").scroll_into_view_if_needed()
+            page.locator("#pareto-panel").screenshot(path=str(ARTIFACTS / "records-pareto-causes-1280.png"))
+            page.locator("#yield-table").screenshot(path=str(ARTIFACTS / "records-yield-first-pass-final-1280.png"))
+            assert errors == []
+    finally:
+        stop_server()
+        db.dispose()

@@ -159,14 +159,18 @@ def test_spc_groups_own_limits_rules_cpk_pareto_filters_and_csv_at_1280x800(line
         assert page.locator("#pareto-charts polyline.pareto-cum").count() == 2
         pareto_rows = _table(page, "#pareto-table")
         assert pareto_rows[1][:6] == ["checks", "1", "TDB x", "3", "0", "3"]  # the 1.6 of A and the two 1.1 of B
-        assert [r[2] for r in pareto_rows if r[0] == "error causes"] == ["faulted", "not measured"]
+        # one cause per failed or error run, by name: the three TDB fails, A's two faults, its unmeasured run
+        assert [(r[2], r[3], r[4]) for r in pareto_rows if r[0] == "causes"] == [
+            ("limit: TDB", "3", "0"), ("link lost", "0", "1"), ("no samples", "0", "1"), ("not measured", "0", "1")]
+        assert page.locator("#pareto-charts svg >> nth=1").locator("rect.pareto-bar").count() == 4
         _same_rows(pareto_rows, _download(page, "#pareto-csv", tmp_path / "pareto.csv"))
         # filters change what is shown: work order WO-2 is group v2 only, and the Pareto counts its 12 runs
         page.select_option("#f-work-order", "WO-2")
         page.wait_for_selector(f"[data-fig=group] >> text='{LABELS[1]}'")
         page.wait_for_selector("#pareto-status >> text=12 judged runs")
         assert page.locator("#spc-group option").count() == 1
-        assert _table(page, "#pareto-table")[1:] == [["checks", "1", "TDB x", "2", "0", "2", "100.0", "100.0"]]
+        assert _table(page, "#pareto-table")[1:] == [["checks", "1", "TDB x", "2", "0", "2", "100.0", "100.0"],
+                                                     ["causes", "1", "limit: TDB", "2", "0", "2", "100.0", "100.0"]]
         _same_rows(_table(page, "#pareto-table"), _download(page, "#pareto-csv", tmp_path / "pareto2.csv"))
         page.click("#f-clear")
         page.wait_for_selector("#pareto-status >> text=79 judged runs")

@@ -309,17 +309,17 @@ async def test_demo_station_runs_sfem_24_with_its_simulated_chamber(tmp_path):
             assert status["state"] == "finished", status["error"]
             slot = status["slots"][0]
             assert slot["state"] == "done", slot
-            temps = slot["result"]["temperatures"]
-            assert [round(t["setpoint_c"]) for t in temps] == [25, 45, 65]
+            temps = slot["result"]["steps"]  # the SFEM record (contracts/sfem_result.py), coldest step first
+            assert len(temps) == 3 and slot["result"]["reference_step"] == 0
             truth = sim.truths[0]
-            for t in temps:
-                assert t["temp_c"] > t["setpoint_c"] - 5
+            for t, setpoint in zip(temps, (25, 45, 65)):
+                assert setpoint - 5 < t["temp_c"] < setpoint + 10
             # Every step: the SFEM removes the frame errors down to the noise (~0.03 mg here). (The
             # 65 C step once left 5-13 mg: samples of the previous position, 45 deg away, that
             # arrived after the fixture reported the move; static steps now start at the first
             # sample facing their position, contracts.positions.first_facing.)
             for t in temps:
-                assert t["fit"]["rmse_after_mg"] < 0.01 * t["fit"]["rmse_before_mg"], t["setpoint_c"]
+                assert t["rmse_after_mg"] < 0.01 * t["rmse_before_mg"], t["temp_c"]
             await st.flush_db()
             run = batch_detail(st.db, bid)["runs"][0]
             assert run["serial"] == truth.serial

@@ -103,7 +103,7 @@ def _round_trip(db: Database) -> None:
     d = repo.dut_by_serial(db, "PG0001")
     assert d["thermal_method"] == "offline" and d["thermal"]["z"]["tdsf_ppm_per_c"] == -299.0
     assert d["thermal_by_method"]["streaming"]["y"]["tdsf_clamped"] is True
-    assert d["sfem"]["steps"][1]["temp_c"] == 45.0 and d["sfem"]["polynomial_coefficients"]["scale_x"][1] == 1e-5
+    assert d["sfem"]["steps"][1]["temp_c"] == 45.0 and d["sfem"]["thermal"]["coef"]["scale"][1][0] == 1e-5
     assert repo.segments_of_run(db, run)[0]["acc_mean_g"][1] == 0.578
     assert repo.batch_detail(db, batch)["config_snapshot"]["nested"] == {"a": [1, 2]}
     assert [(r["run_id"], r["revision"], r["verdict"]) for r in repo.results_since(db, 0)] == [(run, 1, "pass")]

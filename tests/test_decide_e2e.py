@@ -7,7 +7,7 @@ them; each DUT's verdict and grade is checked against what the truth says it mus
               fit's (+) the limit's systematic u_sys)
     pass A/B  the two others, split by a grade-A TDB limit half-way between their true TDBs
     error     a DUT whose board disconnects mid-batch (never pass)
-    fail      a DUT with a quadratic bias drift (bias_t2): "curvature (linear model rejected)"
+    fail      a DUT with a quadratic bias drift (bias_t2): "curvature bow (linear model rejected, N sigma)"
 
 then a retest of the same serials (attempt 2, aborted: error) and the yields.
 """
@@ -138,7 +138,7 @@ async def test_verdicts_against_the_truth_then_a_retest(tmp_path):
             assert d["verdict"] == "fail"
             bows = [f for f in d["failures"] if f["measurement"] == "bow_mg" and f["outcome"] == "fail"]
             assert bows, d["reasons"]
-            assert any("curvature (linear model rejected)" in r for r in d["reasons"])
+            assert any("curvature bow (linear model rejected" in r for r in d["reasons"]), d["reasons"]
 
             assert all(dec[i]["attempt"] == 1 and dec[i]["limits_name"] == "test-straddle"
                        and dec[i]["limits_version"] == "3" for i in range(N))

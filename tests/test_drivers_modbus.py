@@ -84,3 +84,44 @@ async def test_missing_unit_is_a_clear_error(rig):
     plant, srv, link = rig
     with pytest.raises(DriverError, match=r"unit 9"):
         await ModbusThermometer(link, unit=9).read_temp_c()
+
+
+async def test_station_tries_a_slow_relay_again_at_start_and_fails_clearly_when_it_never_answers():
+    """A relay that starts listening 0.8 s after the station asks (a gateway still booting, a host
+    busy for a second) is found on the second or third try; one that never answers is a one-line
+    StationError naming the device after about 1.5 s of pauses."""
+    import asyncio
+    import time
+
+    from contracts.types import StationError
+    from station.config import ModbusDevice
+    from station.daemon.instruments import Links
+
+    plant = Plant()
+    port = free_port()
+    dev = ModbusDevice.model_validate({"tcp": {"host": "127.0.0.1", "port": port}, "unit": 1, "timeout_s": 0.3})
+
+    async def late_server():
+        await asyncio.sleep(0.8)
+        srv = SimModbusServer(plant, port=port)
+        await srv.start()
+        return srv
+
+    links = Links()
+    started = asyncio.create_task(late_server())
+    relay = await links.modbus_device("lamp", dev)
+    srv = await started
+    try:
+        await relay.set_lamp(True)
+        assert plant.lamp_on
+        await relay.set_lamp(False)
+    finally:
+        await links.close()
+        await srv.stop()
+
+    never = ModbusDevice.model_validate({"tcp": {"host": "127.0.0.1", "port": free_port()}, "unit": 1,
+                                         "timeout_s": 0.3})
+    t0 = time.monotonic()
+    with pytest.raises(StationError, match=r"^lamp: Modbus device unreachable at tcp://127\.0\.0\.1:\d+"):
+        await Links().modbus_device("lamp", never)
+    assert time.monotonic() - t0 >= 1.5

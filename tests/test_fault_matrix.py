@@ -30,6 +30,7 @@ import asyncio
 
 import pytest
 
+from drivers.sim.operator import HumanTiming, Person
 from drivers.sim.station_sim import SimStation
 from tests.fault_matrix_support import (
     MATRIX, PROFILES, VERIFIED, Ctx, Expect, KillCtx, Plan, board_hook, fill, run_all, wait_for,
@@ -38,6 +39,13 @@ from tests.fault_matrix_support import (
 FAST = 250.0  # fast-thermal(-verified): x250, like tests/test_program_verify_e2e.py
 SFEM_SPEED = 3000.0  # sfem-24 is ~12 h of sample time: x3000 (tests/test_daemon_e2e.py runs it at x4000)
 PARALLEL = 4  # batches of one profile at a time: they mostly wait on simulated hardware
+# sfem-24 is CPU-bound at x3000 (12 h of samples per plan): on a loaded 2-core machine a plan takes
+# minutes of wall time, so two run at once (with more, starved board readers and a starved Modbus
+# server read as silent boards and a failed fixture) and the
+# limits that only guard against a hang are generous; a fast machine finishes as fast as before
+SFEM_PARALLEL = 2
+SFEM_PLAN_TIMEOUT_S = 420.0
+SFEM_STEP_TIMEOUT_S = 300.0
 
 LINK = ("link",)
 ABORT = ("abort",)
@@ -47,6 +55,8 @@ KILL = ("restart", "resum", "interrupt", "killed", "programming record")
 LABEL = ("label serial",)
 CANNOT = ("could not turn the plate",)
 NO_FIXTURE = {"fixture": False}  # the operator turns the plate: the station prompts
+NEVER = ("never arrived",)
+PEOPLE = ["person: Done before turning the plate", "person: wrong turn, then corrected", "person: plate never arrives"]
 
 
 def _labels(**by_slot):
@@ -77,9 +87,9 @@ def _report(profile: str) -> None:
 
 
 # ------------------------------------------------------------------------------- shared injections
-def _abort_in(step: int, min_samples: int = 10):
+def _abort_in(step: int, min_samples: int = 10, timeout_s: float = 120.0):
     async def inject(ctx: Ctx) -> None:
-        async with ctx.at_step(step, min_samples):
+        async with ctx.at_step(step, min_samples, timeout_s):
             ctx.st.abort(ctx.bid, f"fault matrix: abort in step {step}")
     return inject
 
@@ -109,6 +119,58 @@ def _cannot_at_first_prompt():
     return inject
 
 
+def _person(timing):
+    """No fixture: the plate is turned by the simulated person (drivers/sim/operator.py) with this
+    behaviour, from the first prompt to the end of the batch."""
+    async def inject(ctx: Ctx) -> None:
+        person = Person(ctx.sim.world, lambda b, pid: ctx.st.answer_prompt(b, pid, "done", by="fault matrix person"),
+                        timing=timing, seed=ctx.plan.seed)
+        await person.run(ctx.st.bus)
+    return inject
+
+
+def _done_but_never_turned():
+    """No fixture: every prompt is answered Done at once and the plate is never turned: the first
+    step that needs another position than where the plate sits never gets its plate."""
+    async def inject(ctx: Ctx) -> None:
+        answered: set[int] = set()
+        while True:
+            p = ctx.st.prompt(ctx.bid)
+            if p is not None and p["id"] not in answered:
+                answered.add(p["id"])
+                try:
+                    ctx.st.answer_prompt(ctx.bid, p["id"], "done", by="fault matrix")
+                except ValueError:
+                    pass
+            await asyncio.sleep(0.02)
+    return inject
+
+
+def _people_plans(profile: str, speed: float, seed: int, n_serial: int = 2, n_can: int = 1,
+                  timeout_s: float = 150.0) -> list[Plan]:
+    """The human rows: Done pressed before the turn and a wrong turn (corrected when the station
+    names it) never fault a healthy DUT; a plate that never arrives ends every DUT as error, with
+    that reason; a fixture that reports "reached" early never mislabels samples."""
+    slots = _slots(n_serial, n_can)
+    done_first = HumanTiming.fixed(react_s=5.0, turn_s=4.0, confirm_s=1.0, done_first=True)
+    wrong = HumanTiming.fixed(react_s=5.0, turn_s=4.0, confirm_s=1.0, wrong_turn=True)
+
+    def early(sim: SimStation) -> None:
+        sim.modbus.move_time_s = 60.0
+        sim.modbus.reports_early_s = 50.0  # "reached, not moving" 50 s before the plate gets there
+
+    return [
+        Plan(f"{profile}-done-first", profile, speed, n_serial, n_can, seed, hands=_person(done_first), kw=NO_FIXTURE,
+             timeout_s=timeout_s, expects=_all(slots, PEOPLE[0], kind="unharmed")),
+        Plan(f"{profile}-wrong-turn", profile, speed, n_serial, n_can, seed + 1, hands=_person(wrong), kw=NO_FIXTURE,
+             timeout_s=timeout_s, expects=_all(slots, PEOPLE[1], kind="unharmed")),
+        Plan(f"{profile}-never", profile, speed, 1, 1, seed + 2, hands=_done_but_never_turned(), kw=NO_FIXTURE,
+             timeout_s=timeout_s, expects=_all(_slots(1, 1), PEOPLE[2], keywords=NEVER)),
+        Plan(f"{profile}-early", profile, speed, n_serial, n_can, seed + 3, arm=early, timeout_s=timeout_s,
+             expects=_all(slots, "fixture reports reached early", kind="unharmed")),
+    ]
+
+
 def _relay_off_at(moment):
     """moment(ctx) -> a Ctx.held_at context (the plant held there while the relay goes silent)."""
     async def inject(ctx: Ctx) -> None:
@@ -122,7 +184,14 @@ def _disk_full_at(moment):
         async with moment(ctx):
             await ctx.st.flush_db()
             ctx.filler = await asyncio.to_thread(fill, ctx.mount)
-        await ctx.wait(lambda: ctx.st.storage_status().startswith("error"), "the writer reports the full disk", 60)
+            # The plant goes on slowly until the writer has met the full disk: at x3000 the rest of
+            # an sfem-24 batch is 2 s of wall time, which a writer reusing its WAL's free pages can
+            # outlast, and the batch would end before the fault is in.
+            ctx.sim.set_speed(max(1.0, ctx.plan.speed / 30.0))
+        try:
+            await ctx.wait(lambda: ctx.st.storage_status().startswith("error"), "the writer reports the full disk", 60)
+        finally:
+            ctx.sim.set_speed(ctx.plan.speed)
     return inject
 
 
@@ -231,6 +300,7 @@ def _verified_plans() -> list[Plan]:
     plans.append(Plan("ftv-kill", P, FAST, 2, 1, 38, kill=kill_in_heat, timeout_s=200,
                       expects=_all(_slots(2, 1), "SIGKILL + --resume", keywords=KILL)))
     _na(P, ["abort, 45 C block", "abort, last step"], "n/a (sfem-24 rows)")
+    plans += _people_plans(P, FAST, 90)
     return plans
 
 
@@ -272,6 +342,7 @@ def _fast_thermal_plans() -> list[Plan]:
             "transient write fault (retried)", "power cycle write->readback", "abort, program step",
             "abort, verify heat", "relay failure, verify heat"], "n/a (no program/verify)")
     _na(P, ["abort, 45 C block", "abort, last step"], "n/a (sfem-24 rows)")
+    plans += _people_plans(P, FAST, 80)
     return plans
 
 
@@ -282,36 +353,40 @@ def _sfem_plans() -> list[Plan]:
     mid = 24 + 6  # a static step of the 45 C block
 
     async def lose_at_45(ctx: Ctx) -> None:
-        async with ctx.at_step(mid, timeout_s=150):
+        async with ctx.at_step(mid, timeout_s=SFEM_STEP_TIMEOUT_S):
             ctx.sim.board(0).disconnect()
 
-    plans.append(Plan("sfem-link", P, SFEM_SPEED, 2, 1, 61, inject=lose_at_45, timeout_s=200, expects={
+    plans.append(Plan("sfem-link", P, SFEM_SPEED, 2, 1, 61, inject=lose_at_45, timeout_s=SFEM_PLAN_TIMEOUT_S, expects={
         "s01": Expect("link lost", "faulted", LINK), "s02": Expect("link lost", "healthy"),
         "c01": Expect("link lost", "healthy"),
     }))
     plans.append(Plan("sfem-cannot", P, SFEM_SPEED, 1, 1, 60, inject=_cannot_at_first_prompt(), kw=NO_FIXTURE,
-                      timeout_s=200, expects=_all(_slots(1, 1), "operator cannot turn the plate", keywords=CANNOT)))
+                      timeout_s=SFEM_PLAN_TIMEOUT_S, expects=_all(_slots(1, 1), "operator cannot turn the plate", keywords=CANNOT)))
     for name, step, row in (("first", 0, "abort, 1st step"), ("45c", mid, "abort, 45 C block"), ("last", 71, "abort, last step")):
-        plans.append(Plan(f"sfem-abort-{name}", P, SFEM_SPEED, 1, 1, 62 + step, inject=_abort_in(step, 0), timeout_s=200,
+        plans.append(Plan(f"sfem-abort-{name}", P, SFEM_SPEED, 1, 1, 62 + step, inject=_abort_in(step, 0, SFEM_STEP_TIMEOUT_S),
+                          timeout_s=SFEM_PLAN_TIMEOUT_S,
                           expects=_all(_slots(1, 1), row, keywords=ABORT)))
     # sfem-24 never switches the lamp on, but a relay that does not answer cannot be trusted to
     # hold it off (design 3.3): the batch fails at the third failed read, every DUT names it
-    plans.append(Plan("sfem-relay", P, SFEM_SPEED, 1, 1, 66, inject=_relay_off_at(lambda c: c.at_step(mid, 0, 150)),
-                      timeout_s=200, expects=_all(_slots(1, 1), "relay failure", keywords=RELAY)))
-    plans.append(Plan("sfem-disk", P, SFEM_SPEED, 1, 1, 67, disk_mb=64, timeout_s=200,
-                      inject=_disk_full_at(lambda c: c.at_step(mid, timeout_s=150)),
+    plans.append(Plan("sfem-relay", P, SFEM_SPEED, 1, 1, 66, inject=_relay_off_at(lambda c: c.at_step(mid, 0, SFEM_STEP_TIMEOUT_S)),
+                      timeout_s=SFEM_PLAN_TIMEOUT_S, expects=_all(_slots(1, 1), "relay failure", keywords=RELAY)))
+    plans.append(Plan("sfem-disk", P, SFEM_SPEED, 1, 1, 67, disk_mb=64, timeout_s=SFEM_PLAN_TIMEOUT_S,
+                      inject=_disk_full_at(lambda c: c.at_step(mid, timeout_s=SFEM_STEP_TIMEOUT_S)),
                       expects=_all(_slots(1, 1), "full disk", keywords=DISK)))
 
     async def kill_at_45(k: KillCtx) -> None:
-        await k.wait_completed(mid, timeout_s=200)
+        await k.wait_completed(mid, timeout_s=SFEM_PLAN_TIMEOUT_S)
 
-    plans.append(Plan("sfem-kill", P, SFEM_SPEED, 1, 1, 68, kill=kill_at_45, timeout_s=200,
+    plans.append(Plan("sfem-kill", P, SFEM_SPEED, 1, 1, 68, kill=kill_at_45, timeout_s=SFEM_PLAN_TIMEOUT_S,
                       expects=_all(_slots(1, 1), "SIGKILL + --resume", kind="recovered")))
     _na(P, ["link lost, verify heat", "write refused", "CRC mismatch on readback", "lost reply",
             "transient write fault (retried)", "power cycle write->readback", "abort, program step",
             "abort, verify heat", "relay failure, verify heat"], "n/a (no program/verify)")
     _na(P, ["abort, 2nd step", "abort, 3rd step", "abort, 4th step"], "n/a (see 45 C / last)")
     _na(P, ["label serial mismatch"], "n/a (checked at connect, before any step: one code path for all profiles)")
+    # x1000, not x3000: a person's seconds (and a wrong turn's correction within a static step's 600 s
+    # timeout) must not vanish into one 150 s tick of the compressed plant
+    plans += _people_plans(P, 1000.0, 94, n_serial=1, timeout_s=SFEM_PLAN_TIMEOUT_S)
     return plans
 
 
@@ -328,9 +403,9 @@ async def test_fault_matrix_fast_thermal(tmp_path):
     _report("fast-thermal")
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(1500)
 async def test_fault_matrix_sfem_24(tmp_path):
-    await run_all(_sfem_plans(), tmp_path, PARALLEL)
+    await run_all(_sfem_plans(), tmp_path, SFEM_PARALLEL)
     _report("sfem-24")
 
 

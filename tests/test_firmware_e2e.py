@@ -31,6 +31,14 @@ from tests.firmware_nvm import read_nvm
 from tests.test_daemon_e2e import TDB_TOL_MG_PER_C, TDSF_TOL_PPM_PER_C, coil, daemon
 
 SPEED = 250.0
+# Sigmas of noise allowed on a verified E, for 24 axes judged at once (8 boards x 3 axes). At 2 sigma
+# each, the family fails a healthy batch about 1 run in 30: measured E/sigma on these near-zero
+# axes reaches 2.4-2.6 about once per 72 axes (three runs, 2026-11-27), and CI once held
+# s01 x at 9.4 +-3.4 mg against a 2 mg floor. 3 sigma keeps the family's false alarm near 0.2 %
+# (Bonferroni, one-sided) while a board that does not compensate (E after = E before, 4-94 mg
+# here) still fails it by many sigmas.
+K_FAMILY = 3.0
+GUARD_K, E_FS_LIMIT_PCT = 2.0, 1.0  # the product's guard band and verified E_FS limit (docs/verdicts.md)
 FIRMWARE = {0: "qemu", 1: "qemu", 2: "host", 3: "host", 6: "host"}  # DUT index -> target
 
 
@@ -77,19 +85,28 @@ async def test_fast_thermal_verified_batch_on_firmware_boards(tmp_path):
                 assert p["crc"] == f"{crc32_f32(want):08X}" == p["readback_crc"], (name, p)
                 # verified E on these linear parts (the rule of tests/test_program_verify_e2e.py): never
                 # below the drift the written coefficients really leave (the simulator's truth), and
-                # within the limit up to its own 2-sigma noise (an axis that barely drifts meets a 2 mg
-                # floor with 2-3 mg of noise: its pass or fail is the noise's, not the firmware's)
+                # within the limit up to its own noise (an axis that barely drifts meets a 2 mg floor
+                # with 2-4 mg of noise: its pass or fail is the noise's, not the firmware's). 24 axes
+                # are judged at once, so the noise allowance is family-wise: K_FAMILY sigma
                 v = s["verification"]
                 assert v is not None and not v["flags"] or all("verified E" in f for f in v["flags"]), (name, v)
                 for k, a in enumerate(AXES):
                     after, before, sig = v["e_after_mg"][a], v["e_before_mg"][a], v["axes"][a]["e_after_sigma_mg"]
                     e_true = 70.0 * abs(t.tdb_mg_per_c[k] - want[k] + (t.tdsf_ppm_per_c[k] - want[3 + k]) * 1e-3 * 0.577)
-                    assert after + 2.0 * sig >= e_true, (name, a, after, sig, e_true)
+                    assert after + K_FAMILY * sig >= e_true, (name, a, after, sig, e_true)
                     assert e_true < max(0.25 * before, 2.0), (name, a, e_true, before)
-                    assert after - 2.0 * sig <= max(0.25 * before, 2.0), (name, a, after, sig, before)
+                    assert after - K_FAMILY * sig <= max(0.25 * before, 2.0), (name, a, after, sig, before)
                     assert not v["axes"][a]["curved"], (name, a)
                 n_passed += v["passed"]
-                assert s["decision"]["verdict"] == ("pass" if v["passed"] else "fail"), (name, s["decision"])
+                # the verdict by docs/verdicts.md: an axis failing the verification fails the part; a
+                # verified E_FS whose k=2 band crosses the 1 %FS limit holds it (marginal: a 2-4 mg sigma
+                # is 0.1-0.2 %FS, so a healthy axis at 2.5 sigma can reach it); otherwise pass
+                e_fs, e_fs_sig = v["e_after_fs_pct"], v["e_after_fs_sigma_pct"]
+                crossing = [a for a in AXES if e_fs[a] + GUARD_K * e_fs_sig[a] > E_FS_LIMIT_PCT]
+                want_verdict = "fail" if not v["passed"] else "marginal" if crossing else "pass"
+                assert s["decision"]["verdict"] == want_verdict, (name, crossing, s["decision"])
+                for a in crossing:
+                    assert f"{a} verified drift E_FS" in s["decision"]["reason"], (name, s["decision"])
                 if i in FIRMWARE:
                     board = sim.board(i)
                     # the firmware's own flash, decoded here from the bytes: what it applies at boot

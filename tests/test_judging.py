@@ -1,6 +1,6 @@
-"""station/decisions/moment.py: the hooks between the daemon and the verdicts, on a Station-shaped object with
-a real (temporary SQLite) database and a real EventBus (no hardware needed: the hooks read only the
-DUT runs, the config and the database)."""
+"""station/decisions/moment.py: the hooks between the daemon and the verdicts, on the VerdictContext the
+Station builds (station/decisions/verdict_context.py) with a real (temporary SQLite) database and a real
+EventBus (no hardware needed: the hooks read only the DUT runs, the config and the database)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,9 @@ from station.daemon.dut_run import DutRun
 from station.daemon.progress import time_left
 from station.daemon.storage import open_database
 from station.decisions.moment import judge_final
+from contracts.trace import Trace
 from contracts.types import Identity
+from station.decisions.verdict_context import VerdictContext
 
 CFG = parse_config({"slots": [{"name": "s1", "serial": "/dev/null"}], "lamp": {"tcp": {"host": "127.0.0.1"}, "unit": 1},
                     "products": {"LIS3DSH": {"sensor": "LIS3DSH", "version": "4", "limits": [
@@ -27,7 +29,7 @@ def station_and_batch(n: int = 2, ending: str = "finished"):
     batch_id = db.create_batch("fast-thermal", "op", {})
     bus = EventBus()
     q = bus.subscribe()
-    st = SimpleNamespace(config=CFG, db=db, bus=bus, slots={})
+    st = VerdictContext(db=db, bus=bus, product_for=CFG.product_for, profiles=all_profiles(CFG))
     duts = []
     for i in range(n):
         d = DutRun(slot=f"s{i + 1}", identity=Identity(serial=f"SER{i}", sensor="LIS3DSH"), state="running")
@@ -38,7 +40,7 @@ def station_and_batch(n: int = 2, ending: str = "finished"):
                                                "bow_sigma_mg": 0.2} for ax in "xyz"}}}
         duts.append(d)
     seq = SimpleNamespace(batch_id=batch_id, profile=all_profiles(CFG)["fast-thermal"], duts=duts, ending=ending, state="analysing",
-                          error="")
+                          error="", trace=Trace())
     return st, seq, q
 
 
@@ -122,4 +124,4 @@ def test_time_left_is_zero_after_the_end_and_capped_by_timeouts():
     st, seq, q = station_and_batch()
     seq.state = "finished"
     seq.step = None
-    assert time_left(st, seq)["batch_s"] == 0.0
+    assert time_left(SimpleNamespace(config=CFG), seq)["batch_s"] == 0.0

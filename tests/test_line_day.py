@@ -1,8 +1,10 @@
 """The line's day over real HTTP (issue 24): a batch started with a work order, part, lot and the
 label serials scanned per slot; a mismatching label stops its slot and only it; the step list,
 progress and countdown while it runs (program and verify included); every record carries the
-trace; "Retest failed" starts only the failed and error slots; "cannot do it" at a prompt ends the
-DUTs as error with the operator's words; batch.start is audited for every start, naming the person.
+trace; "Retest failed" starts only the error, fail and marginal slots with their labels scanned
+again (a label its board contradicted is never reused); "cannot do it" at a prompt ends the DUTs as
+error with the operator's words, and their slots are ready for the next batch; batch.start is audited
+for every start, naming the person.
 
 Truth: the simulated boards' own serials (GET /api/slots after connect), rows in the SQLite file,
 the MES feed and the audit trail.
@@ -121,35 +123,44 @@ def test_work_order_labels_steps_countdown_and_retest(tmp_path):
         assert len(start) == 1 and start[0]["actor"] == "Ana"
         assert start[0]["detail"]["via"].startswith("REST: Ana (token") and start[0]["detail"]["work_order"] == TRACE["work_order"]
 
-        # Retest failed: only the failed and error slots, same profile and trace, the new operator
-        retest_slots = sorted(s for s in slots if by_slot[s]["verdict"] in ("fail", "error"))
+        # Retest failed: only the error, fail and marginal slots, same profile and trace, the new
+        # operator; the wrong label is never reused: it is scanned again (tests/test_retest_labels.py)
+        retest_slots = sorted(s for s in slots if by_slot[s]["verdict"] in ("fail", "error", "marginal"))
         assert api.post(f"/api/batches/{bid}/retest", json={"operator": "  "}).status_code == 422
         r = api.post(f"/api/batches/{bid}/retest", json={"operator": "Bo"})
+        assert r.status_code == 409 and "SN-NOT-THIS-BOARD" in r.json()["detail"], r.text
+        r = api.post(f"/api/batches/{bid}/retest", json={"operator": "Bo", "labels": {wrong: serials[wrong]}})
         assert r.status_code == 201, r.text
         bid2 = r.json()["id"]
         st2 = _wait_status(api, bid2, lambda s: s["state"] not in ("running", "paused", "created"), 120)
         assert sorted(s["slot"] for s in st2["slots"]) == retest_slots
         assert {k: st2[k] for k in TRACE} == TRACE and st2["operator"] == "Bo" and st2["profile"] == "fast-thermal-verified"
-        assert st2["labels"] == {wrong: "SN-NOT-THIS-BOARD"}  # the label goes with its slot: still wrong
+        assert st2["labels"] == {wrong: serials[wrong]}  # the label scanned again: the board's own
 
 
-def test_retest_refuses_a_batch_without_failed_or_error_slots_and_a_running_one():
+def test_retest_refuses_a_batch_without_error_fail_or_marginal_slots_and_a_running_one(tmp_path):
     from types import SimpleNamespace as NS
 
     from contracts.trace import Trace
+    from db.database import Database
     from station.daemon.batches import retest_batch
 
-    def station(state: str, verdicts: dict):
-        duts = [NS(slot=k, verdict={"verdict": v} if v else None) for k, v in verdicts.items()]
-        seq = NS(state=state, duts=duts, trace=Trace(), profile=NS(name="fast-thermal"))
-        return NS(batches={7: NS(seq=seq)}, slots={k: None for k in verdicts})
+    db = Database(f"sqlite:///{tmp_path / 'empty.db'}")  # holds no batch: 8 is unknown there too
+    db.upgrade()
 
-    with pytest.raises(ValueError, match="no failed or error slot"):
-        retest_batch(station("finished", {"a": "pass", "b": "marginal"}), 7, "Bo")
+    def station(state: str, verdicts: dict):
+        duts = [NS(slot=k, verdict={"verdict": v} if v else None, label_serial=None, identity=None)
+                for k, v in verdicts.items()]
+        seq = NS(state=state, duts=duts, trace=Trace(), profile=NS(name="fast-thermal"))
+        return NS(batches={7: NS(seq=seq)}, slots={k: None for k in verdicts}, db=db)
+
+    with pytest.raises(ValueError, match="no slot that ended error, fail or marginal"):
+        retest_batch(station("finished", {"a": "pass", "b": None}), 7, "Bo")
     with pytest.raises(ValueError, match="still logging"):
         retest_batch(station("logging", {"a": "fail"}), 7, "Bo")
     with pytest.raises(KeyError):
         retest_batch(station("finished", {"a": "fail"}), 8, "Bo")
+    db.dispose()
 
 
 def test_cannot_do_it_ends_the_duts_as_error_with_the_operators_words(tmp_path):
@@ -183,6 +194,9 @@ def test_cannot_do_it_ends_the_duts_as_error_with_the_operators_words(tmp_path):
         answer = [a for a in audit if a["action"] == "prompt.answer"]
         assert answer[0]["detail"]["note"] == "plate hinge jammed, called maintenance"
         assert answer[0]["actor"].startswith("Ana (token")
+        # every DUT faulted, every board still answers: every slot is ready for the next batch
+        slots = api.get("/api/slots").json()
+        assert all(s["state"] == "identified" and not s["fault_reason"] for s in slots), slots
 
 
 def test_every_start_is_audited_naming_the_person_demo_and_replay_included(tmp_path):

@@ -148,11 +148,13 @@ def test_filters_over_http_and_the_csv_is_the_table_shown(line):
     # the Pareto and its CSV, under a filter
     par = get("/api/records/pareto", work_order="WO-1").json()
     assert (par["runs"], par["runs_error"]) == (len(_ids(written, 0)), 3)
-    assert [(e["what"], e["count"]) for e in par["errors"]] == [("faulted", 2), ("not measured", 1)]
+    # one cause per failed or error run, by name (station/records/causes.py), never "faulted"
+    assert [(e["what"], e["fail"], e["error"]) for e in par["causes"]] == [
+        ("limit: TDB", 1, 0), ("link lost", 0, 1), ("no samples", 0, 1), ("not measured", 0, 1)]
     assert [(c["what"], c["fail"], c["error"]) for c in par["checks"]] == [("TDB x", 1, 0), ("TDB y", 0, 1)]
     prow = list(csv.reader(io.StringIO(get("/api/records/pareto.csv", work_order="WO-1").text)))
     assert prow[0] == par["columns"] and prow[1:] == [
         [r["table"], str(r["rank"]), r["what"], str(r["fail"]), str(r["error"]), str(r["count"]), f"{r['pct']:.1f}",
-         f"{r['cum_pct']:.1f}"] for r in par["checks"] + par["errors"]]
+         f"{r['cum_pct']:.1f}"] for r in par["checks"] + par["causes"]]
     assert get("/api/records/pareto", station="line-9").json()["checks"] == []  # D: all passed
     assert httpx.get(f"{url}/api/records/pareto", timeout=30).status_code == 401

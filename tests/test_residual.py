@@ -34,9 +34,10 @@ def test_curvature_of_curved_duts_matches_the_truth(reports):
         for k, ax in enumerate(AXES):
             r = res["residual"]["axes"][ax]
             assert r["curvature_mg_per_c2"] == pytest.approx(c2_true[k], abs=0.002), (truth.serial, ax)
-            # the bow and E follow from c2 over the 70 C operating range (|c2| R^2 / 8 and / 2)
+            # the bow and E follow from c2 over the 70 C operating range: |c2| R^2 / 8, and for E
+            # the parabola the chord compensation leaves, its vertex in the data (R^2/2 .. R^2)
             assert r["bow_mg"] == pytest.approx(abs(r["curvature_mg_per_c2"]) * 70.0 ** 2 / 8)
-            assert r["drift_error_mg"] == pytest.approx(abs(r["curvature_mg_per_c2"]) * 70.0 ** 2 / 2)
+            assert 70.0 ** 2 / 2 - 1e-9 <= r["drift_error_mg"] / abs(r["curvature_mg_per_c2"]) <= 70.0 ** 2 + 1e-9
             assert r["drift_error_fs_pct"] == pytest.approx(r["drift_error_mg"] / 2000.0 * 100.0)
         assert max(res["residual"]["axes"][ax]["bow_mg"] for ax in AXES) > 3.5
 

@@ -69,7 +69,9 @@ def test_sigkill_mid_batch_then_resume_finishes_with_correct_results(tmp_path):
             assert daemon.poll() is None, daemon.communicate()[1]
             assert time.monotonic() < deadline, "batch never got past step 2"
             row = _batch_row(db) if (tmp_path / "station.db").exists() else None
-            if row is not None and row[1] is not None and row[1] >= 1:
+            # two steps complete AND their segments committed (the writer commits in its own time:
+            # on a loaded machine the step's row can be read before the last DUT's segment row)
+            if row is not None and row[1] is not None and row[1] >= 1 and len(_segments(db)) >= 8:
                 time.sleep(3.0)  # well inside step 2 (N hot), samples streaming
                 break
             time.sleep(0.5)

@@ -54,7 +54,8 @@ def test_c_drift_error_sigma_carries_the_coefficient_covariance(rho):
         r = rep["axes"][ax]
         # by hand: the coefficient error leaves R |dTDB + dTDSF a| at a = +-1 g (the worse sign)
         coef = 70.0 * math.sqrt(sb[k] ** 2 + (sf[k] * 1e-3) ** 2 + 2.0 * abs(rho * sb[k] * sf[k] * 1e-3))
-        curv = r["curvature_sigma_mg_per_c2"] * 70.0 ** 2 / 2.0
+        curv = r["drift_error_curvature_sigma_mg"]  # the curvature's sigma times its parabola's variation
+        assert 70.0 ** 2 / 2.0 <= curv / r["curvature_sigma_mg_per_c2"] <= 70.0 ** 2 + 1e-9
         assert r["drift_error_sigma_mg"] == pytest.approx(math.hypot(curv, coef), rel=1e-9)
         assert r["drift_error_sigma_mg"] >= coef
         assert r["drift_error_fs_sigma_pct"] == pytest.approx(r["drift_error_sigma_mg"] / 20.0, rel=1e-9)

@@ -62,6 +62,8 @@ class Hw:
         self.fixture = fixture
         self.chamber = None
         self.fixture_timeout_s = 1.0
+        self.plate_again_after_s = 1e9  # the feeder's boards face the position at once (no re-prompt)
+        self.speed = 1.0
         self.analysed = False
         self.released = False
         self.seq = None
@@ -101,6 +103,9 @@ async def feed(seq, slow=(), dt=10.0, log_after_s=60.0):
             if d.t0 is None:
                 d.t0 = t[d.slot]
             d.last_t = t[d.slot]
+            if seq.state == "logging" and not d.at_step_position() and seq.position is not None:
+                d.placed_since_t = d.arrived_t = d.last_t  # the board measures the position at once
+                d.placed_at = seq.position
             if (
                 seq.state == "logging"
                 and d.slot not in slow
@@ -130,6 +135,18 @@ def _drain(q):
     while not q.empty():
         out.append(q.get_nowait())
     return out
+
+
+async def test_a_batch_stopped_before_its_task_first_runs_still_ends():
+    """Aborted (or shut down) in the same turn of the loop that started it: a task cancelled
+    before its first step never runs its body, so the batch never ended and wait_batch hung
+    (seen when a retest batch was aborted at once)."""
+    seq, hw, q = _make(BUILTIN_PROFILES["fast-thermal"])
+    seq.start()
+    seq.stop("aborted", "at once", by="Ana")
+    await asyncio.wait_for(seq.done.wait(), 5.0)
+    assert (seq.state, seq.error, seq.ended_by) == ("aborted", "at once", "Ana")
+    assert hw.relay.coil is False
 
 
 async def test_fast_thermal_with_fixture_runs_every_state_and_ends_lamp_off():
@@ -302,6 +319,21 @@ async def test_lamp_on_time_follows_samples_and_runs_on_wall_time_when_they_stop
     assert g.on_time_s() == pytest.approx(700.0)
 
 
+async def test_resumed_batch_lamp_counts_from_its_own_clock_not_from_zero():
+    """A batch resumed an hour in: its sample clock starts at 3600 s. A lamp switched on before the
+    first new sample arrives counts from there, not from 0 (which tripped a healthy resume at
+    'lamp on for 4810 s > max 4800 s' when the daemon was slow to read its boards)."""
+    clock = Clock()
+    g = LampGuard(MemRelay(), EventBus(), max_on_s=600.0, max_dut_temp_c=85, max_plate_temp_c=90, speed=50.0,
+                  clock=clock)
+    g.reset(3, sample_now_s=3600.0)
+    await g.set_lamp(True, "resumed step")
+    clock.t += 1.0
+    g.note_sample_time(3650.0)
+    assert g.on_time_s() == pytest.approx(50.0)
+    assert not g.check_on_time()
+
+
 async def test_failed_off_write_is_retried_and_alarmed():
     bus = EventBus()
     q = bus.subscribe()
@@ -450,6 +482,8 @@ async def test_waiting_for_says_what_each_state_and_step_waits_for():
     d0.state = d1.state = "running"
     d0.t0, d0.last_t, d0.step_t_start = 0.0, 10.0, 0.0  # 10 s into a 5 s dwell
     d1.t0, d1.last_t, d1.step_t_start = 0.0, 2.0, 0.0
+    for d in (d0, d1):  # both measure the step's position, settled (station/daemon/intake.place)
+        d.placed_since_t, d.placed_at, d.step_position = 0.0, 1, 1
     d2.state = "faulted"
     st = seq.status()
     assert [s["waiting_for"] for s in st["slots"]] == ["other DUTs", "dwell", None]

@@ -274,7 +274,7 @@ def _judged(i, verdict, fails=(), errors=(), state="done", reasons=()):
     return {"run_id": i, "verdict": verdict, "state": state, "checks": checks, "reasons": list(reasons)}
 
 
-def test_failure_pareto_sorted_with_cumulative_percent_and_error_causes():
+def test_failure_pareto_sorted_with_cumulative_percent_and_causes():
     runs = ([_judged(i, "fail", fails=[("tdb_mg_per_c", "x")]) for i in range(5)]
             + [_judged(10 + i, "fail", fails=[("tdsf_ppm_per_c", "z"), ("tdb_mg_per_c", "x")]) for i in range(2)]
             + [_judged(20, "fail", fails=[("lost_samples_pct", None)])]
@@ -287,12 +287,15 @@ def test_failure_pareto_sorted_with_cumulative_percent_and_error_causes():
     got = [(r.rank, r.what, r.fail, r.error, r.count, r.pct, r.cum_pct) for r in p.checks]
     assert got == [(1, "TDB x", 7, 0, 7, 63.6, 63.6), (2, "TDSF z", 2, 0, 2, 18.2, 81.8),  # 11 failing checks
                    (3, "lost samples", 1, 0, 1, 9.1, 90.9), (4, "TDB y", 0, 1, 1, 9.1, 100.0)]  # marginal: not counted
-    assert [(r.what, r.count, r.cum_pct) for r in p.errors] == [("faulted", 3, 50.0), ("timeout after N s", 2, 83.3),
-                                                                ("not measured", 1, 100.0)]
-    assert p.errors[0].example == "s00: link lost after 2.5 s"
+    # one cause per run judged fail or error, by name (station/records/causes.py): a fail by the
+    # measurement that failed it, an error by the station's words; unknown words keep their text
+    assert [(r.what, r.fail, r.error, r.count, r.cum_pct) for r in p.causes] == [
+        ("limit: TDB", 5, 0, 5, 35.7), ("link lost", 0, 3, 3, 57.1), ("limit: TDSF", 2, 0, 2, 71.4),
+        ("timeout after N s", 0, 2, 2, 85.7), ("limit: lost samples", 1, 0, 1, 92.9), ("not measured", 0, 1, 1, 100.0)]
+    assert p.causes[1].example == "s00: link lost after 2.5 s"
     rows = list(csv.reader(io.StringIO(pareto.csv_text(p))))
     assert rows[0] == list(pareto.CSV_COLUMNS) and rows[1] == ["checks", "1", "TDB x", "7", "0", "7", "63.6", "63.6"]
-    assert rows[-1] == ["error causes", "3", "not measured", "0", "1", "1", "16.7", "100.0"]
+    assert rows[-1] == ["causes", "6", "not measured", "0", "1", "1", "7.1", "100.0"]
 
 
 # ---- parameter names -----------------------------------------------------------------------------------

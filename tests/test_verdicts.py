@@ -55,6 +55,23 @@ def test_interval_crossing_the_limit_is_marginal_on_either_side():
     assert judge(Measurement("tdsf_ppm_per_c", -503.0, "ppm/C", "x", None), TDSF, 2.0).outcome == "fail"
 
 
+def test_a_model_check_holds_only_on_evidence_and_says_how_much():
+    """The curvature limit (evidence_sigma 4): a bow whose interval crosses the limit holds the part
+    only when the data reject the linear model; the words say which (docs/verdicts.md "Curvature")."""
+    bow = Limit(measurement="bow_mg", high=3.0, unit="mg", label="curvature bow", evidence_sigma=4.0)
+    c = judge(Measurement("bow_mg", 1.7, "mg", "x", 0.9), bow, 2.0)  # [-0.1, 3.5] crosses 3, 1.9 sigma
+    assert c.outcome == "pass"
+    assert c.reason == "x curvature bow 1.7 +-0.9 mg (1 sigma, k=2 band): not significant (1.9 sigma < 4)"
+    c = judge(Measurement("bow_mg", 2.5, "mg", "y", 0.5), bow, 2.0)  # [1.5, 3.5] crosses 3, 5 sigma
+    assert c.outcome == "marginal"
+    assert c.reason == "y curvature bow (linear model rejected, 5.0 sigma) 2.5 +-0.5 mg (1 sigma, k=2 band) crosses limit 3"
+    assert judge(Measurement("bow_mg", 5.0, "mg", "z", 0.5), bow, 2.0).outcome == "fail"  # [4, 6] over 3
+    assert judge(Measurement("bow_mg", 1.0, "mg", "z", 0.25), bow, 2.0).outcome == "pass"  # [0.5, 1.5] inside
+    # the same numbers against a plain guard-banded limit hold the first part
+    plain = bow.model_copy(update={"evidence_sigma": 0.0})
+    assert judge(Measurement("bow_mg", 1.7, "mg", "x", 0.9), plain, 2.0).outcome == "marginal"
+
+
 def test_marginal_band_inside_the_limit():
     # -485 +- 8 -> lowest -493, inside -500 but within the 10 ppm/C band (-490)
     c = judge(Measurement("tdsf_ppm_per_c", -485.0, "ppm/C", "y", 4.0), TDSF, 2.0)
@@ -79,7 +96,7 @@ def test_pass_and_grades_follow_the_intervals():
 def test_uncertainty_crossing_a_limit_makes_the_dut_marginal():
     v = decide(good(e_z=0.97), spec())  # 0.97 +- 0.10 crosses 1.0
     assert (v.verdict, v.grade) == ("marginal", "hold")
-    assert v.reasons == ["z drift E_FS 0.97 +-0.1 %FS crosses limit 1"]
+    assert v.reasons == ["z drift E_FS 0.97 +-0.05 %FS (1 sigma, k=2 band) crosses limit 1"]
 
 
 def test_every_failing_measurement_is_named():
@@ -207,9 +224,9 @@ def test_systematic_uncertainty_widens_the_guard_band():
 def test_sfem_measurements_and_limits():
     from station.decisions.verdicts import sfem_measurements
 
-    fit = {"bias": [0.012, -0.130, 0.0], "bias_sigma": [1e-4, 1e-4, 1e-4], "scale": [1.02, 0.97, 1.001],
+    fit = {"temp_c": 26.0, "bias": [0.012, -0.130, 0.0], "bias_sigma": [1e-4, 1e-4, 1e-4], "scale": [1.02, 0.97, 1.001],
            "scale_sigma": [1e-4, 1e-4, 1e-4]}
-    ms = sfem_measurements({"temperatures": [{"fit": fit}]})
+    ms = sfem_measurements({"shape": "sfem-record/1", "t_ref_c": 25.0, "steps": [fit]})  # contracts/sfem_result.py
     by = {(m.name, m.axis): m for m in ms}
     assert by[("sfem_bias_mg", "y")].value == pytest.approx(-130.0) and by[("sfem_bias_mg", "y")].sigma == pytest.approx(0.1)
     assert by[("sfem_scale_error_pct", "y")].value == pytest.approx(3.0)

@@ -335,12 +335,10 @@ class IdleStation:
     """What the page's start-up asks of the daemon: an idle station with no slots (pages that show
     only stored records: the Records view, replays)."""
 
-    config = None
-
-    def __init__(self, db):
+    def __init__(self, db, config=None):
         from contracts.events import EventBus
 
-        self.db = db
+        self.db, self.config = db, config  # a config: the station's, for routes that read it (results)
         self.bus = EventBus()  # the page's live stream: nothing happens on an idle station
 
     def profiles(self):
