@@ -36,6 +36,7 @@ import subprocess
 import sys
 import time
 import traceback
+import logging
 from collections import Counter
 from pathlib import Path
 from typing import Any, Awaitable, Callable
@@ -45,6 +46,8 @@ from drivers.sim.station_sim import SimStation
 from contracts.types import AXES
 from tests.test_daemon_e2e import coil, daemon, wait_for  # noqa: F401 (coil: re-exported for the test)
 
+log = logging.getLogger(__name__)
+
 ROOT = Path(__file__).resolve().parents[1]
 PROFILES = ("fast-thermal", "fast-thermal-verified", "sfem-24")
 VERIFIED = "fast-thermal-verified"
@@ -52,7 +55,7 @@ VERIFIED = "fast-thermal-verified"
 # every plan gets its batch timeout plus this much for the daemon's start, the end checks and close.
 PLAN_SLACK_S = 90.0
 MAX_LEAD_S = 200.0  # sample seconds the plant may run ahead of the daemon (Ctx.lead_pace); x3000 ticks are 150 s
-MAX_LEAD_HOLD_S = 10.0  # wall seconds one lead hold may last: a daemon that stopped taking samples is not waited for
+MAX_LEAD_HOLD_S = 5.0  # wall seconds one lead hold may last (half the 10 s stall timeout): a daemon that stopped taking samples is not waited for
 LIMITS = {"lamp_max_on_s": 9000.0}  # CI: wall x speed overstates the on-time (see test_program_verify_e2e)
 
 ROWS = [
@@ -213,31 +216,46 @@ class Ctx:
         return self.st.batches[self.bid].seq
 
     def lead_pace(self) -> bool:
-        """Default SimStation.pace of a plan: hold the plant while it runs more than MAX_LEAD_S of
-        sample time ahead of a streaming serial DUT's newest sample in the daemon. A live plant at
-        x3000 on a loaded machine otherwise outruns the daemon by more than a static step's timeout
-        (762 s of sample time is 0.25 s of wall time): samples from before a fixture move use up
-        the step's timeout before the first one facing the new position arrives, and a healthy DUT
-        is faulted for it. A board the plan has cut off (closed, muted) or a DUT no longer live is
-        not waited for."""
+        """Default SimStation.pace of a plan: hold the plant while a streaming serial board has sent
+        more than MAX_LEAD_S of sample time that the daemon has not yet taken. A live plant at x3000
+        on a loaded machine otherwise outruns the daemon by more than a static step's timeout (762 s
+        of sample time is 0.25 s of wall time): samples from before a fixture move use up the step's
+        timeout before the first one facing the new position arrives, and a healthy DUT is faulted
+        for it. The lead is what the board *sent* ahead of the daemon, never the plant's clock ahead
+        of the daemon's newest sample: after the program step a board streams again from a plant
+        that ran on while it was stopped, and holding the plant for a sample only the plant can
+        make held every board silent until the hold gave up (a CI run faulted all three DUTs of a
+        plan "no samples for 10.1 s"). A board the plan has cut off (closed, muted) or a DUT no
+        longer live is not waited for."""
         seq = self._seq()
         if seq.done.is_set():
             return False
         wall = time.monotonic()
         if self._lead_since is not None and wall - self._lead_since > MAX_LEAD_HOLD_S:
             self._lead_since = None
+            log.warning("%s: lead hold gave up after %.1f s at plant %.1f s; unread lead (s) per DUT: %s",
+                        self.plan.name, MAX_LEAD_HOLD_S, self.sim.world.time_s,
+                        {d.slot: self._unread_lead_s(d) for d in seq.duts})
             return False
-        now_s = self.sim.world.time_s
         for d in seq.duts:
-            if not d.live or d.last_t is None or not d.slot.startswith("s"):
+            if not d.live or not d.slot.startswith("s"):
                 continue
             board = self.sim.board(int(d.slot[1:]) - 1)
+            lead_s = self._unread_lead_s(d)
             if board.connected and board.streaming and not getattr(board, "muted", False) \
-                    and now_s - d.last_t > MAX_LEAD_S:
+                    and lead_s is not None and lead_s > MAX_LEAD_S:
                 self._lead_since = self._lead_since or wall
                 return True
         self._lead_since = None
         return False
+
+    def _unread_lead_s(self, d: Any) -> float | None:
+        """Sample seconds a serial DUT's board has sent beyond the daemon's newest sample (None:
+        not known yet)."""
+        if d.last_t is None or not d.slot.startswith("s"):
+            return None
+        sent_s = getattr(self.sim.board(int(d.slot[1:]) - 1), "sent_until_s", None)
+        return None if sent_s is None else round(sent_s - d.last_t, 1)
 
     @contextlib.asynccontextmanager
     async def held_at(self, moment: Callable[[], bool], what: str, timeout_s: float = 120.0):

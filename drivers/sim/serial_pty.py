@@ -162,6 +162,7 @@ class SimSerialBoard:
         self.clock_mask = (1 << clock_bits) - 1 if clock_bits else None  # firmware uint32 clock wraps
         self.commands: list[bytes] = []  # every command frame received, raw (tests read it)
         self.frames_sent = 0
+        self.sent_until_s: float | None = None  # plant time of the newest sample sent (the lead a reader has to catch up)
         self.cal = CalFirmware()
         self.power_cycles = 0
         # called as STOP takes effect, before its ack: what was already on its way goes out first
@@ -288,6 +289,7 @@ class SimSerialBoard:
             self._phase = (self._phase + n) % self._decim
         if len(sel) == 0:
             return
+        self.sent_until_s = float(np.asarray(time_s)[sel[-1]])
         t_us_arr = np.round(np.asarray(time_s)[sel] * 1e6).astype(np.int64) + self.t0_us
         if self.clock_mask is not None:
             t_us_arr &= self.clock_mask
