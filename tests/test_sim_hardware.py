@@ -155,3 +155,30 @@ async def test_plant_waits_for_a_lagging_reader_and_loses_nothing():
         # the plant is not far ahead of what was read: a few buffers' worth, not the 4 s x 4000
         # x 3.125 samples it would have produced unheld
         assert sim._produced - len(seqs) < 0.2 * 4.0 * 4000 * 3.125
+
+
+async def test_an_unplugged_board_s_port_is_gone_and_its_number_goes_to_no_other_pty():
+    """A pulled cable: the host reads EOF and cannot open the path again, and until the simulator
+    closes, no pty opened on this machine (another test's board, in another process) gets the
+    number: a station trying its vanished port again finds nothing, never a stranger's board."""
+    import os
+
+    async with SimStation(n_serial=1, n_can=0, seed=5, speed=100) as sim:
+        board = SerialBoard(sim.serial_ports[0])
+        await board.open()
+        path = sim.serial_ports[0]
+        sim.board(0).disconnect()
+        with pytest.raises(DriverError):
+            for _ in range(20):
+                await board.read_block(0.1)
+        await board.close()
+        assert not os.path.exists(path)
+        with pytest.raises(DriverError):
+            await SerialBoard(path).open()
+        others = [os.openpty() for _ in range(8)]
+        try:
+            assert path not in {os.ttyname(s) for _, s in others}
+        finally:
+            for m, s in others:
+                os.close(m)
+                os.close(s)

@@ -108,7 +108,12 @@ class PtyEndpoint:
             self._loop.remove_writer(self.master_fd)
             self._writer_on = False
 
-    def close(self) -> None:
+    def unplug(self) -> None:
+        """The cable is pulled: the master closes, so a host holding the port reads EOF and the
+        path is gone (opening it again fails). This end keeps its slave fd until close(), which
+        keeps the pts number taken: the kernel hands a freed number to the next pty opened on the
+        machine, and a station that tries its vanished port again (the next batch's connect) would
+        open another process's board (parallel tests did, and read a second board's serial)."""
         if self.closed:
             return
         self.closed = True
@@ -116,13 +121,23 @@ class PtyEndpoint:
             self._loop.remove_reader(self.master_fd)
             if self._writer_on:
                 self._loop.remove_writer(self.master_fd)
-        for fd in (self.master_fd, self._slave_fd):
-            try:
-                os.close(fd)
-            except OSError as exc:  # pragma: no cover
-                if exc.errno != errno.EBADF:
-                    raise
+        self._close_fd(self.master_fd)
         self._out.clear()
+
+    def close(self) -> None:
+        """Unplug (if not yet) and give the pts number back."""
+        self.unplug()
+        if self._slave_fd >= 0:
+            self._close_fd(self._slave_fd)
+            self._slave_fd = -1
+
+    @staticmethod
+    def _close_fd(fd: int) -> None:
+        try:
+            os.close(fd)
+        except OSError as exc:  # pragma: no cover
+            if exc.errno != errno.EBADF:
+                raise
 
 
 def _ratio(src_hz: float, dst_hz: float) -> int | None:
@@ -188,8 +203,8 @@ class SimSerialBoard:
         self.muted = True
 
     def disconnect(self) -> None:
-        """Close the pty master: the host's port vanishes."""
-        self.port.close()
+        """Pull the cable: the host's port vanishes (PtyEndpoint.unplug)."""
+        self.port.unplug()
 
     def power_cycle(self) -> None:
         """The board restarts: RAM state (streaming, seq, ODR, parser) is lost, the NVM is kept."""
