@@ -27,7 +27,7 @@ from db_helpers import pg_database, pg_reachable
 from web.app import create_app, make_server
 from web.auth import TokenStore
 from web.db_repo import DbRepository
-from web_support import free_port
+from web_support import bound_socket
 
 pytestmark = [pytest.mark.postgres, pytest.mark.skipif(not pg_reachable(), reason="PostgreSQL not reachable")]
 
@@ -42,10 +42,11 @@ class _Api:
     def __init__(self, db: Database) -> None:
         self.app = create_app(SimpleNamespace(config=None, bus=None, db=db), repo=DbRepository(db),
                               tokens=TokenStore([(MES_TOKEN, "mes", "mes-client")]), outbox=False)
-        self.port = free_port()
+        sock = bound_socket()
+        self.port = sock.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"
         self.server = make_server(self.app, "127.0.0.1", self.port, access_log=False)
-        self.thread = threading.Thread(target=lambda: asyncio.run(self.server.serve()), daemon=True)
+        self.thread = threading.Thread(target=lambda: asyncio.run(self.server.serve(sockets=[sock])), daemon=True)
 
     def __enter__(self) -> "_Api":
         self.thread.start()

@@ -25,7 +25,7 @@ from web.diag_plots import BoundedCache, Busy
 from web.guard import DEFAULT_MAX_BODY_BYTES
 from web.repo import NoRepository
 from web.schemas import ValidationErrorOut
-from web_support import free_port, wait_for
+from web_support import bound_socket, wait_for
 
 TOKENS = {"operator": "op-token-0123456789", "mes": "mes-token-0123456789", "admin": "admin-token-0123456789"}
 BIG = 50 * 1024 * 1024  # the issue's 50 MB POSTs
@@ -78,10 +78,11 @@ def serve(app):
     """uvicorn on a free loopback port in a thread with its own loop (as the daemon runs it)."""
     import uvicorn
 
-    port = free_port()
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
                                            timeout_graceful_shutdown=1, lifespan="on"))
-    thread = threading.Thread(target=server.run, daemon=True)
+    thread = threading.Thread(target=lambda: server.run(sockets=[sock]), daemon=True)
     thread.start()
     wait_for(lambda: server.started, 20, 0.02, "uvicorn started")
     try:

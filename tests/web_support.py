@@ -30,9 +30,21 @@ def auth(role: str) -> dict[str, str]:
 
 
 def free_port() -> int:
+    """A port free now, for a server another process binds (a `station serve` child). An in-process
+    server takes bound_socket() instead: no window in which the port can go to someone else."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def bound_socket() -> socket.socket:
+    """A socket on 127.0.0.1 bound to a port the kernel chose, for uvicorn's serve(sockets=[...]).
+    A port picked by free_port() and bound later can be taken in between (under load a CI run lost
+    it to another connection: 'address already in use', every test of a module in error)."""
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    s.bind(("127.0.0.1", 0))
+    return s
 
 
 def sim_config(sim, *, speed: float, fixture: bool = False, webhook_url: str | None = None, db_url: str = "memory://",
@@ -93,7 +105,8 @@ class LiveStation:
         self.profiles = profiles  # site profiles added to the config (beside "hold")
         self._child = None
         self.prompts_answered: list[int] = []
-        self.port = free_port()
+        self._sock = bound_socket()
+        self.port = self._sock.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"
         self.db_path = self.tmp_path / "station.db"
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -144,7 +157,7 @@ class LiveStation:
             hands = asyncio.create_task(self._hands(station.bus, sim)) if self.operator_hands else None
             self.app = create_app(station, outbox=self.outbox, sse_interval_s=self.sse_interval_s)
             self.server = make_server(self.app, "127.0.0.1", self.port, access_log=self.access_log)
-            serve = asyncio.create_task(self.server.serve())
+            serve = asyncio.create_task(self.server.serve(sockets=[self._sock]))
             while not self.server.started:
                 if serve.done():
                     serve.result()
@@ -315,9 +328,10 @@ def serve_in_thread(app, timeout_s: float = 30.0):
     stop). For tests that need the HTTP stack but not a daemon (records, audit, certificates)."""
     from web.app import make_server
 
-    port = free_port()
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     server = make_server(app, "127.0.0.1", port, access_log=False)
-    th = threading.Thread(target=lambda: asyncio.run(server.serve()), daemon=True)
+    th = threading.Thread(target=lambda: asyncio.run(server.serve(sockets=[sock])), daemon=True)
     th.start()
     t0 = time.monotonic()
     while not server.started:
