@@ -116,8 +116,28 @@ def abort_a_batch(a: Answers) -> int:
     r = c.post("/api/batches", headers=auth("operator"), json={"profile": "hold", "operator": "Bo"})
     assert r.status_code == 201, r.text
     bid = r.json()["id"]
-    wait_for(lambda: a.get("/api/batches/{batch_id}", batch_id=bid).json()["state"] == "running", 60,
-             what="hold batch running")
+    # The plate ends the main batch at N and "hold" holds it at P: the batch asks a person to turn
+    # it (state "paused", its prompt open) after a moment in "running" too short to catch under
+    # load. The status while paused is answered and checked like any other; then the person turns
+    # the plate (operator_hands) and the batch logs ("running") until it is aborted.
+    seen: list[str] = []
+
+    def live() -> str | None:
+        state = a.get("/api/batches/{batch_id}", batch_id=bid).json()["state"]
+        if not seen or seen[-1] != state:
+            seen.append(state)
+        if state == "paused":
+            prompt = a.get("/api/batches/{batch_id}/prompt", batch_id=bid).json()
+            if prompt is not None:
+                ans = c.post(f"/api/batches/{bid}/prompt", headers=auth("operator"),
+                             json={"prompt_id": prompt["prompt_id"]})
+                assert ans.status_code in (200, 409), ans.text
+        return state if state == "running" else None
+
+    try:
+        wait_for(live, 60, what="hold batch running")
+    except AssertionError as e:
+        raise AssertionError(f"{e}; states seen: {' -> '.join(seen)}") from None
     assert c.post(f"/api/batches/{bid}/abort", headers=auth("operator")).status_code == 200
     wait_for(lambda: a.get("/api/batches/{batch_id}", batch_id=bid).json()["state"] in TERMINAL, 30,
              what="hold batch aborted")
