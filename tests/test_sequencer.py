@@ -8,6 +8,7 @@ tests/test_daemon_e2e.py.
 import asyncio
 import math
 
+import numpy as np
 import pytest
 
 from drivers.base import Fixture, LampRelay
@@ -17,7 +18,7 @@ from station.daemon.safety import LampGuard, LampTripped
 from station.daemon.dut_run import DutRun
 from station.daemon.sequencer import Sequencer
 from station.daemon.states import TRANSITIONS
-from contracts.types import Segment
+from contracts.types import SampleBlock, Segment
 
 
 class MemRelay(LampRelay):
@@ -427,6 +428,53 @@ async def test_timeout_runs_on_each_dut_own_clock_not_the_fastest_board():
     assert await asyncio.wait_for(seq.task, 10) == "finished"
     feeder.cancel()
     assert [d.state for d in seq.duts] == ["done", "done"], [d.fault_reason for d in seq.duts]
+
+
+async def test_a_link_that_delivers_its_first_sample_after_done_is_timed_on_its_own_clock():
+    """A board whose first sample of the batch reaches the station only after the step began
+    logging (a link that lags at the batch's start: a loaded host, a busy adapter) had no board
+    time to count from and was timed on the fastest board's clock: it arrived, averaged at the
+    position and was faulted 'timed out ... without a segment' (a CI run: 2 of 3 healthy DUTs).
+    It now counts from its own first sample after Done: its segment, 300 s after it arrives on
+    its own clock, ends the step while the fast board's clock is past the 500 s timeout."""
+    prof = Profile("t", (Step("a", 0, require="segment", timeout_s=500.0),))
+    seq, hw, q = _make(prof, n=2)
+    fast, late = seq.duts
+    fast.t0 = fast.last_t = 0.0  # streaming before the step begins; `late` has sent nothing yet
+    seq.start()
+    t = {"s0": 0.0, "s1": 5000.0}  # the late board's clock is its own (another epoch)
+    logged = set()
+    began = []
+
+    async def feed_late_link():
+        while not seq.done.is_set():
+            for d, dt in ((fast, 30.0), (late, 10.0)):
+                if d is late and not began:
+                    if seq.state != "logging":
+                        continue  # nothing from this link until after Done
+                    began.append(True)
+                t[d.slot] += dt
+                if d.t0 is None:
+                    d.t0 = t[d.slot]
+                d.blocks.append(SampleBlock(np.array([t[d.slot]]), np.array([[0.0, 0.0, 1.0]]), np.array([25.0])))
+                d.last_t = t[d.slot]
+                if seq.state == "logging" and not d.at_step_position():
+                    d.placed_since_t = d.arrived_t = d.last_t  # measures the position at once
+                    d.placed_at = seq.position
+                if seq.state == "logging" and d.slot not in logged and d.arrived_t is not None \
+                        and d.last_t - d.arrived_t > 300.0:
+                    logged.add(d.slot)
+                    d.segments.append(_seg(len(d.segments), d.last_t, seq.position))
+                    d.segment_steps.append(seq.step_index)
+            seq.notify()
+            await asyncio.sleep(0.001)
+
+    feeder = asyncio.create_task(feed_late_link())
+    assert await asyncio.wait_for(seq.task, 10) == "finished"
+    feeder.cancel()
+    assert [d.state for d in seq.duts] == ["done", "done"], [d.fault_reason for d in seq.duts]
+    assert late.step_clock_start_t() == pytest.approx(5010.0)  # its first sample after Done
+    assert fast.last_t - fast.step_t_start > 500.0  # the fast board's clock was past the timeout
 
 
 async def test_position_is_unknown_while_the_plate_moves():

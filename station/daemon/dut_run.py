@@ -44,6 +44,7 @@ class DutRun:
     last_t: float | None = None  # board time of the latest sample
     n_samples: int = 0
     step_t_start: float = -math.inf  # board time when the current step began logging (Done, "reached")
+    logging_block: int = 0  # len(blocks) when the current step began logging: what came after is its own
     # The current step's placement (station/science/placement.py, docs/design.md section 4), in
     # board time. Set at the step's setup, before anybody moves the plate: the step's position and
     # the one before it (still accepted until the DUT arrives: the plate sits there until turned),
@@ -196,6 +197,19 @@ class DutRun:
         self.plate_check_t = self.step_t_start
         floor = self.step_setup_t if math.isfinite(self.step_setup_t) else (self.t0 if self.t0 is not None else -math.inf)
         self.requirement_floor_t = self.step_t_start if gated else floor
+
+    def step_clock_start_t(self) -> float | None:
+        """Board time this DUT's step timeout counts from (before it arrives): its newest sample
+        when the step began logging, or, for a board that had sent nothing in this step by then (a
+        slow link at a batch's start, a resumed step), the first sample it delivered after that.
+        None: nothing delivered since. Never another board's clock: in compressed time, or behind
+        a busy adapter, a late link is seconds of sample time behind the others."""
+        if math.isfinite(self.step_t_start):
+            return self.step_t_start
+        for k in range(self.logging_block, len(self.blocks)):
+            if len(self.blocks[k]):
+                return float(self.blocks[k].time_s[0])
+        return None
 
     def since_plate_check_s(self) -> float:
         """Board seconds of this DUT's own stream since the plate is watched (its own clock: in

@@ -453,6 +453,7 @@ class Sequencer:
         resumed_step = self.step_index == self.start_step and self.start_step > 0
         for d in self.duts:
             d.step_t_start = d.last_t if d.last_t is not None else -math.inf
+            d.logging_block = len(d.blocks)
             if resumed_step and step.require == "segment":
                 # The step was interrupted: a segment it logged (at its position) before the crash counts.
                 d.step_t_start = -math.inf
@@ -550,12 +551,18 @@ class Sequencer:
 
     def _step_elapsed_s(self, d: DutRun) -> float:
         """Sample time this DUT has spent in the current step (its own board clock): since it
-        arrived at the step's position, or, until it does, since the step began logging (Done)."""
-        if d.last_t is not None and d.arrived_t is not None and math.isfinite(d.step_t_start):
-            return d.last_t - max(d.arrived_t, d.step_t_start)
-        if d.last_t is not None and math.isfinite(d.step_t_start):
-            return d.last_t - d.step_t_start
-        return self.clock_s() - self.step_clock_start  # no sample before the step (or resumed step)
+        arrived at the step's position, or, until it does, since the step began logging (Done).
+        A board whose first sample of the step came after Done counts from that sample
+        (DutRun.step_clock_start_t): judged on the fastest board's clock, a link that lagged at
+        the batch's start would be faulted 'without a segment' while it was still averaging at the
+        position. Only a board that has delivered nothing since is timed on the batch's clock (the
+        stall watchdog faults a silent one long before)."""
+        start = d.step_clock_start_t()
+        if d.last_t is None or start is None:
+            return self.clock_s() - self.step_clock_start
+        if d.arrived_t is not None:
+            start = max(d.arrived_t, start)
+        return d.last_t - start
 
     def dut_step_done(self, d: DutRun, step: Step) -> bool:
         """Has this DUT logged what the step requires (dut_run.DutRun.step_done)?"""
