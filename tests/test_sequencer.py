@@ -398,6 +398,36 @@ async def test_resumed_sequencer_starts_after_the_last_completed_step():
     assert all(d.state == "done" for d in seq.duts)
 
 
+async def _paced_feed(seq, paces: dict[str, float], clocks: dict[str, float], silent_until_logging=(),
+                      log_after_s: float = 300.0) -> None:
+    """Each DUT's board clock advances by its own pace per tick (a slow link delivers less sample
+    time per tick), one block per tick; a DUT in silent_until_logging sends nothing until the step
+    begins logging. Each measures the step's position at once and logs a segment log_after_s after
+    it arrives, on its own clock."""
+    logged, began = set(), set()
+    while not seq.done.is_set():
+        for d in seq.duts:
+            if d.slot in silent_until_logging and d.slot not in began:
+                if seq.state != "logging":
+                    continue  # nothing from this link until after Done
+                began.add(d.slot)
+            clocks[d.slot] += paces[d.slot]
+            if d.t0 is None:
+                d.t0 = clocks[d.slot]
+            d.blocks.append(SampleBlock(np.array([clocks[d.slot]]), np.array([[0.0, 0.0, 1.0]]), np.array([25.0])))
+            d.last_t = clocks[d.slot]
+            if seq.state == "logging" and not d.at_step_position():
+                d.placed_since_t = d.arrived_t = d.last_t
+                d.placed_at = seq.position
+            if seq.state == "logging" and d.slot not in logged and d.arrived_t is not None \
+                    and d.last_t - d.arrived_t > log_after_s:
+                logged.add(d.slot)
+                d.segments.append(_seg(len(d.segments), d.last_t, seq.position))
+                d.segment_steps.append(seq.step_index)
+        seq.notify()
+        await asyncio.sleep(0.001)
+
+
 async def test_timeout_runs_on_each_dut_own_clock_not_the_fastest_board():
     """A DUT whose link delivers at a third of the others' pace (a busy CAN adapter) logs its
     segment 300 s into the step on its own clock, when the fastest board is already 900 s in; with
@@ -407,24 +437,7 @@ async def test_timeout_runs_on_each_dut_own_clock_not_the_fastest_board():
     for d in seq.duts:  # both boards streaming before the step begins
         d.t0 = d.last_t = 0.0
     seq.start()
-    t = {"s0": 0.0, "s1": 0.0}
-    logged = set()
-
-    async def uneven_feed():
-        while not seq.done.is_set():
-            for d, dt in ((seq.duts[0], 30.0), (seq.duts[1], 10.0)):
-                t[d.slot] += dt
-                if d.t0 is None:
-                    d.t0 = t[d.slot]
-                d.last_t = t[d.slot]
-                if seq.state == "logging" and d.slot not in logged and d.last_t - d.step_t_start > 300.0:
-                    logged.add(d.slot)
-                    d.segments.append(_seg(len(d.segments), d.last_t, seq.position))
-                    d.segment_steps.append(seq.step_index)
-            seq.notify()
-            await asyncio.sleep(0.001)
-
-    feeder = asyncio.create_task(uneven_feed())
+    feeder = asyncio.create_task(_paced_feed(seq, {"s0": 30.0, "s1": 10.0}, {"s0": 0.0, "s1": 0.0}))
     assert await asyncio.wait_for(seq.task, 10) == "finished"
     feeder.cancel()
     assert [d.state for d in seq.duts] == ["done", "done"], [d.fault_reason for d in seq.duts]
@@ -442,34 +455,9 @@ async def test_a_link_that_delivers_its_first_sample_after_done_is_timed_on_its_
     fast, late = seq.duts
     fast.t0 = fast.last_t = 0.0  # streaming before the step begins; `late` has sent nothing yet
     seq.start()
-    t = {"s0": 0.0, "s1": 5000.0}  # the late board's clock is its own (another epoch)
-    logged = set()
-    began = []
-
-    async def feed_late_link():
-        while not seq.done.is_set():
-            for d, dt in ((fast, 30.0), (late, 10.0)):
-                if d is late and not began:
-                    if seq.state != "logging":
-                        continue  # nothing from this link until after Done
-                    began.append(True)
-                t[d.slot] += dt
-                if d.t0 is None:
-                    d.t0 = t[d.slot]
-                d.blocks.append(SampleBlock(np.array([t[d.slot]]), np.array([[0.0, 0.0, 1.0]]), np.array([25.0])))
-                d.last_t = t[d.slot]
-                if seq.state == "logging" and not d.at_step_position():
-                    d.placed_since_t = d.arrived_t = d.last_t  # measures the position at once
-                    d.placed_at = seq.position
-                if seq.state == "logging" and d.slot not in logged and d.arrived_t is not None \
-                        and d.last_t - d.arrived_t > 300.0:
-                    logged.add(d.slot)
-                    d.segments.append(_seg(len(d.segments), d.last_t, seq.position))
-                    d.segment_steps.append(seq.step_index)
-            seq.notify()
-            await asyncio.sleep(0.001)
-
-    feeder = asyncio.create_task(feed_late_link())
+    # the late board's clock is its own (another epoch)
+    feeder = asyncio.create_task(_paced_feed(seq, {"s0": 30.0, "s1": 10.0}, {"s0": 0.0, "s1": 5000.0},
+                                             silent_until_logging=("s1",)))
     assert await asyncio.wait_for(seq.task, 10) == "finished"
     feeder.cancel()
     assert [d.state for d in seq.duts] == ["done", "done"], [d.fault_reason for d in seq.duts]
