@@ -555,13 +555,19 @@ class Sequencer:
         A board whose first sample of the step came after Done counts from that sample
         (DutRun.step_clock_start_t): judged on the fastest board's clock, a link that lagged at
         the batch's start would be faulted 'without a segment' while it was still averaging at the
-        position. Only a board that has delivered nothing since is timed on the batch's clock (the
-        stall watchdog faults a silent one long before)."""
+        position. Its first samples may have been measured before Done (a backlog), so its own
+        figure is an upper bound, as is the batch's clock since Done: the smaller one counts, and
+        such a board is never timed out sooner than on the batch's clock. Only a board that has
+        delivered nothing since is timed on the batch's clock alone (the stall watchdog faults a
+        silent one long before)."""
+        batch_s = self.clock_s() - self.step_clock_start
         start = d.step_clock_start_t()
         if d.last_t is None or start is None:
-            return self.clock_s() - self.step_clock_start
+            return batch_s
         if d.arrived_t is not None:
             start = max(d.arrived_t, start)
+        if not math.isfinite(d.step_t_start):  # its board time at Done is unknown
+            return min(d.last_t - start, batch_s)
         return d.last_t - start
 
     def dut_step_done(self, d: DutRun, step: Step) -> bool:
