@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -260,9 +259,7 @@ def realistic():
 
 def test_noise_view_of_a_realistic_simulated_log(realistic):
     rep, truth, _, _ = realistic
-    t0 = time.perf_counter()
-    nv = noise_view(rep, 0)
-    assert time.perf_counter() - t0 < 1.0  # ~30 ms on an idle core for 73 000 samples
+    nv = noise_view(rep, 0)  # its speed is a benchmark's figure (README), not a timed assertion that flakes under load
     seg = nv["static_segment"]
     assert seg["found"] and seg["duration_s"] >= 600 and seg["orientation"] == "0" and seg["temp_range_c"] <= 0.2
     n_true = truth.noise_g * 1e3 / math.sqrt(3.125)  # the datasheet white noise per sample at the 3.125 Hz ODR
