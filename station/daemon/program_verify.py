@@ -32,6 +32,7 @@ from contracts.events import DutProgrammed, DutVerified
 from station.science.bias_wander import BiasWander
 from station.science.part_noise import wander_of_budget
 from station.science.verify import drift_before_mg, verify_compensated
+from station.daemon.slots import board_changed
 from contracts.types import AXES, SampleBlock
 
 log = logging.getLogger(__name__)
@@ -102,6 +103,13 @@ async def program_duts(station: Any, seq: Any) -> None:
         drv = station.slots[d.slot].driver
         if drv is not None:
             await _quiesce(drv)
+            # the coefficients are this board's only if it is still the board the run measured
+            changed = await board_changed(station, d, "before programming")
+            if changed is not None:
+                d.program = {"programmed": False, "error_kind": "identity", "error": changed}
+                station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=d.program))
+                station.fault_dut(seq, d, f"program: not written: {changed}")
+                return
         info: dict = {"tdb_mg_per_c": tdb, "tdsf_ppm_per_c": tdsf, "method": (d.result or {}).get("axes_method", "")}
         try:
             if drv is None:

@@ -23,7 +23,7 @@ from station.daemon import program_verify
 from station.daemon.results import sfem_result, thermal_result
 from station.daemon.dut_run import DutRun
 from station.daemon.sequencer import Sequencer
-from station.daemon.slots import publish_dut, ready_again, stop_streams
+from station.daemon.slots import board_changed, publish_dut, ready_again, stop_streams
 from station.decisions import moment
 
 ANALYSIS_THREADS = 2  # two cores: do not starve the pumps of other work
@@ -78,9 +78,12 @@ async def release_duts(st: Any, seq: Sequencer) -> None:
             except Exception:
                 pass
             d.link_stats = slot.driver.stats.as_dict() if hasattr(slot.driver, "stats") else {}
+        changed = await board_changed(st, d, "at the end of its run") if d.live and finished and why is None else None
         if d.live:
             if why is not None:
                 d.state, d.fault_reason = "faulted", f"results not stored: {why}"
+            elif changed is not None:
+                d.state, d.fault_reason = "faulted", changed
             elif finished:
                 d.state = "done"
             else:  # every end carries a reason: the batch's own

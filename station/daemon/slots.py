@@ -19,9 +19,11 @@ from typing import Any
 from contracts.trace import label_mismatch
 from contracts.events import SegmentLogged, SlotStateChanged
 from contracts.types import Identity
+from db import repository as repo
 from db.models import MeasuredBy
 from drivers.base import BoardDriver, DriverError
 from station.config import SlotConfig
+from station.daemon.identity_check import batch_identity_problems, identity_change
 from station.daemon.intake import pump
 from station.daemon.dut_run import DutRun
 from station.daemon.sequencer import Sequencer
@@ -127,16 +129,33 @@ async def connect_duts(st: Any, seq: Sequencer) -> None:
     """Identify every DUT of the batch, open (or continue) its run, start its stream and its pump."""
     rt = st.batches[seq.batch_id]
 
-    async def one(d: DutRun) -> None:
+    async def connect(d: DutRun) -> bool:
         slot = st.slots[d.slot]
         d.state = "connecting"
         publish_dut(st, seq, d)
         if not await connect_slot(st, slot, seq.batch_id):
             fault_dut(st, seq, d, slot.fault_reason)
-            return
+            return False
         slot.state = "busy"
         d.identity = slot.identity
+        return True
+
+    # Every board answers first: a serial is trusted only when it is valid and unique in the batch
+    # (identity_check, design 3.1), which no slot can know alone. A refused slot gets no run (no
+    # record under a serial that is not its own), never streams, and stops before the lamp heats.
+    answered = [d for d, ok in zip(seq.duts, await asyncio.gather(*(connect(d) for d in seq.duts))) if ok]
+    refused = batch_identity_problems({d.slot: d.identity.serial for d in answered if d.identity is not None})
+    for d in answered:
+        if d.slot in refused:
+            fault_dut(st, seq, d, refused[d.slot])
+    if refused:
+        await asyncio.to_thread(_audit_refused, st, seq.batch_id, refused,
+                                {d.slot: d.identity.serial for d in answered if d.identity is not None})
+
+    async def one(d: DutRun) -> None:
+        slot = st.slots[d.slot]
         ident = d.identity
+        assert ident is not None
         if d.expected_serial is not None and ident.serial != d.expected_serial:
             fault_dut(st, seq, d, f"{d.link}: found serial {ident.serial}, the interrupted run was "
                                   f"{d.expected_serial} (board swapped?)")
@@ -182,7 +201,17 @@ async def connect_duts(st: Any, seq: Sequencer) -> None:
         publish_dut(st, seq, d)
         rt.pumps[d.slot] = asyncio.get_running_loop().create_task(pump(st, seq, d), name=f"pump-{d.slot}")
 
-    await asyncio.gather(*(one(d) for d in seq.duts))
+    await asyncio.gather(*(one(d) for d in answered if d.live))
+
+
+def _audit_refused(st: Any, batch_id: int, refused: dict[str, str], serials: dict[str, str]) -> None:
+    """identity.refused in the audit trail: which boards a batch did not test, with the serial each
+    reported (no run holds it). Logged loudly, never raised: the batch goes on with the others."""
+    try:
+        repo.audit_append(st.db, "station", "identity.refused", f"batch {batch_id}",
+                          {slot: {"serial": serials.get(slot), "reason": why} for slot, why in refused.items()})
+    except Exception:  # noqa: BLE001
+        log.critical("audit: could not record the identities refused in batch %d", batch_id, exc_info=True)
 
 
 async def stop_streams(st: Any, seq: Sequencer) -> None:
@@ -198,6 +227,30 @@ async def stop_streams(st: Any, seq: Sequencer) -> None:
         for t in late:
             log.error("batch %d: pump %s did not stop within 10 s", seq.batch_id, t.get_name())
     rt.pumps.clear()
+
+
+async def board_changed(st: Any, d: DutRun, when: str) -> str | None:
+    """Is the board in this DUT's slot still the one its run started with? Asked `when` (at the
+    end of its run, before it is programmed): its identity is read again and compared (design
+    3.1). Returns the reason the run cannot stand, in words, or None. A board that does not answer
+    cannot be confirmed: its data may be another board's (a swap behind a port that stayed open)."""
+    drv = st.slots[d.slot].driver
+    if d.identity is None:
+        return None
+    if drv is None:
+        return f"{d.link}: the board's identity could not be read again {when}: link closed"
+    try:
+        now = await drv.identify(st.config.timing.identify_timeout_s)
+    except Exception as exc:  # noqa: BLE001 - whatever the driver raises, this run cannot be confirmed
+        return f"{d.link}: the board's identity could not be read again {when}: {exc}"
+    change = identity_change(d.identity, now)
+    if change is None:
+        return None
+    st.slots[d.slot].identity = now
+    if now.serial != d.identity.serial:
+        return (f"{d.slot} answers {now.serial} {when}, {d.identity.serial} at its start: "
+                f"a board swapped mid-run? ({change})")
+    return f"{d.slot}'s board changed {when}: {change} (firmware replaced or another board?)"
 
 
 async def ready_again(st: Any, rt: SlotRuntime) -> bool:
