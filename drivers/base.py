@@ -80,9 +80,23 @@ class LinkStats:
     bytes_skipped: int = 0  # garbage between frames
     samples_lost: int = 0  # sequence gaps
     errors_reported: int = 0  # `E,...` frames from the board
+    resets: int = 0  # the board restarted while streaming (its seq went back): StreamBreak "reset"
+    clock_jumps: int = 0  # its clock jumped while its seq ran on: StreamBreak "clock_jump"
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
+
+
+@dataclass(frozen=True)
+class StreamBreak:
+    """A stream that is no longer one timeline of one board (design 3.1): the board restarted
+    while streaming (`reset`: its seq went back, its clock with it) or its clock jumped while its
+    seq ran on (`clock_jump`). The station cannot join two timelines into one run: the samples
+    after a break are not delivered, and the DUT's run ends with `reason`."""
+
+    kind: str  # "reset" | "clock_jump"
+    at_t_s: float | None  # board time of the last sample before the break (None: none yet)
+    reason: str  # in words, for the operator and the record
 
 
 class BoardDriver(abc.ABC):
@@ -101,6 +115,12 @@ class BoardDriver(abc.ABC):
 
     @abc.abstractmethod
     async def stop(self) -> None: ...
+
+    def take_breaks(self) -> list[StreamBreak]:
+        """Stream breaks seen since the last call (the pump asks after every block). A link whose
+        frames carry no board clock (CAN, design 3.2: time is our own sample count) reports none:
+        a reset there shows as lost samples only."""
+        return []
 
     def discard_held(self) -> int:
         """Drop samples received but not yet read (returns how many): called before a NEW run

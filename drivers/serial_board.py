@@ -18,7 +18,7 @@ import time
 import numpy as np
 import serial
 
-from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats
+from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats, StreamBreak
 from drivers.protocol import serial_frames as sf
 from contracts.types import Identity, SampleBlock
 
@@ -58,6 +58,7 @@ class SerialBoard(BoardDriver):
         self._parser = sf.FrameParser(self.stats)
         self._seq = sf.SeqTracker(32)
         self._clock = sf.ClockUnwrapper()
+        self._timeline = sf.StreamTimeline()  # one board, one timeline: resets and clock jumps
         self._ser: serial.SerialBase | None = None
         self._fd: int | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -65,6 +66,8 @@ class SerialBoard(BoardDriver):
         self._running = False
         self._pending: list[tuple[int, int, int, int, int]] = []  # t_us, ax, ay, az, t
         self._pending_lost = 0
+        self._broken = False  # a StreamBreak was seen: samples are not taken until the next START
+        self._breaks: list[StreamBreak] = []
         self._data = asyncio.Event()
         self._error: DriverError | None = None
         self._ident_fut: asyncio.Future[Identity] | None = None
@@ -149,6 +152,16 @@ class SerialBoard(BoardDriver):
         got_samples = False
         for frame in self._parser.feed(data):
             if type(frame) is sf.SampleFrame:
+                if self._broken:  # after a break: not this run's timeline (until the next START)
+                    continue
+                line = self._timeline.check(frame.seq, frame.t_us)
+                if line == "skip":  # off its timeline, not confirmed: garbage that passed the checksum
+                    self.stats.frames_ok -= 1
+                    self.stats.frames_malformed += 1
+                    continue
+                if line in ("reset", "clock_jump"):
+                    self._stream_break(line, self._break_words(line))
+                    continue
                 lost = self._seq.update(frame.seq)
                 if lost:
                     self.stats.samples_lost += lost
@@ -180,6 +193,34 @@ class SerialBoard(BoardDriver):
                 self.stats.samples_lost += drop
                 self._pending_lost += drop
             self._data.set()
+
+    def _break_words(self, kind: str) -> str:
+        """The break in words: what the board's seq and clock did (StreamTimeline.broke)."""
+        if self._timeline.broke is None:
+            return "its stream broke"
+        (seq0, t0), (seq1, t1), off_us = self._timeline.broke
+        if kind == "reset":
+            return (f"the board restarted while streaming (seq {seq0} -> {seq1}, clock {t0 / 1e6:.1f} s -> "
+                    f"{t1 / 1e6:.1f} s): a reset (power, brown-out, watchdog)?")
+        return (f"its clock jumped {abs(off_us) / 1e6:.1f} s {'back' if off_us < 0 else 'forward'} while its seq "
+                f"ran on (seq {seq0} -> {seq1}): a clock fault?")
+
+    def _stream_break(self, kind: str, words: str) -> None:
+        """Stop taking samples of this stream (until the next START) and report the break once."""
+        self._broken = True
+        if kind == "reset":
+            self.stats.resets += 1
+        else:
+            self.stats.clock_jumps += 1
+        at = self.last_sample_t
+        where = f" after {at:.1f} s board time" if at is not None else ""
+        self._breaks.append(StreamBreak(kind, at, f"{self.port}: {words}{where}; one run is one board's "
+                                                  "one timeline: its run ends here"))
+        self._data.set()
+
+    def take_breaks(self) -> list[StreamBreak]:
+        out, self._breaks = self._breaks, []
+        return out
 
     def _write(self, raw: bytes) -> None:
         if self._error is not None:
@@ -250,7 +291,12 @@ class SerialBoard(BoardDriver):
         if self.identity is None:
             await self.identify()
         self._seq.reset()
-        self._clock.reset_period()  # the board may have been stopped for a while: no period to hold to
+        # a new stream: the board may have been stopped for a while (no period to hold to) or
+        # restarted meanwhile (programming, a power cycle between runs): its first sample starts a
+        # timeline; breaks count within one stream only
+        self._clock.restart()
+        self._timeline.restart()
+        self._broken = False
         await self._command(sf.cmd_start(), "START")
 
     def discard_held(self) -> int:
@@ -265,6 +311,7 @@ class SerialBoard(BoardDriver):
     async def set_odr(self, odr_hz: float) -> None:
         await self._command(sf.cmd_odr(odr_hz), "ODR")
         self._clock.reset_period()
+        self._timeline.restart()
         if self.identity is not None:
             self.identity = dataclasses.replace(self.identity, odr_hz=float(odr_hz))
 

@@ -210,8 +210,10 @@ def test_serial_checksum_valid_frames_are_samples_or_counted_malformed(serial_ri
 
 
 def test_a_corrupt_clock_value_on_the_wire_is_skipped_not_taken_as_a_wrap(serial_rig):
-    """Issue 10: `t_us = 0xFFFFFFFF` in one checksum-valid frame moved the DUT's time 4,295 s."""
-    t0 = 50_000_000
+    """Issue 10: `t_us = 0xFFFFFFFF` in one checksum-valid frame moved the DUT's time 4,295 s.
+    The frames are on the rig's one timeline (its sentinels' seq and clock): a stream on another
+    clock would be a clock jump, which ends a run (test_a_confirmed_clock_jump_or_reset_breaks_the_stream)."""
+    t0 = 1_000_000 + (serial_rig.seq + 1) * 20_000
     frames = b""
     for k in range(10):
         serial_rig.seq += 1

@@ -25,6 +25,8 @@ class LinkStats(_Out):
     bytes_skipped: int = Field(default=0, description="garbage bytes skipped between frames")
     samples_lost: int = Field(default=0, description="samples missing by sequence gaps")
     errors_reported: int = Field(default=0, description="error frames the board sent")
+    resets: int = Field(default=0, description="times the board restarted while streaming (its run ended there)")
+    clock_jumps: int = Field(default=0, description="times its clock jumped while its seq ran on (its run ended there)")
 
 
 class StepInfo(_Out):

@@ -414,6 +414,14 @@ class ClockUnwrapper:
         """The sample rate changed: learn the period again from the next step."""
         self.period_us = None
 
+    def restart(self) -> None:
+        """A new stream (START): its first sample starts the timeline, whatever the board's clock
+        did while it was stopped (a restart resets it); the wrap offset so far is kept."""
+        self.last = None
+        self.period_us = None
+        self._candidate = None
+        self._skipped_steps = 0
+
     def _follows(self, step_us: int, steps: int) -> bool:
         if step_us <= 0 or step_us >= self.WRAP // 2:
             return False
@@ -453,3 +461,95 @@ class ClockUnwrapper:
         self._skipped_steps += steps
         self.outliers += 1
         return None
+
+
+class StreamTimeline:
+    """Is a sample frame on its board's one timeline? (design 3.1: a run is one board's stream)
+
+    A board's seq and clock move together: seq +k, t_us +k sample periods. A frame off that line
+    is either garbage that passed the 8-bit checksum (1 in 256 corrupt lines does), a single one
+    that the next frames contradict, or the start of another timeline: the board restarted while
+    streaming (its seq went back; a reset by power, brown-out or watchdog) or its clock jumped
+    while its seq ran on. Only CONFIRM_FRAMES off-line frames that agree with EACH OTHER (seq +1,
+    t_us one period on) make a break; anything less is skipped as garbage, never fatal. A forward
+    gap in time (a board that stalled and took no samples, or lost frames) is a gap, not a break,
+    up to MAX_FORWARD_GAP_S: the line moves on, confirmed the same way.
+
+    `check(seq, t_us)` returns "ok" (feed the frame on), "skip" (off the line, not confirmed),
+    "gap" (a confirmed forward gap: feed the frame on) or "reset" / "clock_jump" (the frame
+    confirms a new timeline). `restart()` at every START and
+    ODR change: the first frames after it define the line.
+    """
+
+    CONFIRM_FRAMES = 3
+    TOLERANCE = 0.5  # of a sample period per seq step, plus 0.1 % of the step (clock drift)
+    MAX_FORWARD_GAP_S = 10.0
+    SEQ_MOD = 1 << 32
+    T_WRAP = 1 << 32
+
+    def __init__(self) -> None:
+        # the latest confirmed break: (seq, t_us) before it, the first frame after it, the new
+        # clock's offset from the old line in us
+        self.broke: tuple[tuple[int, int], tuple[int, int], float] | None = None
+        self.restart()
+
+    def restart(self) -> None:
+        self.last: tuple[int, int] | None = None  # (seq, t_us) of the last frame on the line
+        self.period_us: float | None = None
+        self._cand: list[tuple[int, int]] = []
+
+    def _dt_us(self, t_from: int, t_to: int) -> int:
+        if t_from < self.T_WRAP and t_to < self.T_WRAP:  # a 32-bit clock: steps modulo its wrap
+            d = (t_to - t_from) % self.T_WRAP
+            return d - self.T_WRAP if d >= self.T_WRAP // 2 else d
+        return t_to - t_from
+
+    def _on_line(self, a: tuple[int, int], b: tuple[int, int], period_us: float) -> bool:
+        k = (b[0] - a[0]) % self.SEQ_MOD
+        if k == 0 or k >= self.SEQ_MOD // 2:
+            return False
+        dt = self._dt_us(a[1], b[1])
+        expected = k * period_us
+        return abs(dt - expected) <= self.TOLERANCE * period_us + 1e-3 * expected
+
+    def check(self, seq: int, t_us: int) -> str:
+        frame = (seq % self.SEQ_MOD, t_us)
+        last = self.last
+        if last is None:
+            self.last = frame
+            return "ok"
+        if self.period_us is None:  # the second frame: the period, if it moves forward
+            k = (frame[0] - last[0]) % self.SEQ_MOD
+            dt = self._dt_us(last[1], frame[1])
+            if 0 < k < self.SEQ_MOD // 2 and dt > 0:
+                self.period_us = dt / k
+                self.last = frame
+                return "ok"
+            return self._candidate(frame, None)
+        if self._on_line(last, frame, self.period_us):
+            self.period_us += 0.05 * ((self._dt_us(last[1], frame[1]) / ((frame[0] - last[0]) % self.SEQ_MOD))
+                                      - self.period_us)
+            self.last, self._cand = frame, []
+            return "ok"
+        return self._candidate(frame, self.period_us)
+
+    def _candidate(self, frame: tuple[int, int], period_us: float | None) -> str:
+        cand = self._cand
+        if cand and (period_us is None or self._on_line(cand[-1], frame, period_us)) and \
+                0 < (frame[0] - cand[-1][0]) % self.SEQ_MOD < self.SEQ_MOD // 2:
+            cand.append(frame)
+        else:
+            self._cand = cand = [frame]
+        if len(cand) < self.CONFIRM_FRAMES:
+            return "skip"
+        last, period_us = self.last, self.period_us
+        assert last is not None
+        k = (cand[0][0] - last[0]) % self.SEQ_MOD
+        dt = self._dt_us(last[1], cand[0][1])
+        # what the break did: the frames it joins, and how far the new clock is off the old line
+        self.broke = (last, cand[0], dt - (k if k < self.SEQ_MOD // 2 else 0) * (period_us or 0.0))
+        self.restart()
+        self.last, self.period_us = frame, period_us
+        if 0 < k < self.SEQ_MOD // 2 and 0 < dt <= self.MAX_FORWARD_GAP_S * 1e6:
+            return "gap"  # the board took no samples for a while but counted on: the line moves on
+        return "reset" if k == 0 or k >= self.SEQ_MOD // 2 else "clock_jump"

@@ -153,7 +153,9 @@ class SimSerialBoard:
 
     `identity` gives the counts' scaling and the source sample rate (identity.odr_hz); ODR
     commands are honoured when they divide the source rate (decimation), else answered `E`.
-    Faults: inject_garbage, corrupt_next, stop_streaming, disconnect; on the calibration write
+    Faults: inject_garbage, corrupt_next, stop_streaming, disconnect, reset_streaming (a reset
+    that streams again by itself), jump_clock, swap_to (another board behind the same open
+    port); on the calibration write
     path `cal.flip_next_write`, `cal.refuse_writes`, `cal.drop_replies` (drivers.sim.board_nvm).
     Calibration ($CALW/$SFEW/$CALR/$SFER/$COMP) lives in `cal.nvm`, which `power_cycle()` keeps.
     """
@@ -180,6 +182,8 @@ class SimSerialBoard:
         self.sent_until_s: float | None = None  # plant time of the newest sample sent (the lead a reader has to catch up)
         self.cal = CalFirmware()
         self.power_cycles = 0
+        self._restart_at_s: float | None = None  # reset_streaming(): the clock restarts at the next sample
+        self._offset_counts = np.zeros(3, dtype=np.int64)  # swap_to(): another board's offsets
         # called as STOP takes effect, before its ack: what was already on its way goes out first
         # (a replay sends the recorded samples up to the recorded stop, drivers/sim/replay.py)
         self.on_stop: Callable[[], None] | None = None
@@ -214,6 +218,24 @@ class SimSerialBoard:
         self.identity = dataclasses.replace(self.identity, odr_hz=self.source_odr_hz)
         self.parser = sf.FrameParser(board_side=True)
         self.power_cycles += 1
+
+    def reset_streaming(self, boot_s: float = 0.05) -> None:
+        """The board resets (a brown-out, its watchdog) and, as some firmware does, streams again
+        by itself: seq from 0, its clock from `boot_s` after power-up (design 3.1: t_us is time
+        since power-up). Takes effect at the next sample fed."""
+        self._restart_at_s = float(boot_s)
+        self.seq = 0
+        self.power_cycles += 1
+
+    def jump_clock(self, seconds: float) -> None:
+        """The board's clock jumps by `seconds` (back when negative) while its seq runs on."""
+        self.t0_us += int(round(seconds * 1e6))
+
+    def swap_to(self, identity: Identity, offset_counts: tuple[int, int, int] = (0, 0, 0)) -> None:
+        """Another board now answers behind the same open port (its serial, its physics: here a
+        different offset per axis), its stream going on as if nothing happened."""
+        self.identity = dataclasses.replace(identity, odr_hz=self.identity.odr_hz)
+        self._offset_counts = np.asarray(offset_counts, dtype=np.int64)
 
     @property
     def connected(self) -> bool:
@@ -305,11 +327,14 @@ class SimSerialBoard:
         if len(sel) == 0:
             return
         self.sent_until_s = float(np.asarray(time_s)[sel[-1]])
+        if self._restart_at_s is not None:  # reset_streaming(): the clock starts again at power-up
+            self.t0_us = int(round((self._restart_at_s - float(np.asarray(time_s)[sel[0]])) * 1e6))
+            self._restart_at_s = None
         t_us_arr = np.round(np.asarray(time_s)[sel] * 1e6).astype(np.int64) + self.t0_us
         if self.clock_mask is not None:
             t_us_arr &= self.clock_mask
         t_us = t_us_arr.tolist()
-        acc_arr = np.asarray(acc_counts)[sel].astype(np.int64)
+        acc_arr = np.asarray(acc_counts)[sel].astype(np.int64) + self._offset_counts
         tc_arr = np.asarray(temp_counts)[sel].astype(np.int64)
         if self.cal.nvm.comp and self.compensates:  # on-board compensation with the board's own temperature
             acc_arr = self.cal.compensate_counts(acc_arr, self.identity.temp_c(tc_arr), self.identity.ug_per_lsb)
