@@ -90,6 +90,10 @@ async def pump(st: Any, seq: Sequencer, d: DutRun) -> None:
                         reason = f"{d.link}: no samples for {silent_s:.1f} s"
                     st.fault_dut(seq, d, reason)
                     return
+            breaks = drv.take_breaks()
+            if breaks:  # a reset or a clock jump: the samples before it are the run's, nothing after
+                st.fault_dut(seq, d, breaks[0].reason)
+                return
             # Pace the reads so that blocks are big enough to be cheap (update_batch).
             rest = period - (time.monotonic() - t_read)
             if rest > 0:

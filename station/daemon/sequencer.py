@@ -46,6 +46,13 @@ from station.daemon.safety import LampGuard, LampTripped
 log = logging.getLogger(__name__)
 
 LINK_LAG_S = 0.5  # wall seconds a board's samples may lag what it measures (buffers, read period)
+# A step's timeout runs on each DUT's own board clock (a link that delivers late is not judged by
+# the fastest board's clock), but never beyond this multiple of it on the station's clock (the
+# batch's sample clock since Done): a board clock that slowed or stopped while its seq ran on cannot
+# hold a step, and the lamp, for ever. 3: a link delivering at a third of the others' pace (a busy
+# CAN adapter, tests/test_sequencer.py) still logs its segment; a reset or a clock jump ends the
+# run at once (drivers StreamBreak), so this only bounds a clock that runs slow.
+STATION_CLOCK_FACTOR = 3.0
 
 
 class BatchFailed(Exception):
@@ -518,7 +525,11 @@ class Sequencer:
         # Each DUT's timeout runs on its own board clock: a link that delivers late (a busy
         # CAN adapter) is not judged by the fastest board's clock. A silent board is the
         # stall watchdog's (wall time) to fault.
-        late = [(d, e) for d in pending if (e := self._step_elapsed_s(d)) >= step.timeout_s]
+        # The station's clock bounds them all: a board whose own clock slowed or stopped while
+        # its seq ran on would otherwise hold the step (and the plate's lamp) for ever.
+        station_s = self.clock_s() - self.step_clock_start
+        late = [(d, e) for d in pending if (e := self._step_elapsed_s(d)) >= step.timeout_s
+                or station_s >= step.timeout_s * STATION_CLOCK_FACTOR]
         if not late:
             return False
         need = {"segment": "a segment", "static": f"{step.dwell_s:g} s static", "none": "its dwell",
@@ -530,6 +541,9 @@ class Sequencer:
             elif not d.at_step_position():
                 why = (f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {need}: the "
                        f"plate left {step.position_name} and it {plate_watch.facing_words(d)}")
+            elif elapsed < step.timeout_s:
+                why = (f"step '{step.name}' timed out without {need}: the station's clock ran {station_s:.0f} s "
+                       f"since Done, this board's own clock {elapsed:.0f} s (a board clock that slowed or stopped?)")
             else:
                 why = f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {need}"
             self.hw.fault_dut(self, d, why)
