@@ -86,7 +86,8 @@ class SerialBoard(BoardDriver):
         self._cmd_lock = asyncio.Lock()
         try:
             self._ser = await asyncio.to_thread(
-                serial.serial_for_url, self.port, baudrate=self.baudrate, timeout=0.1, write_timeout=1.0
+                serial.serial_for_url, self.port, baudrate=self.baudrate, timeout=0.1, write_timeout=1.0,
+                exclusive=True,  # posix: flock on the tty; a second process opening this board is refused
             )
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DriverError(f"cannot open serial port {self.port}: {exc}") from exc

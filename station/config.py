@@ -222,6 +222,10 @@ class StationConfig(_Model):
     replay_of: str | None = Field(default=None, max_length=256)
     # who issues the calibration certificates (optional; printed as "not configured" when empty)
     certificate: CertificateConfig = CertificateConfig()
+    # where the station's lock files of its ports, CAN channels and Modbus endpoints live (station/daemon/
+    # ownership.py: one station owns its hardware); default per user: $XDG_RUNTIME_DIR/accel-station or
+    # /tmp/accel-station-locks-<uid>. The SQLite database's lock file always sits next to the database.
+    lock_dir: str | None = Field(default=None, min_length=1, max_length=1024)
 
     @model_validator(mode="after")
     def _unique(self) -> "StationConfig":

@@ -4,6 +4,10 @@ Connects the Modbus instruments (an unreachable lamp relay, fixture, thermometer
 one-line error and exit 2), identifies every slot (a wrong port or a silent board faults only that
 slot and is reported on stderr), serves the REST API / operator page and runs batches. SIGINT and
 SIGTERM switch the lamp off before anything else, interrupt a running batch and exit.
+
+Before anything touches the database or the hardware, serve (and serve --check) claims every
+resource the config names (station/daemon/ownership.py): a station that is already running on them
+keeps them, and this process stops in one line naming its PID and host, having written nothing.
 """
 
 from __future__ import annotations
@@ -51,6 +55,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace, cfg) -> int:
+    from station.daemon.ownership import StationClaim
+
+    # First: the database, ports, relay and config this station owns. A running station keeps them
+    # (--check included: no database write, no Modbus write, no port opened).
+    claim = StationClaim.take(cfg, database_url=cfg.database_url, config_path=args.config,
+                              command="station serve --check" if args.check else "station serve")
+    try:
+        return await _serve(args, cfg, claim)
+    finally:
+        claim.release()
+
+
+async def _serve(args: argparse.Namespace, cfg, claim) -> int:
     from station.daemon.storage import open_database
     from station.daemon.supervisor import Station
 
@@ -66,7 +83,7 @@ async def _main(args: argparse.Namespace, cfg) -> int:
     from station.decisions.limits_audit import record_limit_changes
 
     record_limit_changes(db, cfg)  # a limit set edited in the config since the last start: audited
-    station = Station(cfg, db=db)
+    station = Station(cfg, db=db, claim=claim)
     server = task = None
     rc = 0
     try:

@@ -32,6 +32,7 @@ from station.config import StationConfig
 from station.daemon import batches, run_end, slots
 from station.daemon.batches import BatchRt
 from station.daemon.instruments import Links
+from station.daemon.ownership import StationClaim, database_url_of
 from station.daemon.program_verify import program_duts
 from station.daemon.progress import batch_extras
 from station.daemon.safety import LampGuard
@@ -66,8 +67,10 @@ class Station:
         bus: EventBus | None = None,
         calibrator_factory: Callable[[], Any] | None = None,
         analyse_results: bool = True,
+        claim: StationClaim | None = None,
     ) -> None:
         self.config = config
+        self.claim = claim  # taken at start() unless given (station serve takes it before the database)
         self.bus = bus or EventBus()
         self.db = db if db is not None else open_database(None, station=config.name)
         self.storage = Storage(self.db, self.bus)
@@ -108,6 +111,8 @@ class Station:
         identified is only marked faulted (the other slots still work).
         """
         cfg = self.config
+        if self.claim is None:  # one station owns its database, ports and relay (ownership.py): first
+            self.claim = StationClaim.take(cfg, database_url=database_url_of(self.db))
         relay = await self.links.modbus_device("lamp", cfg.lamp)
         self.thermometer = await self.links.modbus_device("thermometer", cfg.thermometer) if cfg.thermometer else None
         self.fixture = await self.links.modbus_device("fixture", cfg.fixture) if cfg.fixture else None
@@ -154,6 +159,9 @@ class Station:
             await slot.close_driver()
         await self.links.close()
         await self.storage.stop()
+        if self.claim is not None:  # the last thing: nothing of this station is in use any more
+            self.claim.release()
+            self.claim = None
 
     async def __aenter__(self) -> "Station":
         await self.start()
