@@ -82,6 +82,7 @@ class LinkStats:
     errors_reported: int = 0  # `E,...` frames from the board
     resets: int = 0  # the board restarted while streaming (its seq went back): StreamBreak "reset"
     clock_jumps: int = 0  # its clock jumped while its seq ran on: StreamBreak "clock_jump"
+    frames_after_break: int = 0  # sample frames of another timeline (from the one that confirmed a break to the next START): not taken
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

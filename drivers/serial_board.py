@@ -39,6 +39,8 @@ class SerialBoard(BoardDriver):
     url_or_port: "/dev/ttyACM0", "/dev/pts/7", "socket://host:port", "loop://", ...
     ack_timeout_s/retries: a command without `A` reply is re-sent this many times, then
     DriverError. An `E` reply to a command raises DriverError with the board's text.
+    speed: plant time per wall second (config timing.speed; 1 on real hardware): how long a silence
+    on the wire explains a forward step of the board's clock (StreamTimeline).
     """
 
     def __init__(
@@ -48,6 +50,7 @@ class SerialBoard(BoardDriver):
         *,
         ack_timeout_s: float = 0.5,
         retries: int = 3,
+        speed: float = 1.0,
     ) -> None:
         self.port = url_or_port
         self.baudrate = baudrate
@@ -58,7 +61,7 @@ class SerialBoard(BoardDriver):
         self._parser = sf.FrameParser(self.stats)
         self._seq = sf.SeqTracker(32)
         self._clock = sf.ClockUnwrapper()
-        self._timeline = sf.StreamTimeline()  # one board, one timeline: resets and clock jumps
+        self._timeline = sf.StreamTimeline(speed)  # one board, one timeline: resets and clock jumps
         self._ser: serial.SerialBase | None = None
         self._fd: int | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -154,14 +157,16 @@ class SerialBoard(BoardDriver):
         for frame in self._parser.feed(data):
             if type(frame) is sf.SampleFrame:
                 if self._broken:  # after a break: not this run's timeline (until the next START)
+                    self.stats.frames_after_break += 1
                     continue
-                line = self._timeline.check(frame.seq, frame.t_us)
+                line = self._timeline.check(frame.seq, frame.t_us, self.last_rx_wall)
                 if line == "skip":  # off its timeline, not confirmed: garbage that passed the checksum
                     self.stats.frames_ok -= 1
                     self.stats.frames_malformed += 1
                     continue
                 if line in ("reset", "clock_jump"):
                     self._stream_break(line, self._break_words(line))
+                    self.stats.frames_after_break += 1
                     continue
                 lost = self._seq.update(frame.seq)
                 if lost:
@@ -292,10 +297,10 @@ class SerialBoard(BoardDriver):
         if self.identity is None:
             await self.identify()
         self._seq.reset()
-        # a new stream: the board may have been stopped for a while (no period to hold to) or
-        # restarted meanwhile (programming, a power cycle between runs): its first sample starts a
-        # timeline; breaks count within one stream only
-        self._clock.restart()
+        # a new stream: the board may have been stopped for a while (no period to hold to; its
+        # 32-bit clock may have wrapped meanwhile, which the unwrapper still joins) or restarted
+        # (programming, a power cycle between runs): breaks count within one stream only
+        self._clock.reset_period()
         self._timeline.restart()
         self._broken = False
         await self._command(sf.cmd_start(), "START")

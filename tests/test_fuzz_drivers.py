@@ -42,6 +42,18 @@ FUZZ = settings(max_examples=400, deadline=None, database=None, derandomize=True
 _U32, _U64, _I32 = (1 << 32) - 1, (1 << 64) - 1, (1 << 31)
 
 
+def _checksum_valid_sample(line: bytes) -> bool:
+    """A `$D,...*HH` line whose checksum holds (the parser may still find its fields malformed)."""
+    line = line.strip()
+    if not (line.startswith(b"$D,") and len(line) > 4 and line[-3:-2] == b"*"):
+        return False
+    body, hh = line[1:-3], line[-2:]
+    try:
+        return sf.checksum(body) == int(hh, 16)
+    except ValueError:
+        return False
+
+
 def _all_finite(block) -> bool:
     return bool(np.isfinite(block.time_s).all() and np.isfinite(block.acc_g).all() and np.isfinite(block.temp_c).all())
 
@@ -88,7 +100,25 @@ class SerialRig:
 
     async def _example(self, data: bytes):
         """Writes data, then three sentinels 20 ms apart: whatever clock the garbage left behind,
-        the third is taken (see ClockUnwrapper), and the read ends when it is out."""
+        the third is taken (see ClockUnwrapper), and the read ends when it is out. Garbage holding
+        three or more checksum-valid sample frames of another timeline is a stream break (a reset
+        or a clock jump, design 3.1): the station then ends the run and the next run STARTs the
+        stream again, so the rig does the same and sends its sentinels once more."""
+        self.sentinel_batches = 1
+        blocks, found, breaks = await self._send_and_read(data)
+        if not found:
+            assert breaks, f"sentinel not received after {data!r} (no stream break reported)"
+            valid = sum(1 for line in data.split(b"\n") if _checksum_valid_sample(line))
+            assert valid >= sf.StreamTimeline.CONFIRM_FRAMES, f"a break from {valid} valid frames: {data!r}"
+            await self._restart()
+            self.sentinel_batches = 2
+            more, found, _ = await self._send_and_read(b"")
+            blocks += more
+        if not found:
+            raise AssertionError(f"sentinel not received after {data!r} and a restart")
+        return blocks
+
+    async def _send_and_read(self, data: bytes):
         sentinels = b""
         for k in range(3):
             self.seq = (self.seq + 1) % (1 << 32)
@@ -100,8 +130,18 @@ class SerialRig:
             blk = await self.board.read_block(0.25)  # never raises: the link is up
             blocks.append(blk)
             if len(blk) and np.any(np.isclose(blk.acc_g[:, 0], (SENTINEL_COUNTS + 2) * 60e-6)):
-                return blocks
-        raise AssertionError(f"sentinel not received after {data!r}")
+                return blocks, True, []
+            breaks = self.board.take_breaks()
+            if breaks:
+                return blocks, False, breaks
+        return blocks, False, []
+
+    async def _restart(self) -> None:
+        """START, acknowledged like the firmware: a new stream, a new timeline."""
+        started = asyncio.ensure_future(self.board.start())
+        await asyncio.sleep(0.05)
+        await self.write(sf.AckFrame("START").encode())
+        await started
 
     def run(self, data: bytes):
         self.examples += 1
@@ -202,10 +242,13 @@ def test_serial_checksum_valid_frames_are_samples_or_counted_malformed(serial_ri
     blocks = serial_rig.run(data)
     s1 = serial_rig.board.stats.as_dict()
     n_samples, n_sentinels = _split_sentinels(blocks)
+    # frames of another timeline once three of them confirmed a break: neither samples nor malformed
+    after = s1["frames_after_break"] - s0["frames_after_break"]
+    sent = n_frames + 3 * serial_rig.sentinel_batches
     assert all(_all_finite(b) for b in blocks)
     assert 1 <= n_sentinels <= 3 and n_samples <= n_valid
-    assert s1["frames_ok"] - s0["frames_ok"] == n_samples + n_sentinels
-    assert s1["frames_malformed"] - s0["frames_malformed"] == (n_frames - n_samples) + (3 - n_sentinels)
+    assert s1["frames_ok"] - s0["frames_ok"] == n_samples + n_sentinels + after
+    assert s1["frames_malformed"] - s0["frames_malformed"] == sent - n_samples - n_sentinels - after
     assert s1["frames_bad_checksum"] == s0["frames_bad_checksum"]
 
 

@@ -129,10 +129,12 @@ async def test_the_driver_reports_a_break_once_counts_it_and_delivers_nothing_af
         assert words in b.reason, b.reason
         stats = drv.stats.as_dict()
         assert (stats["resets"], stats["clock_jumps"]) == ((1, 0) if fault == "reset" else (0, 1))
-        # the next run (START) starts a new timeline: its samples are taken again
+        assert stats["frames_after_break"] >= 1  # counted, not taken
+        # the next run (START) starts a new timeline: its samples are taken again (the clock
+        # unwrapper spends at most one sample on a clock that moved back while it was stopped)
         await drv.start()
         await _stream(board, t + 2.0, 20)
-        assert len(await _read_all(drv)) == 20 and not drv.take_breaks()
+        assert len(await _read_all(drv)) >= 19 and not drv.take_breaks()
     finally:
         await drv.close()
         board.close()

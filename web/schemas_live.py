@@ -27,6 +27,7 @@ class LinkStats(_Out):
     errors_reported: int = Field(default=0, description="error frames the board sent")
     resets: int = Field(default=0, description="times the board restarted while streaming (its run ended there)")
     clock_jumps: int = Field(default=0, description="times its clock jumped while its seq ran on (its run ended there)")
+    frames_after_break: int = Field(default=0, description="sample frames of another timeline after a reset or clock jump, not taken")
 
 
 class StepInfo(_Out):

@@ -414,14 +414,6 @@ class ClockUnwrapper:
         """The sample rate changed: learn the period again from the next step."""
         self.period_us = None
 
-    def restart(self) -> None:
-        """A new stream (START): its first sample starts the timeline, whatever the board's clock
-        did while it was stopped (a restart resets it); the wrap offset so far is kept."""
-        self.last = None
-        self.period_us = None
-        self._candidate = None
-        self._skipped_steps = 0
-
     def _follows(self, step_us: int, steps: int) -> bool:
         if step_us <= 0 or step_us >= self.WRAP // 2:
             return False
@@ -472,8 +464,14 @@ class StreamTimeline:
     streaming (its seq went back; a reset by power, brown-out or watchdog) or its clock jumped
     while its seq ran on. Only CONFIRM_FRAMES off-line frames that agree with EACH OTHER (seq +1,
     t_us one period on) make a break; anything less is skipped as garbage, never fatal. A forward
-    gap in time (a board that stalled and took no samples, or lost frames) is a gap, not a break,
-    up to MAX_FORWARD_GAP_S: the line moves on, confirmed the same way.
+    step in time is a gap, not a break, when it is short (MAX_FORWARD_GAP_S) or when the board
+    was really silent that long: its frames before and after the step arrived that far apart on the
+    station's clock (wall seconds x `speed`, the plant time per wall second: 1 on real hardware). A
+    board that stalled and took no samples, counting the frames it sends, is silent for as long as
+    its clock moves on; a clock that jumps forward is not.
+
+    Until CONFIRM_FRAMES frames in a row agree, there is no line yet (a stream's first frames, or
+    garbage among them) and nothing to break: every frame is fed on.
 
     `check(seq, t_us)` returns "ok" (feed the frame on), "skip" (off the line, not confirmed),
     "gap" (a confirmed forward gap: feed the frame on) or "reset" / "clock_jump" (the frame
@@ -487,7 +485,8 @@ class StreamTimeline:
     SEQ_MOD = 1 << 32
     T_WRAP = 1 << 32
 
-    def __init__(self) -> None:
+    def __init__(self, speed: float = 1.0) -> None:
+        self.speed = float(speed)
         # the latest confirmed break: (seq, t_us) before it, the first frame after it, the new
         # clock's offset from the old line in us
         self.broke: tuple[tuple[int, int], tuple[int, int], float] | None = None
@@ -495,8 +494,11 @@ class StreamTimeline:
 
     def restart(self) -> None:
         self.last: tuple[int, int] | None = None  # (seq, t_us) of the last frame on the line
+        self.last_wall_s: float | None = None  # when it arrived (the station's monotonic clock)
         self.period_us: float | None = None
+        self._n_on_line = 0  # frames on the line in a row: under CONFIRM_FRAMES it is not a line yet
         self._cand: list[tuple[int, int]] = []
+        self._cand_wall_s: float | None = None  # when the first off-line frame arrived
 
     def _dt_us(self, t_from: int, t_to: int) -> int:
         if t_from < self.T_WRAP and t_to < self.T_WRAP:  # a 32-bit clock: steps modulo its wrap
@@ -512,44 +514,68 @@ class StreamTimeline:
         expected = k * period_us
         return abs(dt - expected) <= self.TOLERANCE * period_us + 1e-3 * expected
 
-    def check(self, seq: int, t_us: int) -> str:
+    def check(self, seq: int, t_us: int, wall_s: float | None = None) -> str:
+        """wall_s: when the frame arrived (time.monotonic()); None: unknown (no gap is explained)."""
         frame = (seq % self.SEQ_MOD, t_us)
         last = self.last
-        if last is None:
-            self.last = frame
-            return "ok"
-        if self.period_us is None:  # the second frame: the period, if it moves forward
-            k = (frame[0] - last[0]) % self.SEQ_MOD
-            dt = self._dt_us(last[1], frame[1])
-            if 0 < k < self.SEQ_MOD // 2 and dt > 0:
-                self.period_us = dt / k
-                self.last = frame
-                return "ok"
-            return self._candidate(frame, None)
-        if self._on_line(last, frame, self.period_us):
+        if last is not None and self.period_us is not None and self._on_line(last, frame, self.period_us):
             self.period_us += 0.05 * ((self._dt_us(last[1], frame[1]) / ((frame[0] - last[0]) % self.SEQ_MOD))
                                       - self.period_us)
-            self.last, self._cand = frame, []
+            self.last, self.last_wall_s, self._cand = frame, wall_s, []
+            self._n_on_line += 1
             return "ok"
-        return self._candidate(frame, self.period_us)
+        if self._n_on_line < self.CONFIRM_FRAMES:
+            # No line yet (the stream's first frames, or garbage among them): nothing to break.
+            # The line is learned again from the last frame to this one when both move forward.
+            forward = last is not None and 0 < (frame[0] - last[0]) % self.SEQ_MOD < self.SEQ_MOD // 2 \
+                and self._dt_us(last[1], frame[1]) > 0
+            if forward:
+                assert last is not None
+                self.period_us = self._dt_us(last[1], frame[1]) / ((frame[0] - last[0]) % self.SEQ_MOD)
+                self._n_on_line = 2
+            else:
+                self.period_us, self._n_on_line = None, 1
+            self.last, self.last_wall_s, self._cand = frame, wall_s, []
+            return "ok"
+        return self._candidate(frame, wall_s)
 
-    def _candidate(self, frame: tuple[int, int], period_us: float | None) -> str:
+    def _cand_period_us(self) -> float | None:
+        """The period the candidates draw (their own: a restarted board may run another ODR)."""
         cand = self._cand
-        if cand and (period_us is None or self._on_line(cand[-1], frame, period_us)) and \
-                0 < (frame[0] - cand[-1][0]) % self.SEQ_MOD < self.SEQ_MOD // 2:
+        if len(cand) < 2:
+            return None
+        return self._dt_us(cand[0][1], cand[1][1]) / ((cand[1][0] - cand[0][0]) % self.SEQ_MOD)
+
+    def _candidate(self, frame: tuple[int, int], wall_s: float | None) -> str:
+        cand = self._cand
+        agrees = False
+        if cand:
+            k = (frame[0] - cand[-1][0]) % self.SEQ_MOD
+            own = self._cand_period_us()
+            if own is None:  # the second candidate: forward in seq and in time
+                agrees = 0 < k < self.SEQ_MOD // 2 and self._dt_us(cand[-1][1], frame[1]) > 0
+            else:
+                agrees = own > 0 and self._on_line(cand[-1], frame, own)
+        if agrees:
             cand.append(frame)
+        elif len(cand) >= 2 and 0 < (frame[0] - cand[-1][0]) % self.SEQ_MOD < self.SEQ_MOD // 2 \
+                and self._dt_us(cand[-1][1], frame[1]) > 0:
+            self._cand = cand = [cand[-1], frame]  # the run may start at the last one (garbage before it)
         else:
-            self._cand = cand = [frame]
+            self._cand, self._cand_wall_s = [frame], wall_s
+            cand = self._cand
         if len(cand) < self.CONFIRM_FRAMES:
             return "skip"
         last, period_us = self.last, self.period_us
         assert last is not None
         k = (cand[0][0] - last[0]) % self.SEQ_MOD
         dt = self._dt_us(last[1], cand[0][1])
-        # what the break did: the frames it joins, and how far the new clock is off the old line
+        silent_s = None if self._cand_wall_s is None or self.last_wall_s is None else self._cand_wall_s - self.last_wall_s
+        gap_max_s = self.MAX_FORWARD_GAP_S + (0.0 if silent_s is None else 1.5 * silent_s * self.speed)
         self.broke = (last, cand[0], dt - (k if k < self.SEQ_MOD // 2 else 0) * (period_us or 0.0))
+        own = self._cand_period_us()
         self.restart()
-        self.last, self.period_us = frame, period_us
-        if 0 < k < self.SEQ_MOD // 2 and 0 < dt <= self.MAX_FORWARD_GAP_S * 1e6:
+        self.last, self.last_wall_s, self.period_us, self._n_on_line = frame, wall_s, own, len(cand)
+        if 0 < k < self.SEQ_MOD // 2 and 0 < dt <= gap_max_s * 1e6:
             return "gap"  # the board took no samples for a while but counted on: the line moves on
         return "reset" if k == 0 or k >= self.SEQ_MOD // 2 else "clock_jump"

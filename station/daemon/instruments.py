@@ -37,7 +37,8 @@ DEVICE_CLASSES = {
 class Links:
     """Every open link of one daemon, closed together when the station closes."""
 
-    def __init__(self) -> None:
+    def __init__(self, speed: float = 1.0) -> None:
+        self.speed = speed  # plant time per wall second (timing.speed): serial boards time silences with it
         self.modbus: dict[tuple, Any] = {}
         self.can_buses: dict[tuple, Any] = {}
 
@@ -82,7 +83,7 @@ class Links:
     async def board_driver(self, cfg: SlotConfig) -> BoardDriver:
         """A driver for the slot's board (not yet opened, except the shared CAN bus)."""
         if cfg.serial is not None:
-            return SerialBoard(cfg.serial)
+            return SerialBoard(cfg.serial, speed=self.speed)
         c = cfg.can
         assert c is not None
         key = (c.interface, c.channel, c.bitrate)

@@ -74,7 +74,7 @@ class Station:
         self.bus = bus or EventBus()
         self.db = db if db is not None else open_database(None, station=config.name)
         self.storage = Storage(self.db, self.bus)
-        self.links = Links()
+        self.links = Links(config.timing.speed)
         self.profiles_by_name: dict[str, Profile] = all_profiles(config)
         self.slots: dict[str, SlotRuntime] = {s.name: SlotRuntime(s) for s in config.slots}
         self.batches: dict[int, BatchRt] = {}
