@@ -81,6 +81,28 @@ def test_a_short_forward_gap_with_the_seq_running_on_is_a_gap_not_a_break():
     assert "reset" not in out and "clock_jump" not in out and out[12] == "gap", out
 
 
+@pytest.mark.parametrize("silent_wall_s, expect", [(1.0, "gap"), (0.05, "clock_jump")])
+def test_a_long_forward_step_is_a_gap_only_when_the_board_was_silent_that_long(silent_wall_s, expect):
+    """x100 (timing.speed): 82 s of sample time forward with the seq running on is a board that took
+    no samples for 0.8 s of wall time (a muted sensor, a stalled firmware) when its frames really
+    stopped for that long; arriving 50 ms after the one before, it is a clock that jumped."""
+    tl = StreamTimeline(speed=100.0)
+    frames = _steady(10)
+    wall = [k * 0.0032 for k in range(10)]  # 3.125 Hz at x100
+    seq, t = frames[-1]
+    frames += [(seq + 1 + k, t + 82_000_000 + k * PERIOD_US) for k in range(3)]
+    wall += [wall[-1] + silent_wall_s + k * 0.0032 for k in range(3)]
+    out = [tl.check(q, u, w) for (q, u), w in zip(frames, wall)]
+    assert out[10:] == ["skip", "skip", expect], out
+
+
+def test_garbage_before_a_stream_has_a_line_breaks_nothing():
+    """Six copies of one checksum-valid frame, then the real stream: no line existed to break."""
+    tl = StreamTimeline()
+    out = _feed(tl, [(0, 0)] * 6 + _steady(6, seq0=1, t0=1_020_000))
+    assert "reset" not in out and "clock_jump" not in out and out[-3:] == ["ok"] * 3, out
+
+
 # ---------------------------------------------------------------------------------- on the wire
 IDENT = Identity(serial="TL0001", sensor="LIS3DSH", fw="1.0", ug_per_lsb=60.0, t_lsb_per_c=1.0,
                  t_lsb_at_25c=0.0, odr_hz=50.0)
