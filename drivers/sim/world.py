@@ -175,6 +175,10 @@ class SimWorld:
         self._t_on = np.zeros(n)
         # hidden effects as arrays (zeros where off)
         self._fx = self._effect_arrays()
+        # temperature sensor faults armed by tests (stick_temp_sensor, temp_sensor_reads): DUT index ->
+        # [from sample time, the count it reports from then (None: stuck, taken from the reading before)]
+        self._temp_faults: dict[int, list] = {}
+        self._last_temp_count: list[int | None] = [None] * n
 
     # --- properties ---------------------------------------------------------------------------
     @property
@@ -234,6 +238,37 @@ class SimWorld:
         """
         self._t_on[i] = self.time_s
         self._heat[i] *= float(np.exp(-float(off_s) / self._sh_tau[i]))
+
+    # --- temperature sensor faults (armed by tests) -------------------------------------------
+    def stick_temp_sensor(self, i: int, from_s: float | None = None) -> None:
+        """DUT i's temperature sensor sticks from sample time from_s (default: the next sample) at
+        its reading just before: its board reports that count ever after (a serial board and a CAN
+        board alike: both send the counts made here). The die and the MEMS go on heating."""
+        self._temp_faults[int(i)] = [self.time_s if from_s is None else float(from_s), None]
+
+    def temp_sensor_reads(self, i: int, temp_c: float, from_s: float | None = None) -> None:
+        """DUT i's temperature sensor reads temp_c (as counts, clipped to the sensor's word) from
+        sample time from_s (default: the next sample) on, whatever the die's temperature."""
+        tc = np.rint((float(temp_c) - T_REF_C) * self._t_lsb_per_c[i] + self._t_lsb_at_25[i])
+        count = int(np.clip(tc, *self._t_lim[i]))
+        self._temp_faults[int(i)] = [self.time_s if from_s is None else float(from_s), count]
+
+    def heal_temp_sensor(self, i: int) -> None:
+        """DUT i's temperature sensor reads the die again from the next sample on."""
+        self._temp_faults.pop(int(i), None)
+
+    def _temp_fault(self, i: int, time_s: np.ndarray, counts: np.ndarray) -> None:
+        """Apply DUT i's armed sensor fault to its counts of this chunk (in place)."""
+        fault = self._temp_faults.get(i)
+        if fault is None or not counts.size:
+            return
+        m = int(np.searchsorted(time_s, fault[0] - 1e-9))
+        if m >= counts.size:
+            return
+        if fault[1] is None:  # stuck at the reading before from_s (the chunk's first if none came before)
+            prev = counts[m - 1] if m > 0 else self._last_temp_count[i]
+            fault[1] = int(counts[m] if prev is None else prev)
+        counts[m:] = fault[1]
 
     # --- hidden effects -----------------------------------------------------------------------
     def _effect_arrays(self) -> dict[str, np.ndarray]:
@@ -388,6 +423,10 @@ class SimWorld:
             t = die[i] + z[:, 3] * self._tnoise[i]
             tc = np.rint((t - T_REF_C) * self._t_lsb_per_c[i] + self._t_lsb_at_25[i])
             temp_counts[i] = np.clip(tc, *self._t_lim[i]).astype(np.int64)
+            if self._temp_faults:
+                self._temp_fault(i, time_s, temp_counts[i])
+            if n:
+                self._last_temp_count[i] = int(temp_counts[i, -1])
         return WorldChunk(
             time_s=time_s,
             acc_counts=acc_counts,

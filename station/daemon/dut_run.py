@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from contracts.types import Identity, SampleBlock, Segment
+from station.daemon.temp_watch import TempFinding, TempWatch
 from station.profiles import Step
 from station.science.placement import Placement, same_direction
 
@@ -84,6 +85,8 @@ class DutRun:
     program: dict | None = None  # program and verify: what was written and read back (CRC, comp)
     verification: dict | None = None  # program and verify: verified drift error E (science.verify)
     steps_done: int = 0  # steps this DUT completed while live (the page's progress dots, issue 9)
+    # Is its temperature sensor believable (stuck, implausible)? station/daemon/temp_watch.py
+    temp_watch: TempWatch = field(default_factory=TempWatch)
 
     @property
     def serial(self) -> str | None:
@@ -120,6 +123,18 @@ class DutRun:
             "verification": self.verification,
             "steps_done": self.steps_done,
         }
+
+    def watch_temp(self, block: SampleBlock, lamp_on: bool, live: list["DutRun"],
+                   plate_temp_c: float | None) -> tuple[float | None, TempFinding | None]:
+        """Show the block's temperatures to this DUT's sensor watch (the other live DUTs are its
+        peers; how far its samples are behind the fastest of them is its lag): (the hottest reading
+        the over-temperature check may believe or None, a finding that its sensor is stuck or
+        implausible or None)."""
+        peers = [p.temp_watch for p in live if p is not self]
+        lag_s = max((p.elapsed_s for p in live), default=0.0) - self.elapsed_s
+        finding = self.temp_watch.update(block.time_s, block.temp_c, lamp_on=lamp_on, lag_s=lag_s,
+                                         peers=peers, plate_temp_c=plate_temp_c)
+        return self.temp_watch.trusted_max_c, finding
 
     def temp_rise_c(self, t_from: float, n_edge: int = 8) -> float:
         """How far this DUT's own temperature has risen since board time t_from (a heat step):

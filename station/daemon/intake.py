@@ -133,7 +133,13 @@ def ingest(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock) -> None:
     lamp = st.lamp
     assert lamp is not None
     lamp.note_sample_time(seq.clock_s())
-    lamp.check_dut_temp(d.slot, float(np.max(block.temp_c)))
+    # A stuck or implausible temperature sensor faults this DUT alone, and a reading it cannot
+    # believe trips no lamp for the plate (station/daemon/temp_watch.py).
+    hot_c, finding = d.watch_temp(block, lamp.is_on, seq.live_duts, lamp.plate_temp_c)
+    if finding is not None:
+        st.fault_dut(seq, d, finding.reason)
+    elif hot_c is not None:
+        lamp.check_dut_temp(d.slot, hot_c)
     seq.notify()
 
 
