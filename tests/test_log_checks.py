@@ -261,3 +261,18 @@ def test_memory_stays_about_the_arrays(tmp_path):
     assert int(rows) == n
     print(f"{size_mb:.0f} MB log: peak grew by {float(grew_mb):.0f} MB (arrays {arrays_mb:.0f} MB)")
     assert float(grew_mb) < 2.0 * arrays_mb, (grew_mb, arrays_mb)  # before: ~11x (430 MB here)
+
+
+def test_replay_of_logs_refuses_a_serial_the_station_would_refuse(rec, tmp_path):
+    """A log's serial (its `# serial:` or its file name) becomes the replayed board's identity: one
+    the station's identity rules refuse (design 3.1: empty, over 32 characters, not a serial) is a
+    clear error before the replay starts, not a batch whose only board is stopped."""
+    from station.replay.recording import from_logs
+
+    for serial, words in (("my log 1", "not a serial"), ("X" * 40, "40-character serial")):
+        write_log(tmp_path / "a.csv", _dut(rec, meta={**META, "serial": serial}))
+        with pytest.raises(StationError) as err:
+            from_logs([tmp_path / "a.csv"], profile="fast-thermal", compare=False)
+        assert words in str(err.value) and "# serial:" in str(err.value), str(err.value)
+    write_log(tmp_path / "a.csv", _dut(rec, meta={**META, "serial": "LOG-0001"}))
+    assert from_logs([tmp_path / "a.csv"], profile="fast-thermal", compare=False).duts[0].serial == "LOG-0001"

@@ -23,6 +23,7 @@ import numpy as np
 from contracts.logfile import DutLog, read_log
 from contracts.recording import LOG_T_LSB_PER_C, LOG_UG_PER_LSB, RecordedDut, Recording, to_counts
 from contracts.types import Identity, StationError
+from station.daemon.identity_check import serial_problem
 
 
 def _identity(d: dict[str, Any], serial: str) -> Identity:
@@ -200,12 +201,15 @@ def from_logs(paths: list[str | Path], profile: str | None = None, compare: bool
         if np.any(np.diff(log.time_s) <= 0):
             raise StationError(f"{p}: sample times must increase")
         serial = log.serial or Path(p).stem
+        problem = serial_problem(serial)
+        if problem is not None:  # the replayed board would be refused at the batch's start (design 3.1)
+            raise StationError(f"{p}: the log's serial {problem}; give it a '# serial:' line the station accepts")
         if serial in seen:
             raise StationError(f"{p}: serial {serial} is in two logs")
         seen.add(serial)
         if log.meta.get("profile"):
             prof_meta.add(log.meta["profile"])
-        ident = Identity(serial=serial[:32], sensor=(log.meta.get("sensor") or "LOG")[:16], fw="replay",
+        ident = Identity(serial=serial, sensor=(log.meta.get("sensor") or "LOG")[:16], fw="replay",
                          ug_per_lsb=LOG_UG_PER_LSB, t_lsb_per_c=LOG_T_LSB_PER_C, t_lsb_at_25c=0.0, odr_hz=_odr_of(log))
         acc, tc = to_counts(ident, np.round(log.acc_g, 7), np.round(log.temp_c, 4), str(p))
         logs.append(log)
