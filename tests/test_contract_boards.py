@@ -413,6 +413,10 @@ async def test_two_boards_with_one_serial_are_stopped_before_the_lamp(tmp_path):
     boards = [ContractBoard("SIM0001", seed=1), ContractBoard("SIM0001", seed=2), ContractBoard("CT-0003", seed=3)]
     async with station_with(tmp_path, boards) as (st, db, plant, server):
         print("slots at start:", [(s["slot"], s["state"], s["serial"], s["fault_reason"]) for s in st.slots_status()])
+        # before Start, GET /api/slots already says why a batch would stop the two (the page shows it)
+        why = {s["slot"]: s.get("identity_problem") for s in st.slots_status()}
+        assert why["s03"] is None and all("s01 and s02" in (why[k] or "") and "SIM0001" in (why[k] or "")
+                                          for k in ("s01", "s02")), why
         bid = st.start_batch("fast-thermal", None, "pytest")
         plant.observe = lambda: runs_view(st, bid)
         timeline = await watch_batch(st, bid, plant, ["s01", "s02"], observe_s=8.0, deadline_s=40.0)

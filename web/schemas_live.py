@@ -343,6 +343,9 @@ class SlotOut(_Out):
     error: str | None = Field(default=None, description="fault reason, when faulted")
     link_stats: LinkStats | None = Field(default=None, description="the link's counters")
     label_serial: str | None = Field(default=None, description="serial scanned from the part's label for this slot")
+    identity_problem: str | None = Field(default=None, description="why a batch would stop this identified slot before "
+                                         "heating (design 3.1): a serial another identified slot reports too, an "
+                                         "empty or invalid one; null when none")
 
 
 class LampHealth(_Out):

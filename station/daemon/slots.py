@@ -272,10 +272,17 @@ async def ready_again(st: Any, rt: SlotRuntime) -> bool:
 
 
 def slots_status(st: Any) -> list[dict]:
-    """Every slot as GET /api/slots shows it: inside a running batch, its DUT run's state."""
+    """Every slot as GET /api/slots shows it: inside a running batch, its DUT run's state. An
+    identified slot whose serial a batch of all identified slots would refuse (identity_check:
+    shared with another slot, empty, invalid) carries `identity_problem`, so the page says so
+    before Start."""
+    ready = {rt.cfg.name: rt.identity.serial for rt in st.slots.values()
+             if rt.state == "identified" and rt.identity is not None}
+    problems = batch_identity_problems(ready)
     out = []
     for rt in st.slots.values():
         s = rt.status()
+        s["identity_problem"] = problems.get(rt.cfg.name)
         if rt.batch_id is not None and rt.batch_id in st.batches:
             seq = st.batches[rt.batch_id].seq
             for d in seq.duts:

@@ -65,8 +65,11 @@ function renderSlotPicks(slots, retest = null) {
     const box = el("input", { type: "checkbox", value: s.slot, checked: on ? "checked" : null,
       disabled: retest && !on ? "disabled" : null, onchange: () => { label.disabled = !box.checked; } });
     const row = el("div", { class: "slot-row", "data-state": s.state || "" }, el("label", { class: "slot-pick" }, box, s.slot), label);
-    if (s.state !== "faulted" || !s.fault_reason) return row;
-    return el("div", { class: "slot-cell" }, row, el("div", { class: "muted slot-why", "data-slot": s.slot }, s.fault_reason));
+    // why a slot is not ready: its fault, or an identity a batch would refuse (a serial two boards
+    // report, an empty one): the operator sees it before pressing Start
+    const why = s.state === "faulted" ? s.fault_reason : s.identity_problem;
+    if (!why) return row;
+    return el("div", { class: "slot-cell" }, row, el("div", { class: "muted slot-why", "data-slot": s.slot }, why));
   }));
 }
 
