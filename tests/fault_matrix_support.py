@@ -84,6 +84,15 @@ ROWS = [
     "person: wrong turn, then corrected",
     "person: plate never arrives",
     "fixture reports reached early",
+    "duplicate serial",
+    "empty serial",
+    "overlong serial",
+    "board swapped mid-run (same port)",
+    "board reset mid-run (streams again)",
+    "clock jump back",
+    "clock jump forward",
+    "stuck temperature sensor",
+    "--check during a batch",
     "healthy DUTs (finished batches)",
 ]
 
@@ -172,6 +181,8 @@ class Expect:
     # | faulted-if-failed (faulted if the batch failed, else recovered)
     # | unharmed (what happened must harm no DUT: the batch finishes, every DUT pass/marginal/fail in
     #   every place, counted in the row's own cell: a person's mistake, a fixture reporting early)
+    # | refused (its identity is refused before any run: error in the status with the reason, no run
+    #   stored, no record in the database, the MES feed or the webhook)
     kind: str = "faulted"
     keywords: tuple[str, ...] = ()  # the final verdict's reason names the fault (any of these, lower case)
 
@@ -532,7 +543,7 @@ async def collect_and_check(plan: Plan, st: Any, db: Any, bid: int, status: dict
         }
         st_verdict = final["status"][0]
         for where in ("db", "mes", "webhook"):
-            if final[where] is None:
+            if final[where] is None and exp.kind != "refused":
                 probs.append(f"{slot}: no verdict in {where} (status says {st_verdict})")
         if st_verdict is None:
             probs.append(f"{slot}: no verdict in the batch status")
@@ -562,6 +573,21 @@ async def collect_and_check(plan: Plan, st: Any, db: Any, bid: int, status: dict
                     probs.append(f"{slot}: {where} reason does not name the fault ({'/'.join(exp.keywords)}): {r[:200]!r}")
         elif exp.kind == "judged":  # e.g. a power cycle the write path survives: a verdict, backed if pass
             pass
+        elif exp.kind == "refused":  # no run: nothing may carry the board's claimed serial as a record
+            why = str(s.get("fault_reason") or "")
+            if st_verdict != "error":
+                probs.append(f"{slot} (refused): status verdict {st_verdict!r}, expected error")
+            if run_id is not None or dbr is not None or mes or hook:
+                probs.append(f"{slot} (refused): a run or record exists (run {run_id}, db {dbr is not None}, "
+                             f"mes {len(mes)}, webhook {len(hook)}): no record under a serial it cannot own")
+            if exp.keywords and not any(k in why.lower() for k in exp.keywords):
+                probs.append(f"{slot}: status reason does not name the fault ({'/'.join(exp.keywords)}): {why[:200]!r}")
+            claimed = s.get("serial")
+            if claimed is not None:
+                false = [r for r in feed if r.get("serial") == claimed and r.get("verdict") == "pass"]
+                if false:
+                    probs.append(f"{slot}: FALSE PASS under its claimed serial {claimed!r} in the MES feed: "
+                                 f"{[(r.get('slot'), r.get('run_id')) for r in false]}")
         elif exp.kind in ("healthy", "retried", "recovered", "unharmed"):
             ok = ("pass", "marginal", "fail")
             if exp.kind == "unharmed" and not finished:

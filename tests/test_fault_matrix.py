@@ -27,11 +27,13 @@ do not interact on different slots of one batch, batches of a profile run PARALL
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 
 import pytest
 
 from drivers.sim.operator import HumanTiming, Person
 from drivers.sim.station_sim import SimStation
+from tests.ownership_support import check_during_batch
 from tests.fault_matrix_support import (
     MATRIX, PROFILES, VERIFIED, Ctx, Expect, KillCtx, Plan, board_hook, fill, run_all, wait_for,
 )
@@ -171,6 +173,74 @@ def _people_plans(profile: str, speed: float, seed: int, n_serial: int = 2, n_ca
     ]
 
 
+# ------------------------------------------------------------------------------- one board, one record
+SWAPPED = ("swapped", "answers")
+IDENTITY_ROWS = ["duplicate serial", "empty serial", "overlong serial", "board swapped mid-run (same port)",
+                 "board reset mid-run (streams again)", "clock jump back", "clock jump forward",
+                 "stuck temperature sensor", "--check during a batch"]
+
+
+def _serials(**by_board):
+    """arm: the simulated boards (by index) answer ID with these serials (a cloned image, an
+    unprovisioned EEPROM, a garbage field)."""
+    def arm(sim: SimStation) -> None:
+        for i, serial in by_board.items():
+            b = sim.board(int(i[1:]))
+            b.identity = dataclasses.replace(b.identity, serial=serial)
+    return arm
+
+
+def _refused_before_heat(slots):
+    """The refused slots were stopped before the lamp first switched on (and stay stopped)."""
+    async def inject(ctx: Ctx) -> None:
+        await ctx.wait(lambda: ctx.sim.world.lamp_on, "the lamp switches on for P hot")
+        live = [d.slot for d in ctx.st.batches[ctx.bid].seq.duts if d.slot in slots and d.live]
+        assert not live, f"{live} still live when the lamp switched on"
+    return inject
+
+
+def _stream_faults():
+    """P hot: s02 resets and streams again by itself, s03's clock jumps 600 s back, s05's temperature
+    sensor sticks; N hot: another board answers behind s01's open port, s04's clock jumps 600 s on."""
+    async def inject(ctx: Ctx) -> None:
+        async with ctx.at_step(1, 10):
+            ctx.sim.board(1).reset_streaming()
+            ctx.sim.board(2).jump_clock(-600.0)
+            ctx.sim.world.stick_temp_sensor(4)
+        async with ctx.at_step(2, 10):
+            _swap(ctx.sim, 0)
+            ctx.sim.board(3).jump_clock(600.0)
+    return inject
+
+
+def _swap(sim: SimStation, i: int) -> None:
+    b = sim.board(i)
+    b.swap_to(dataclasses.replace(b.identity, serial=f"SWAPPED-{i + 1:02d}"), offset_counts=(800, -800, 400))
+
+
+def _identity_plans(profile: str, speed: float, seed: int) -> list[Plan]:
+    serials = _serials(b0="SIM-CLONE-1", b1="SIM-CLONE-1", b2="", b3="X" * 300)
+    return [
+        Plan("ft-identity", profile, speed, 5, 1, seed, arm=serials, inject=_refused_before_heat({"s01", "s02", "s03", "s04"}),
+             expects={
+            "s01": Expect("duplicate serial", "refused", ("s01 and s02 both report sim-clone-1",)),
+            "s02": Expect("duplicate serial", "refused", ("s01 and s02 both report sim-clone-1",)),
+            "s03": Expect("empty serial", "refused", ("empty serial",)),
+            "s04": Expect("overlong serial", "refused", ("300-character serial",)),
+            "s05": Expect("duplicate serial", "healthy"), "c01": Expect("duplicate serial", "healthy"),
+        }),
+        Plan("ft-stream", profile, speed, 6, 1, seed + 1, inject=_stream_faults(), expects={
+            "s01": Expect("board swapped mid-run (same port)", "faulted", SWAPPED),
+            "s02": Expect("board reset mid-run (streams again)", "faulted", ("restarted", "reset")),
+            "s03": Expect("clock jump back", "faulted", ("clock jumped", "back")),
+            "s04": Expect("clock jump forward", "faulted", ("clock jumped",)),
+            "s05": Expect("stuck temperature sensor", "faulted", ("temperature sensor",)),
+            "s06": Expect("board reset mid-run (streams again)", "healthy"),
+            "c01": Expect("board reset mid-run (streams again)", "healthy"),
+        }),
+    ]
+
+
 def _relay_off_at(moment):
     """moment(ctx) -> a Ctx.held_at context (the plant held there while the relay goes silent)."""
     async def inject(ctx: Ctx) -> None:
@@ -301,6 +371,19 @@ def _verified_plans() -> list[Plan]:
                       expects=_all(_slots(2, 1), "SIGKILL + --resume", keywords=KILL)))
     _na(P, ["abort, 45 C block", "abort, last step"], "n/a (sfem-24 rows)")
     plans += _people_plans(P, FAST, 90)
+
+    async def swap_before_programming(ctx: Ctx) -> None:
+        async with ctx.at_step(3, 10):  # N ambient, the last step before the program step
+            _swap(ctx.sim, 0)
+
+    # the coefficients are never written to another board: the identity is read again before programming
+    plans.append(Plan("ftv-swap", P, FAST, 2, 1, 120, inject=swap_before_programming, expects={
+        "s01": Expect("board swapped mid-run (same port)", "faulted", SWAPPED),
+        "s02": Expect("board swapped mid-run (same port)", "healthy"),
+        "c01": Expect("board swapped mid-run (same port)", "healthy"),
+    }))
+    _na(P, [r for r in IDENTITY_ROWS if r != "board swapped mid-run (same port)"],
+        "n/a (connect and link path: the same for every profile, run in fast-thermal)")
     return plans
 
 
@@ -343,6 +426,10 @@ def _fast_thermal_plans() -> list[Plan]:
             "abort, verify heat", "relay failure, verify heat"], "n/a (no program/verify)")
     _na(P, ["abort, 45 C block", "abort, last step"], "n/a (sfem-24 rows)")
     plans += _people_plans(P, FAST, 80)
+    plans += _identity_plans(P, FAST, 110)
+    # a second station's `serve --check` on the same config mid-batch is refused and touches nothing
+    plans.append(Plan("ft-check", P, FAST, 2, 1, 47, inject=check_during_batch,
+                      expects=_all(_slots(2, 1), "--check during a batch", kind="unharmed")))
     return plans
 
 
@@ -384,6 +471,7 @@ def _sfem_plans() -> list[Plan]:
             "abort, verify heat", "relay failure, verify heat"], "n/a (no program/verify)")
     _na(P, ["abort, 2nd step", "abort, 3rd step", "abort, 4th step"], "n/a (see 45 C / last)")
     _na(P, ["label serial mismatch"], "n/a (checked at connect, before any step: one code path for all profiles)")
+    _na(P, IDENTITY_ROWS, "n/a (connect and link path: the same for every profile, run in fast-thermal)")
     # x1000, not x3000: a person's seconds (and a wrong turn's correction within a static step's 600 s
     # timeout) must not vanish into one 150 s tick of the compressed plant
     plans += _people_plans(P, 1000.0, 94, n_serial=1, timeout_s=SFEM_PLAN_TIMEOUT_S)
