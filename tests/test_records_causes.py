@@ -90,6 +90,24 @@ def _daemon_reasons() -> list[tuple[str, str]]:
          "thermal chamber"),
         ("batch failed: no DUT left: every slot is faulted", "no DUT left"),
         ("station restarted", "interrupted"),  # db.mark_interrupted at daemon start
+        # one board, one record (issue 36): slots.board_changed, drivers StreamBreak, the station's
+        # clock bound (sequencer), the temperature watch
+        ("s01 answers SWAPPED-01 at the end of its run, SIM0001 at its start: a board swapped mid-run? "
+         "(serial 'SIM0001' -> 'SWAPPED-01')", "board swapped mid-run"),
+        ("program: not written: s01 answers SWAPPED-01 before programming, SIM0001 at its start: a board "
+         "swapped mid-run? (serial 'SIM0001' -> 'SWAPPED-01')", "board swapped mid-run"),
+        ("serial /dev/pts/4: the board's identity could not be read again at the end of its run: no identity "
+         "reply from /dev/pts/4 within 2 s", "board swapped mid-run"),
+        ("/dev/pts/18: the board restarted while streaming (seq 2010 -> 0, clock 668.2 s -> 0.1 s): a reset "
+         "(power, brown-out, watchdog)? after 668.2 s board time; one run is one board's one timeline: its run "
+         "ends here", "board reset mid-run"),
+        ("/dev/pts/19: its clock jumped 600.0 s back while its seq ran on (seq 1929 -> 1930): a clock fault?",
+         "board clock jumped"),
+        ("step 'P hot' timed out without a +20 C rise: the station's clock ran 9000 s since Done, this board's "
+         "own clock 2100 s (a board clock that slowed or stopped?)", "board clock slow"),
+        ("temperature sensor stuck at 28 C: the plate's other DUTs rose 6.0 C (median) in the 188 s since the "
+         "lamp went on", "temperature sensor"),
+        ("temperature sensor implausible: 24 C -> 91 C in 0.3 s", "temperature sensor"),
         ("run interrupted: incomplete", "interrupted"),  # verdicts.decide without a fault reason
     ]
 

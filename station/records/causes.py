@@ -29,6 +29,13 @@ _RULES: tuple[tuple[str, str], ...] = (
     ("cannot do it (operator)", r"\bcould not (?:.*: )?turn the plate to \S+: "),
     ("label mismatch", r"\blabel serial '.*' does not match the board's own serial"),
     ("board swapped (resume)", r"\bthe interrupted run was \S+ \(board swapped\?\)"),
+    # one board, one record (design 3.1): the identity read again, a reset, a clock jump; said
+    # before "programming" ("program: not written: s01 answers ... before programming")
+    ("board swapped mid-run", r"\ba board swapped mid-run\?|'s board changed\b|\bidentity could not be read again\b"),
+    ("board reset mid-run", r"\bthe board restarted while streaming\b"),
+    ("board clock jumped", r"\bits clock jumped \d"),
+    ("board clock slow", r"\bthe station's clock ran \d+ s since Done, this board's own clock\b"),
+    ("temperature sensor", r"\btemperature sensor (?:stuck|implausible)\b"),
     ("plate never arrived", r"\bplate never arrived at \S+"),
     ("plate at wrong position", r"\bfaces? \S+, not \S+"),
     ("DUT never faced the position", r"\boutput never faced \S+ within"),
