@@ -94,6 +94,15 @@ def _sqlite_read_only_on_connect(dbapi_conn: Any, _record: Any) -> None:
     cur.close()
 
 
+def plain_url(url: str) -> str:
+    """A database URL without its password, for messages and stored records; a string that is not
+    a URL is shown as given."""
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:  # noqa: BLE001 - not a URL: shown as given
+        return url
+
+
 def make_read_only_engine(url: str) -> Engine:
     """An engine that cannot change the database: SQLite opened with mode=ro (a file that does not
     exist is an error, never created; no WAL switch, no migration), PostgreSQL in read-only

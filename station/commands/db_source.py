@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from contracts.types import StationError
+from db.database import plain_url  # noqa: F401 - the commands' message helper, re-exported
 
 DEFAULT_URL = "sqlite:///var/station.db"
 ENV = "STATION_DB_URL"
@@ -76,16 +77,6 @@ def choose(given: str | None, flag: str = "--db", config: str | None = None) -> 
             return DbChoice(to_url(url), f"database_url in {config}", flag)
         consulted.append(f"{config} has no database_url")
     return DbChoice(DEFAULT_URL, "the default", flag, default=True, consulted=tuple(consulted))
-
-
-def plain_url(url: str) -> str:
-    """A URL without its password, for messages."""
-    from sqlalchemy.engine import make_url
-
-    try:
-        return make_url(url).render_as_string(hide_password=True)
-    except Exception:  # noqa: BLE001 - not a URL: shown as given
-        return url
 
 
 def sqlite_file(url: str) -> Path | None:

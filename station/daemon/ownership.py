@@ -41,7 +41,12 @@ import time
 from pathlib import Path
 from typing import Protocol
 
+from sqlalchemy.engine import URL, make_url
+from sqlalchemy.exc import ArgumentError
+
+from contracts.filenames import safe_name
 from contracts.types import StationError
+from db.database import plain_url
 from station.config import ModbusDevice, StationConfig
 
 __all__ = ["ClaimRefused", "Owner", "Resource", "StationClaim", "command_label", "database_url_of",
@@ -55,7 +60,6 @@ OWNER_READ_WAIT_S = 0.3
 PG_CONNECT_TIMEOUT_S = 5
 PG_APP_NAME_MAX = 63
 _PG_KEY_PREFIX = b"accel-station name\0"
-EPHEMERAL_URLS = ("", "memory://", "sqlite://", "sqlite:///:memory:")
 
 
 # ----------------------------------------------------------------------------------- data
@@ -148,24 +152,33 @@ def default_lock_dir() -> Path:
 
 
 def lock_file_name(kind: str, key: str) -> str:
-    """A safe file name: the kind, a readable tail of the key, and a hash of both (unique)."""
-    digest = hashlib.sha256(f"{kind}\0{key}".encode()).hexdigest()[:16]
-    readable = re.sub(r"[^A-Za-z0-9._-]+", "_", key).strip("_.")[-48:] or "x"
-    return f"{re.sub(r'[^a-z0-9]+', '-', kind.lower())}-{readable}-{digest}.lock"
+    """A safe file name of one resource (contracts/filenames.py: a value that is not a clean name
+    carries its hash, so two resources never share a lock file)."""
+    return safe_name(f"{kind}-{key}") + ".lock"
+
+
+def _parsed(url: str) -> URL | None:
+    try:
+        return make_url(url)
+    except ArgumentError:
+        return None
 
 
 def sqlite_path(url: str) -> Path | None:
-    """The file of a `sqlite:///PATH` URL (absolute, symlinks resolved); None for anything else."""
-    if url in EPHEMERAL_URLS or not url.startswith("sqlite:///"):
+    """The file of a SQLite URL (absolute, `~` expanded as the engine does, symlinks resolved);
+    None for an in-memory or temporary database and for anything else."""
+    u = _parsed(url)
+    if u is None or u.get_backend_name() != "sqlite":
         return None
-    raw = url[len("sqlite:///"):].split("?", 1)[0]
-    if raw in ("", ":memory:") or raw.startswith("file:"):
+    database = u.database or ""
+    if database in ("", ":memory:") or database.startswith("file:"):
         return None
-    return Path(os.path.realpath(raw))
+    return Path(os.path.realpath(Path(database).expanduser()))
 
 
 def is_postgres(url: str) -> bool:
-    return re.match(r"^postgres(ql)?(\+\w+)?://", url) is not None
+    u = _parsed(url)
+    return u is not None and u.get_backend_name() == "postgresql"
 
 
 def _port_key(port: str) -> str | None:
@@ -200,8 +213,8 @@ def station_resources(cfg: StationConfig, *, database_url: str | None, config_pa
         out.append(Resource("database", str(db_file), f"the database {db_file}",
                             db_file.with_name(db_file.name + ".owner")))
     elif is_postgres(url):
-        out.append(Resource("station name", f"{cfg.name}@{_pg_display(url)}",
-                            f"the station name {cfg.name!r} on the database {_pg_display(url)}", pg_url=url))
+        out.append(Resource("station name", f"{cfg.name}@{plain_url(url)}",
+                            f"the station name {cfg.name!r} on the database {plain_url(url)}", pg_url=url))
     named: dict[tuple[str, str], list[str]] = {}
     for s in cfg.slots:
         if s.serial is not None:
@@ -253,11 +266,6 @@ def refusal_text(held: list[tuple[Resource, Owner | None]]) -> str:
 
 
 # ----------------------------------------------------------------------------------- PostgreSQL
-def _pg_display(url: str) -> str:
-    """The URL without its password (what a refusal may print)."""
-    return re.sub(r"//([^:/@]+):[^@/]*@", r"//\1:***@", url)
-
-
 def pg_lock_key(station_name: str) -> int:
     """The advisory lock key of a station name: 64 bits of its hash, signed (bigint)."""
     return int.from_bytes(hashlib.sha256(_PG_KEY_PREFIX + station_name.encode()).digest()[:8], "big", signed=True)
@@ -280,12 +288,12 @@ class _PgConnection(Protocol):
 def _pg_connect(url: str, app_name: str) -> _PgConnection:
     import psycopg
 
-    conninfo = re.sub(r"^postgres(ql)?(\+\w+)?://", "postgresql://", url)
+    conninfo = make_url(url).set(drivername="postgresql").render_as_string(hide_password=False)
     try:
         conn: _PgConnection = psycopg.connect(conninfo, autocommit=True, application_name=app_name,
                                               connect_timeout=PG_CONNECT_TIMEOUT_S)
     except psycopg.Error as exc:
-        raise StationError(f"database {_pg_display(url)}: {type(exc).__name__}: {str(exc).strip()}") from None
+        raise StationError(f"database {plain_url(url)}: {type(exc).__name__}: {str(exc).strip()}") from None
     return conn
 
 

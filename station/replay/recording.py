@@ -23,6 +23,7 @@ import numpy as np
 from contracts.logfile import DutLog, read_log
 from contracts.recording import LOG_T_LSB_PER_C, LOG_UG_PER_LSB, RecordedDut, Recording, to_counts
 from contracts.types import Identity, StationError
+from db.database import plain_url
 from station.daemon.identity_check import serial_problem
 
 
@@ -50,13 +51,13 @@ def open_source(db_url: str, station: str = "replay") -> tuple[Any, str, Any]:
     try:
         rev = src.current_revision()
         if rev is None:
-            raise StationError(f"database {_plain_url(db_url)} holds no station data (no schema): nothing to replay")
+            raise StationError(f"database {plain_url(db_url)} holds no station data (no schema): nothing to replay")
         src._refuse_unknown(rev)
         head = src.head_revision()
         if rev == head:
             return src, "", None
         if not src.is_sqlite:
-            raise StationError(f"database {_plain_url(db_url)} has schema {rev}, this software reads {head}: "
+            raise StationError(f"database {plain_url(db_url)} has schema {rev}, this software reads {head}: "
                                "a replay never migrates its source: upgrade it (station db upgrade) or replay a copy")
         folder = tempfile.mkdtemp(prefix="station-replay-")
         copy = Path(folder) / "source.db"
@@ -116,7 +117,7 @@ def from_database(db_url: str, batch_id: int, station: str = "replay") -> Record
             raise StationError(f"batch {batch_id}: nothing to replay ({'; '.join(skipped) or 'no runs'})")
         where = batch.get("station") or "?"
         kind = f"replay of {batch['replay_of']}" if batch.get("replay_of") else f"batch {batch_id} of {where}"
-        return Recording(f"{kind} ({_plain_url(db_url)})", batch["profile"], duts, snapshot, skipped,
+        return Recording(f"{kind} ({plain_url(db_url)})", batch["profile"], duts, snapshot, skipped,
                          batch_state=batch["state"], batch_error=batch.get("reason") or "", source_note=source_note)
     finally:
         db.dispose()
@@ -143,16 +144,6 @@ def run_outcome(db: Any, run: dict[str, Any]) -> dict[str, Any]:
     with db.session() as s:
         results = R._run_results(s, run["id"])
     return {"state": run["state"], "verdict": run.get("verdict"), "grade": run.get("grade"), **results}
-
-
-def _plain_url(url: str) -> str:
-    """A database URL without its password (it is stored with the replay batch)."""
-    from sqlalchemy.engine import make_url
-
-    try:
-        return make_url(url).render_as_string(hide_password=True)
-    except Exception:  # noqa: BLE001 - a malformed URL failed earlier, when it was opened
-        return url
 
 
 # ---- from design-5.1 logs ---------------------------------------------------------------------
