@@ -45,13 +45,19 @@ class Trace:
         return f"{self.part_number} rev {self.part_revision}" if self.part_revision else self.part_number
 
 
+def serial_key(serial: str) -> str:
+    """What makes two serials the same part: scanners and typists add stray whitespace and case,
+    so serials compare trimmed and case-insensitive (a label with its board, boards in a batch)."""
+    return serial.strip().casefold()
+
+
 def label_mismatch(label: str | None, board_serial: str | None) -> str | None:
     """The reason a slot stops when the label scanned for it is not the board's own serial; None
     when no label was scanned or they agree. Scanners add stray whitespace and case: compared
     trimmed and case-insensitive, reported as typed."""
     if not label:
         return None
-    if board_serial is not None and label.strip().casefold() == str(board_serial).strip().casefold():
+    if board_serial is not None and serial_key(label) == serial_key(str(board_serial)):
         return None
     return (f"label serial {label!r} does not match the board's own serial {board_serial!r}: "
             "wrong part in this slot, or a mislabelled part; check the part and its label")

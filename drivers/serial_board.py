@@ -161,12 +161,10 @@ class SerialBoard(BoardDriver):
                     continue
                 line = self._timeline.check(frame.seq, frame.t_us, self.last_rx_wall)
                 if line == "skip":  # off its timeline, not confirmed: garbage that passed the checksum
-                    self.stats.frames_ok -= 1
-                    self.stats.frames_malformed += 1
+                    self._malformed()
                     continue
                 if line in ("reset", "clock_jump"):
-                    self._stream_break(line, self._break_words(line))
-                    self.stats.frames_after_break += 1
+                    self._stream_break(line)
                     continue
                 lost = self._seq.update(frame.seq)
                 if lost:
@@ -174,8 +172,7 @@ class SerialBoard(BoardDriver):
                     self._pending_lost += lost
                 t_us = self._clock.update(frame.t_us, lost + 1)
                 if t_us is None:  # a time that follows nothing: a corrupt frame, not a clock wrap
-                    self.stats.frames_ok -= 1
-                    self.stats.frames_malformed += 1
+                    self._malformed()
                     continue
                 self._pending.append((t_us, frame.ax, frame.ay, frame.az, frame.t))
                 self.last_sample_t = t_us / 1e6
@@ -200,6 +197,11 @@ class SerialBoard(BoardDriver):
                 self._pending_lost += drop
             self._data.set()
 
+    def _malformed(self) -> None:
+        """A frame the parser counted ok that is no sample after all: counted malformed instead."""
+        self.stats.frames_ok -= 1
+        self.stats.frames_malformed += 1
+
     def _break_words(self, kind: str) -> str:
         """The break in words: what the board's seq and clock did (StreamTimeline.broke)."""
         if self._timeline.broke is None:
@@ -211,13 +213,16 @@ class SerialBoard(BoardDriver):
         return (f"its clock jumped {abs(off_us) / 1e6:.1f} s {'back' if off_us < 0 else 'forward'} while its seq "
                 f"ran on (seq {seq0} -> {seq1}): a clock fault?")
 
-    def _stream_break(self, kind: str, words: str) -> None:
-        """Stop taking samples of this stream (until the next START) and report the break once."""
+    def _stream_break(self, kind: str) -> None:
+        """Stop taking samples of this stream (until the next START; the frame that confirmed the
+        break is the first not taken) and report the break once."""
         self._broken = True
+        self.stats.frames_after_break += 1
         if kind == "reset":
             self.stats.resets += 1
         else:
             self.stats.clock_jumps += 1
+        words = self._break_words(kind)
         at = self.last_sample_t
         where = f" after {at:.1f} s board time" if at is not None else ""
         self._breaks.append(StreamBreak(kind, at, f"{self.port}: {words}{where}; one run is one board's "

@@ -21,6 +21,7 @@ from __future__ import annotations
 import re
 from collections import defaultdict
 
+from contracts.trace import serial_key
 from contracts.types import Identity
 
 SERIAL_MAX_CHARS = 32  # a CAN board's serial is at most 14 (design 3.2); a serial board's 32
@@ -54,7 +55,7 @@ def batch_identity_problems(serials: dict[str, str]) -> dict[str, str]:
         if problem is not None:
             out[slot] = f"{slot} {problem}: its run is not started"
         else:
-            same[serial.strip().casefold()].append(slot)
+            same[serial_key(serial)].append(slot)
     for slots in same.values():
         if len(slots) < 2:
             continue

@@ -527,7 +527,7 @@ class Sequencer:
         # stall watchdog's (wall time) to fault.
         # The station's clock bounds them all: a board whose own clock slowed or stopped while
         # its seq ran on would otherwise hold the step (and the plate's lamp) for ever.
-        station_s = self.clock_s() - self.step_clock_start
+        station_s = self._station_step_s()
         late = [(d, e) for d in pending if (e := self._step_elapsed_s(d)) >= step.timeout_s
                 or station_s >= step.timeout_s * STATION_CLOCK_FACTOR]
         if not late:
@@ -563,6 +563,10 @@ class Sequencer:
                      if self.step_index in d.step_windows},
         ))
 
+    def _station_step_s(self) -> float:
+        """The station's clock in the current step: the batch's sample clock since Done."""
+        return self.clock_s() - self.step_clock_start
+
     def _step_elapsed_s(self, d: DutRun) -> float:
         """Sample time this DUT has spent in the current step (its own board clock): since it
         arrived at the step's position, or, until it does, since the step began logging (Done).
@@ -574,7 +578,7 @@ class Sequencer:
         such a board is never timed out sooner than on the batch's clock. Only a board that has
         delivered nothing since is timed on the batch's clock alone (the stall watchdog faults a
         silent one long before)."""
-        batch_s = self.clock_s() - self.step_clock_start
+        batch_s = self._station_step_s()
         start = d.step_clock_start_t()
         if d.last_t is None or start is None:
             return batch_s

@@ -144,13 +144,13 @@ async def connect_duts(st: Any, seq: Sequencer) -> None:
     # (identity_check, design 3.1), which no slot can know alone. A refused slot gets no run (no
     # record under a serial that is not its own), never streams, and stops before the lamp heats.
     answered = [d for d, ok in zip(seq.duts, await asyncio.gather(*(connect(d) for d in seq.duts))) if ok]
-    refused = batch_identity_problems({d.slot: d.identity.serial for d in answered if d.identity is not None})
+    serials = {d.slot: d.identity.serial for d in answered if d.identity is not None}
+    refused = batch_identity_problems(serials)
     for d in answered:
         if d.slot in refused:
             fault_dut(st, seq, d, refused[d.slot])
     if refused:
-        await asyncio.to_thread(_audit_refused, st, seq.batch_id, refused,
-                                {d.slot: d.identity.serial for d in answered if d.identity is not None})
+        await asyncio.to_thread(_audit_refused, st, seq.batch_id, refused, serials)
 
     async def one(d: DutRun) -> None:
         slot = st.slots[d.slot]
