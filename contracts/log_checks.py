@@ -1,5 +1,6 @@
 """The checks a log's numbers must pass before any science (issue 22): header numbers in range,
-finite samples, lamp and position codes, acceleration units, temperature (kelvin named), strictly
+finite samples, lamp and position codes, acceleration units, samples within the sensor's range
+(|a| <= 16 g on every axis, -60..150 C; issue 37), temperature (kelvin named), strictly
 increasing time, odr_hz against the sample times.
 
 Why a module of its own: the checks are shared by two readers, the design-5.1 log reader
@@ -27,6 +28,9 @@ from contracts.types import StationError
 G0_M_S2 = 9.80665
 ODR_MAX_HZ = 100_000.0
 TEMP_RANGE_C = (-60.0, 150.0)
+# |a| on any axis above this is no acceleration a supported sensor can report (the largest full
+# scale: LIS3DSH +-16 g; ADXL355 +-8 g): a corrupted row (ay_g = 1e308 moved a TDSF by 9 ppm/C)
+ACC_RANGE_G = 16.0
 KELVIN_MEDIAN = (213.0, 433.0)  # a median temperature there, in a column meant for C, is kelvin
 # Median |a| over the samples: a DUT at rest reads 1 g in any orientation, heating changes it by
 # far less than 1 %. The g band is wide on purpose (synthetic and partial logs, a few rows); the
@@ -124,8 +128,14 @@ class LogChecker:
     temperature, time order, odr_hz against the sample times) run in `finish`."""
 
     def __init__(self, source: str, names: dict[str, str] | None = None, capacity: int = 0, store: bool = True,
-                 lamp: bool = False, position: bool = False, ref: bool = False) -> None:
+                 lamp: bool = False, position: bool = False, ref: bool = False, accel_units: str = "g",
+                 counts_per_g: float | None = None) -> None:
+        """accel_units/counts_per_g: the units of the accelerations `add` is given (an import
+        converts them after `finish`), for the sensor-range check (ACC_RANGE_G)."""
         self.source = source
+        self.accel_units = accel_units
+        self._acc_limit = (math.inf if accel_units == "counts" and not counts_per_g
+                           else ACC_RANGE_G * g_divisor(accel_units, counts_per_g))
         self.names = {"time": "time_s", "ax": "ax_g", "ay": "ay_g", "az": "az_g", "temp": "temp_c",
                       "lamp": "lamp", "position": "position", **(names or {})}
         self.store = store
@@ -141,7 +151,8 @@ class LogChecker:
         self._prev: tuple[float, str] | None = None
         self._t_min, self._t_max = math.inf, -math.inf
         self._time_error: str | None = None
-        self._temp_error: tuple[str, float] | None = None
+        self._temp_error: tuple[int, str, float] | None = None  # (row index, where, value)
+        self._acc_error: tuple[int, str, str, float] | None = None  # (row index, where, column, value)
         self._dt_medians: list[float] = []
         self.temp_for_median: np.ndarray | None = None  # check_log: the DutLog's own column
 
@@ -175,6 +186,14 @@ class LogChecker:
             bad = ~np.isfinite(values)
             if bad.any():
                 fail(name, values, bad, "is not a finite number")
+        # beyond the sensor's range (first offence kept; reported after the units: raw counts or
+        # mg exceed it in every row, and their error names the option that converts them)
+        if self._acc_error is None:
+            bad_rows = np.flatnonzero(np.any(np.abs(acc) > self._acc_limit, axis=1))
+            if bad_rows.size:
+                k = int(bad_rows[0])
+                axis = int(np.flatnonzero(np.abs(acc[k]) > self._acc_limit)[0])
+                self._acc_error = (start + k, where(k), ("ax", "ay", "az")[axis], float(acc[k, axis]))
         if lamp is not None:
             bad = ~np.isin(lamp, (0.0, 1.0))
             if bad.any():
@@ -187,6 +206,32 @@ class LogChecker:
             if bad.any():
                 fail("position", p, bad, f"must be an integer -1 (unknown) .. {len(POSITION_NAMES) - 1}")
         # time: strictly increasing (first offence kept; reported after the units and temperature)
+        with np.errstate(over="ignore", invalid="ignore"):  # 1e308 - -1e308: inf, not a warning line
+            self._add_times(time_s, where)
+        if self._temp_error is None:
+            bad = (temp_c < TEMP_RANGE_C[0]) | (temp_c > TEMP_RANGE_C[1])
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                self._temp_error = (start + k, where(k), float(temp_c[k]))
+        # store
+        self._grow(start + m)
+        end = start + m
+        with np.errstate(over="ignore", invalid="ignore"):  # a row beyond the range: |a| inf, reported in finish
+            self.norm[start:end] = np.sqrt(np.einsum("ij,ij->i", acc, acc))
+        if self.store:
+            self.time[start:end] = time_s
+            self.acc[start:end] = acc
+            self.temp[start:end] = temp_c
+            if self.lamp is not None:
+                self.lamp[start:end] = lamp
+            if self.position is not None:
+                self.position[start:end] = position
+            if self.ref is not None:
+                self.ref[start:end] = ref
+        self.n = end
+
+    def _add_times(self, time_s: np.ndarray, where) -> None:
+        m = int(time_s.shape[0])
         full = time_s if self._prev is None else np.concatenate(([self._prev[0]], time_s))
         d = np.diff(full)
         if self._time_error is None:
@@ -208,32 +253,13 @@ class LogChecker:
         self._t_min = min(self._t_min, float(time_s.min()))
         self._t_max = max(self._t_max, float(time_s.max()))
         self._prev = (float(time_s[-1]), where(m - 1))
-        if self._temp_error is None:
-            bad = (temp_c < TEMP_RANGE_C[0]) | (temp_c > TEMP_RANGE_C[1])
-            if bad.any():
-                k = int(np.flatnonzero(bad)[0])
-                self._temp_error = (where(k), float(temp_c[k]))
-        # store
-        self._grow(start + m)
-        end = start + m
-        self.norm[start:end] = np.sqrt(np.einsum("ij,ij->i", acc, acc))
-        if self.store:
-            self.time[start:end] = time_s
-            self.acc[start:end] = acc
-            self.temp[start:end] = temp_c
-            if self.lamp is not None:
-                self.lamp[start:end] = lamp
-            if self.position is not None:
-                self.position[start:end] = position
-            if self.ref is not None:
-                self.ref[start:end] = ref
-        self.n = end
 
     # -- whole log -----------------------------------------------------------------------------
     def finish(self, meta: dict[str, str], accel_units: str = "g", counts_per_g: float | None = None,
                temp_units: str = "C", time_scale: float = 1.0) -> None:
         """The whole-log checks, in this order: a clock that stands still, the acceleration units,
-        the temperature (kelvin, then the range), the time order, odr_hz against the sample times.
+        kelvin temperatures, the first row beyond the sensor's range (|a| > ACC_RANGE_G on an axis,
+        or a temperature outside TEMP_RANGE_C), the time order, odr_hz against the sample times.
         temp_units: what the caller converted the temperatures from (they are C here)."""
         n, src, nm = self.n, self.source, self.names
         for a in self._arrays():  # trim in place (the arrays hold no copies)
@@ -246,15 +272,25 @@ class LogChecker:
         problem = accel_units_problem(float(np.median(self.norm)), acc_names, accel_units, counts_per_g)
         if problem:
             raise StationError(f"{src}: {problem}")
+        tn = nm["temp"]
         if self._temp_error is not None:
             temps = self.temp if self.temp is not None else self.temp_for_median
             med = float(np.median(temps)) if temps is not None else math.nan
-            tn = nm["temp"]
             if temp_units.upper() == "K" and TEMP_RANGE_C[0] <= med + 273.15 <= TEMP_RANGE_C[1]:
                 raise StationError(f"{src}: {tn} looks like C, not kelvin (median {med + 273.15:.2f}): drop --temp-units K")
             if temp_units.upper() != "K" and KELVIN_MEDIAN[0] <= med <= KELVIN_MEDIAN[1]:
                 raise StationError(f"{src}: {tn} looks like kelvin, not C (median {med:.2f}): give --temp-units K")
-            at, v = self._temp_error
+        acc_row = self._acc_error[0] if self._acc_error is not None else math.inf
+        temp_row = self._temp_error[0] if self._temp_error is not None else math.inf
+        if acc_row < temp_row:  # the first row beyond the sensor's range, whichever column
+            _, at, axis, v = self._acc_error
+            lim = ACC_RANGE_G
+            raw = "" if self.accel_units == "g" else (
+                f" ({-self._acc_limit:.6g}..{self._acc_limit:.6g} {self.accel_units})")
+            raise StationError(f"{src}: {at}: {nm[axis]} = {_num(v)} is outside the sensor's range "
+                               f"{-lim:g}..{lim:g} g{raw}")
+        if self._temp_error is not None:
+            _, at, v = self._temp_error
             raise StationError(f"{src}: {at}: {tn} = {_num(v)} is outside {TEMP_RANGE_C[0]:g}..{TEMP_RANGE_C[1]:g} C")
         if self._time_error is not None:
             raise StationError(self._time_error)
@@ -268,4 +304,4 @@ class LogChecker:
 
 
 __all__ = ["LogChecker", "accel_units_problem", "check_meta", "g_divisor", "guess_accel_units", "G0_M_S2",
-           "G_DIVISOR"]
+           "G_DIVISOR", "ACC_RANGE_G", "TEMP_RANGE_C"]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import math
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,30 +58,68 @@ class DutLog:
 
 
 CHUNK_BYTES = 1 << 18  # text read and parsed per step (256 KiB): memory stays ~ the final arrays
+# A file that is not text is refused as soon as its first such block is read (issue 37: 2 GB of
+# NUL bytes after a valid start were read as one 2 GB "line", 12.7 GB and 93 s): a NUL byte, a
+# byte that is not UTF-8, or a line longer than this. A log's lines are ~100 characters.
+MAX_LINE_CHARS = 1 << 16
+_NOT_TEXT = re.compile("[\x00\udc80-\udcff]")  # NUL; undecodable bytes (surrogateescape)
+BOM = "\ufeff"  # a spreadsheet's "CSV UTF-8" starts with one: not part of the first line
 
 
-def _blocks_of_text(text: str, size: int = CHUNK_BYTES) -> Iterator[list[str]]:
-    """The lines of `text` (str.splitlines, as before) a few MB at a time."""
-    pos, n = 0, len(text)
+def _check_text(block: str, lines: list[str], before: int, source: str) -> None:
+    """One block of a file's text (`before` lines precede it): a NUL byte in a header or data row,
+    undecodable bytes or an overlong line is one StationError line naming the file's line. A NUL in
+    a `#` line is the metadata's own business (a hostile serial is made safe where it is used)."""
+    if _NOT_TEXT.search(block) is not None:
+        for k, ln in enumerate(lines):
+            if _NOT_TEXT.search(ln) is None:
+                continue
+            bad = next((c for c in _NOT_TEXT.findall(ln) if c != "\x00"), None)
+            if bad is not None:
+                raise StationError(f"{source}: line {before + k + 1}: byte 0x{ord(bad) - 0xDC00:02x} is not UTF-8 "
+                                   "text: save the log as UTF-8 (CSV UTF-8)")
+            if not ln.lstrip().startswith("#"):
+                raise StationError(f"{source}: line {before + k + 1}: NUL byte: not a text log "
+                                   "(a binary file or a damaged copy?)")
+    if len(block) > MAX_LINE_CHARS and lines and max(map(len, lines)) > MAX_LINE_CHARS:
+        k = next(k for k, ln in enumerate(lines) if len(ln) > MAX_LINE_CHARS)
+        raise StationError(f"{source}: line {before + k + 1}: longer than {MAX_LINE_CHARS} characters: "
+                           "not a text log (a binary file or a damaged copy?)")
+
+
+def _blocks_of_text(text: str, size: int = CHUNK_BYTES, source: str = "<log>") -> Iterator[list[str]]:
+    """The lines of `text` (str.splitlines, as before) a few MB at a time; a leading BOM skipped,
+    text that is no log refused (_check_text)."""
+    pos, n = (1 if text.startswith(BOM) else 0), len(text)
+    before = 0
     while pos < n:
         end = min(pos + size, n)
         if end < n:
             nl = text.find("\n", end)
             end = n if nl < 0 else nl + 1
-        yield text[pos:end].splitlines()
+        block = text[pos:end]
+        lines = block.splitlines()
+        _check_text(block, lines, before, source)
+        before += len(lines)
+        yield lines
         pos = end
 
 
-def _blocks_of_file(f) -> Iterator[list[str]]:
+def _blocks_of_file(f, source: str = "<log>") -> Iterator[list[str]]:
     """The lines of a text file (universal newlines, then str.splitlines: what read_text().
-    splitlines() gave before) a few MB at a time."""
+    splitlines() gave before) a few MB at a time, never more than CHUNK_BYTES + MAX_LINE_CHARS
+    characters in memory; text that is no log refused as soon as it is read (_check_text)."""
+    before = 0
     while True:
         block = f.read(CHUNK_BYTES)
         if not block:
             return
         if not block.endswith("\n"):
-            block += f.readline()
-        yield block.splitlines()
+            block += f.readline(MAX_LINE_CHARS + 1)  # bounded: a longer line fails _check_text
+        lines = block.splitlines()
+        _check_text(block, lines, before, source)
+        before += len(lines)
+        yield lines
 
 
 class _Header:
@@ -197,15 +236,15 @@ def read_log(path: str | Path) -> DutLog:
         raise StationError(f"{p}: no such file")
     if p.is_dir():
         raise StationError(f"{p}: is a directory, expected a CSV log file")
-    try:
-        with open(p, encoding="utf-8") as f:
-            return _parse(_blocks_of_file(f), str(p), size=p.stat().st_size)
+    try:  # utf-8-sig: a leading BOM (a spreadsheet's "CSV UTF-8") is skipped
+        with open(p, encoding="utf-8-sig", errors="surrogateescape") as f:
+            return _parse(_blocks_of_file(f, str(p)), str(p), size=p.stat().st_size)
     except (OSError, UnicodeDecodeError) as exc:
         raise StationError(f"{p}: cannot read ({exc})") from None
 
 
 def parse_log(text: str, source: str = "<log>") -> DutLog:
-    return _parse(_blocks_of_text(text), source, size=len(text))
+    return _parse(_blocks_of_text(text, source=source), source, size=len(text))
 
 
 def _is_meta(line: str) -> bool:

@@ -108,8 +108,9 @@ def _is_meta(line: str) -> bool:
 def parse_import(text: str, source: str = "<log>", columns: str | dict | None = None, accel_units: str = "g",
                  time_units: str = "s", counts_per_g: float | None = None, delimiter: str | None = None,
                  temp_units: str = "C") -> DutLog:
-    return _import(_blocks_of_text(text), source, len(text), columns=columns, accel_units=accel_units,
-                   time_units=time_units, counts_per_g=counts_per_g, delimiter=delimiter, temp_units=temp_units)
+    return _import(_blocks_of_text(text, source=source), source, len(text), columns=columns,
+                   accel_units=accel_units, time_units=time_units, counts_per_g=counts_per_g, delimiter=delimiter,
+                   temp_units=temp_units)
 
 
 def _import(blocks, source: str, size: int, columns=None, accel_units: str = "g", time_units: str = "s",
@@ -155,7 +156,8 @@ def _import(blocks, source: str, size: int, columns=None, accel_units: str = "g"
         if chk is None:  # capacity from the first block's bytes per row
             per_row = max(1.0, sum(map(len, rows)) / len(rows))
             chk = LogChecker(source, names, capacity=int(size / per_row * 1.02) + 1024,
-                             lamp="lamp" in idx, position="position" in idx, ref=has_ref)
+                             lamp="lamp" in idx, position="position" in idx, ref=has_ref,
+                             accel_units=accel_units, counts_per_g=counts_per_g)
         temp = data[:, idx["temp"]]
         if kelvin:
             temp = temp - KELVIN_OFFSET
@@ -190,8 +192,8 @@ def import_log(path: str | Path, **kw) -> DutLog:
     if not p.is_file():
         raise StationError(f"{p}: no such file")
     try:
-        with open(p, encoding="utf-8", errors="replace") as f:
-            return _import(_blocks_of_file(f), str(p), p.stat().st_size, **kw)
+        with open(p, encoding="utf-8-sig", errors="replace") as f:  # a leading BOM skipped
+            return _import(_blocks_of_file(f, str(p)), str(p), p.stat().st_size, **kw)
     except OSError as exc:
         raise StationError(f"{p}: cannot read ({exc.strerror})") from None
 
