@@ -128,6 +128,11 @@ class Http(_Model):
                                 description="larger request bodies are answered 413 before they are read")
     max_event_streams: int = Field(default=32, ge=1, le=10_000,
                                    description="open /api/events streams; more are answered 503")
+    header_timeout_s: float = Field(default=10.0, gt=0, le=600,
+                                    description="a connection's request head must be complete this soon, else closed")
+    keep_alive_s: float = Field(default=5.0, gt=0, le=600, description="an idle keep-alive connection is closed after")
+    max_connections: int = Field(default=512, ge=8, le=100_000,
+                                 description="open HTTP connections; beyond, the oldest waiting for a head is evicted")
 
 
 class StepConfig(_Model):

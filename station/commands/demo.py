@@ -185,11 +185,13 @@ def _mg(v) -> str:
     return "-" if v is None else f"{float(v):.2f}"
 
 
-async def serve_web(station, host: str, port: int):
+async def serve_web(station, host: str, port: int, *, header_timeout_s: float | None = None,
+                    keep_alive_s: float | None = None, max_connections: int | None = None):
     """The web app in this event loop (same loop as the daemon: the facade is not thread-safe).
 
     A web app that cannot be imported is a hard error (one line, non-zero exit), never a warning:
     a daemon without its page looks alive to an operator who cannot reach it.
+    header_timeout_s / keep_alive_s / max_connections: default from the station's config [http].
     """
     try:
         from web.app import create_app
@@ -205,9 +207,21 @@ async def serve_web(station, host: str, port: int):
         def capture_signals(self):  # the daemon owns SIGINT/SIGTERM (lamp off first)
             yield
 
+    from web.http_guard import ACCEPT_BATCH, HttpGuard, install_accept_error_filter
+
+    http_cfg = getattr(getattr(station, "config", None), "http", None)
+    header_timeout_s = getattr(http_cfg, "header_timeout_s", 10.0) if header_timeout_s is None else header_timeout_s
+    keep_alive_s = getattr(http_cfg, "keep_alive_s", 5) if keep_alive_s is None else keep_alive_s
+    max_connections = getattr(http_cfg, "max_connections", 512) if max_connections is None else max_connections
+    install_accept_error_filter()  # a full file table: one line per 10 s, not a traceback per accept()
     sock = _listen_socket(host, port)  # our own bind: a taken port is one clear line, not uvicorn's exit(3)
     app = create_app(station)
-    config = uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on")
+    guard = HttpGuard(header_timeout_s=header_timeout_s, max_connections=max_connections, accept_batch=ACCEPT_BATCH)
+    # Slow clients (issue 37, web/http_guard.py): a request head within header_timeout_s, idle
+    # keep-alive closed after keep_alive_s, at most max_connections open (the oldest waiting for a
+    # head is evicted), and at most ACCEPT_BATCH sockets accepted per loop tick (the listen backlog).
+    config = uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on",
+                            http=guard.protocol_class(), timeout_keep_alive=keep_alive_s, backlog=ACCEPT_BATCH)
     server = _Server(config)
     task = asyncio.get_running_loop().create_task(server.serve(sockets=[sock]), name="http")
     for _ in range(200):
@@ -220,6 +234,7 @@ async def serve_web(station, host: str, port: int):
     from station.daemon.heap import freeze_startup_heap
 
     freeze_startup_heap()  # full GC passes walk only what runs make, not the imports (150-200 ms each)
+    server.http_guard = guard  # its counters, for tests and diagnostics
     return server, task
 
 

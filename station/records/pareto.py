@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Iterable
 
 from station.records.causes import run_cause
+from station.records.csv_cells import safe_row
 from station.records.parameter_names import words
 
 CHECKS = "checks"
@@ -105,12 +106,13 @@ def pareto(runs: Iterable[dict]) -> Pareto:
 
 
 def csv_text(p: Pareto) -> str:
-    """The rows the Records view shows, in its columns (checks first, then causes)."""
+    """The rows the Records view shows, in its columns (checks first, then causes); text a
+    spreadsheet would take for a formula is quoted (station/records/csv_cells.py)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
     for r in p.rows():
-        w.writerow([r.table, r.rank, r.what, r.fail, r.error, r.count, f"{r.pct:.1f}", f"{r.cum_pct:.1f}"])
+        w.writerow(safe_row([r.table, r.rank, r.what, r.fail, r.error, r.count, f"{r.pct:.1f}", f"{r.cum_pct:.1f}"]))
     return buf.getvalue()
 
 

@@ -38,6 +38,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from station.records import parameter_names as names
+from station.records.csv_cells import safe_row
 from station.records.spc_rules import RULE_NAMES, flags as rule_flags
 from station.records.spc_yield import UNSPECIFIED, VERDICTS, YIELD_BY, YieldRow, utc_text as _utc, yields  # noqa: F401 (re-exported)
 
@@ -407,14 +408,15 @@ def flags_text(p: Point) -> str:
 
 def csv_text(report: SpcReport) -> str:
     """The report's points as CSV, one row per run, in the columns the Records view's points table
-    shows (numbers in full precision; an empty cell is no limit)."""
+    shows (numbers in full precision; an empty cell is no limit; text that a spreadsheet would take
+    for a formula is quoted: station/records/csv_cells.py)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(csv_columns(report))
     for p in report.points:
-        w.writerow([p.index, p.run_id, p.batch_id, p.station, p.slot, p.serial, p.at or "", repr(p.value),
-                    "" if p.low is None else repr(p.low), "" if p.high is None else repr(p.high), p.spec,
-                    p.outcome or "", flags_text(p)])
+        w.writerow(safe_row([p.index, p.run_id, p.batch_id, p.station, p.slot, p.serial, p.at or "", repr(p.value),
+                             "" if p.low is None else repr(p.low), "" if p.high is None else repr(p.high), p.spec,
+                             p.outcome or "", flags_text(p)]))  # a serial "=1+2" is text, not a formula
     return buf.getvalue()
 
 

@@ -29,7 +29,9 @@ async def _no_batch_running(station) -> None:
                                 "(one plate, one lamp): wait for it to end or abort it")
 
 
-@router.post("", status_code=201, response_model=BatchCreated, dependencies=[Depends(require_control)])
+@router.post("", status_code=201, response_model=BatchCreated, dependencies=[Depends(require_control)],
+             responses=error_responses(422, what={422: "invalid input, also schema-valid ones: a profile or slot "
+                                                       "this station does not have (GET /api/profiles, /api/slots)"}))
 async def start_batch(body: BatchCreate, request: Request, response: Response):
     station = request.app.state.station
     await _no_batch_running(station)

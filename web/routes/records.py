@@ -138,8 +138,15 @@ async def _spc(request: Request, f: Filters, group: str | None, parameter: str |
     return runs, options, view
 
 
-@router.get("/records/spc", response_model=SpcOut, dependencies=[Depends(require_read)])
-@router.get("/spc", response_model=SpcOut, dependencies=[Depends(require_read)], deprecated=True,
+CSV_OK = {200: {"content": {"text/csv": {}}, "description": "the rows and columns of the table the Records view shows"}}
+# A `from`/`to` the schema's YYYY-MM-DD pattern lets through can still be no calendar day (0000-00-00,
+# 2026-02-30), and each can be valid alone with `from` after `to`: 422, listed with those words.
+DAYS_422 = error_responses(422, what={422: "invalid input, also schema-valid ones: a from/to that is no calendar day "
+                                           "(0000-00-00, 2026-02-30), or from after to"})
+
+
+@router.get("/records/spc", response_model=SpcOut, dependencies=[Depends(require_read)], responses=DAYS_422)
+@router.get("/spc", response_model=SpcOut, dependencies=[Depends(require_read)], deprecated=True, responses=DAYS_422,
             summary="Spc Chart (old address of /api/records/spc, same answer)")
 async def spc_chart(request: Request, f: Filters = Depends(filters), group: str | None = GROUP,
                     parameter: str | None = PARAM):
@@ -156,11 +163,11 @@ async def spc_chart(request: Request, f: Filters = Depends(filters), group: str 
     return clean(out)
 
 
-CSV_OK = {200: {"content": {"text/csv": {}}, "description": "the rows and columns of the table the Records view shows"}}
 
 
-@router.get("/records/spc.csv", dependencies=[Depends(require_read)], response_class=Response, responses=CSV_OK)
-@router.get("/spc.csv", dependencies=[Depends(require_read)], response_class=Response, responses=CSV_OK,
+@router.get("/records/spc.csv", dependencies=[Depends(require_read)], response_class=Response,
+            responses={**CSV_OK, **DAYS_422})
+@router.get("/spc.csv", dependencies=[Depends(require_read)], response_class=Response, responses={**CSV_OK, **DAYS_422},
             deprecated=True, summary="Spc Csv (old address of /api/records/spc.csv)")
 async def spc_csv(request: Request, f: Filters = Depends(filters), group: str | None = GROUP,
                   parameter: str | None = PARAM):
@@ -174,7 +181,7 @@ async def spc_csv(request: Request, f: Filters = Depends(filters), group: str | 
                     headers={"Content-Disposition": f'attachment; filename="spc-{name}.csv"'})
 
 
-@router.get("/records/pareto", response_model=ParetoOut, dependencies=[Depends(require_read)])
+@router.get("/records/pareto", response_model=ParetoOut, dependencies=[Depends(require_read)], responses=DAYS_422)
 async def failure_pareto(request: Request, f: Filters = Depends(filters)):
     """Failure Pareto under the filters: fail/error checks per parameter, and one cause per run
     judged fail or error, by name (label mismatch, plate never arrived, link lost, not measured,
@@ -186,7 +193,8 @@ async def failure_pareto(request: Request, f: Filters = Depends(filters)):
     return clean(out)
 
 
-@router.get("/records/pareto.csv", dependencies=[Depends(require_read)], response_class=Response, responses=CSV_OK)
+@router.get("/records/pareto.csv", dependencies=[Depends(require_read)], response_class=Response,
+            responses={**CSV_OK, **DAYS_422})
 async def failure_pareto_csv(request: Request, f: Filters = Depends(filters)):
     """The Pareto table of /api/records/pareto under the same query (checks, then causes)."""
     from station.records import pareto

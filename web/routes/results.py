@@ -91,7 +91,9 @@ def next_cursor(rows: list[dict], since: str | None) -> str:
 
 
 @router.get("/results", response_model=ResultsPage, dependencies=[Depends(require_results)],
-            description=RESULTS_DESCRIPTION)
+            description=RESULTS_DESCRIPTION,
+            responses=error_responses(422, what={422: "invalid input, also schema-valid ones: a since that is no "
+                                                      "calendar day or time (0000-00-00), or a time out of range"}))
 async def results(
     request: Request,
     since: str | None = Query(default=None, max_length=64, description="cursor, RFC 3339 time (with offset) or date",
