@@ -32,6 +32,16 @@ With outbox=True the writer also puts the verdict record's MES message in the ou
 same transaction; off by default because the web's MES worker copies results_since into the outbox
 itself (two copies would reach the MES under two keys).
 
+With a journal (db/journal.py, the station's own durable file; the daemon always gives one), a
+storage failure no longer holds events in memory: the events of the failed commit and every event
+after them go to the journal at once (durable), and the writer forwards the journal to the database,
+oldest first, whenever it takes writes again. `flush()` then means "durable": committed, or in the
+journal. A commit that hangs (a PostgreSQL server that stopped answering) cannot be interrupted
+without risking a commit the database makes after the station gave up, so it is left to finish; the
+watchdog copies its events and everything queued behind it into the journal meanwhile (a copy the
+writer removes once the hung commit goes through). Without a journal, or when the journal's own disk
+fails too, the writer holds events in memory and retries as before.
+
 A commit that hangs (SQLite file locked by another process, a slow disk: the commit blocks inside
 SQLite's busy timeout) is a storage failure too: a watchdog reports it through `on_storage` once a
 commit has been in progress for `stall_s` (default STALL_ALARM_S), sets `failing`, and reports the
@@ -53,6 +63,7 @@ from sqlalchemy import func, insert, select, update
 from sqlalchemy.engine import Connection
 from sqlalchemy.exc import OperationalError
 
+from db.journal import Journal
 from db.sample_chunks import SampleChunks
 from contracts.json_safe import finite_or_none as _num, plain_json
 from contracts.sfem_result import SfemResult
@@ -86,6 +97,8 @@ from contracts.types import AXES
 
 log = logging.getLogger(__name__)
 
+CLOSE_BOUND_S = 5.0  # close() with a journal: what is not committed by then waits in the journal
+FORWARD_CHUNK = 500  # journaled events forwarded per transaction
 STALL_ALARM_S = 5.0  # a commit in progress longer than this raises the storage alarm (DbWriter(stall_s=))
 AUDIT_VERDICT_SUPERSEDED = "verdict superseded"  # the audit action of a verdict record replaced by a newer one
 
@@ -224,8 +237,22 @@ class DbWriter:
         on_storage: Callable[[str | None], None] | None = None,
         retry_max_s: float = 5.0,
         stall_s: float = STALL_ALARM_S,
+        journal: Journal | None = None,
     ) -> None:
         self.db = database
+        self.journal = journal
+        self._seq = journal.max_seq if journal is not None else 0  # the events' order (the journal's key)
+        self._journal_lock = threading.RLock()  # the writer thread and the watchdog both journal
+        # what the writer thread holds now (taken off the queue, not yet committed): its entries and
+        # the flush markers behind them; the watchdog copies them into the journal while a commit
+        # hangs (then those markers are done: durable), and a commit that goes through afterwards
+        # takes its copies out again (_copied: their sequence numbers)
+        self._holding: list[tuple[int, Event]] = []
+        self._holding_markers: list[_Marker] = []
+        self._copied: set[int] = set()
+        self._next_forward = 0.0  # time.monotonic() of the next try to forward the journal
+        self._forward_failures = 0
+        self.blocked: str | None = None  # why the database must not be written now (its file deleted)
         self.station = str(getattr(database, "station", "") or "")  # stamped on every result row
         self.on_storage = on_storage
         self.retry_max_s = retry_max_s
@@ -252,7 +279,7 @@ class DbWriter:
         self.stats: dict[str, Any] = {
             "submitted": 0, "committed_events": 0, "committed_samples": 0, "commits": 0,
             "dropped_events": 0, "unbound_events": 0, "last_error": "", "storage_failures": 0,
-            "abandoned_events": 0, "stalls": 0,
+            "abandoned_events": 0, "stalls": 0, "journaled_events": 0, "forwarded_events": 0,
         }
         self._thread = threading.Thread(target=self._loop, name="db-writer", daemon=True)
         self._thread.start()
@@ -269,14 +296,21 @@ class DbWriter:
         if self._closed:
             raise RuntimeError("DbWriter is closed")
         self.stats["submitted"] += 1
-        self._q.put(event)
+        self._seq += 1
+        self._q.put((self._seq, event))
 
     @property
     def backlog(self) -> int:
         return self._q.qsize()
 
+    @property
+    def waiting(self) -> int:
+        """Events waiting to be forwarded from the journal to the database."""
+        return self.journal.pending if self.journal is not None else 0
+
     def flush(self, timeout: float | None = None) -> bool:
-        """Block until everything submitted so far is committed (True) or timeout (False)."""
+        """Block until everything submitted so far is durable (True) or timeout (False): committed,
+        or (with a journal) in the journal waiting to be forwarded."""
         if not self._thread.is_alive():
             return self._q.empty()
         m = _Marker()
@@ -286,13 +320,32 @@ class DbWriter:
     async def aflush(self, timeout: float | None = None) -> bool:
         return await asyncio.to_thread(self.flush, timeout)
 
-    def close(self, timeout: float | None = 60.0) -> None:
-        """Commit everything, seal every run's pending samples, stop the thread."""
+    def close(self, timeout: float | None = 60.0, bound_s: float | None = None) -> None:
+        """Commit everything, seal every run's pending samples, stop the thread.
+
+        With a journal, close is bounded (`bound_s`, default CLOSE_BOUND_S; a SIGTERM must end in
+        seconds, docs/design.md): what the database has not taken by then is put in the journal
+        (forwarded at the next start) and the writer thread, if a commit still hangs, is left
+        behind (a daemon thread: the process may exit)."""
         if self._closed:
             return
         self._closed = True
         m = _Marker(stop=True)
         self._q.put(m)
+        if self.journal is not None:
+            bound = CLOSE_BOUND_S if bound_s is None else bound_s
+            if self.failing is not None or self._stalled:
+                self._spill()  # storage is down: durable now, the writer's last try only forwards
+            if m.done.wait(bound if timeout is None else min(timeout, bound)):
+                self._thread.join(1.0)
+                return
+            self._abandon.set()
+            self._spill()
+            n = self.journal.pending
+            log.critical("db writer: the database did not finish within %.1f s at shutdown: %d events wait in the "
+                         "journal %s (forwarded at the next start)", bound, n, self.journal.path)
+            self._thread.join(0.5)
+            return
         if self.failing is not None and not self._stalled and timeout is not None:
             # storage is down: one more try, then say what is lost (a stall, a lock held by another
             # process, gets the whole timeout: it usually passes)
@@ -307,10 +360,121 @@ class DbWriter:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
+    # ---- the journal (db/journal.py) -----------------------------------------------------------
+    def block(self, reason: str) -> None:
+        """Write nothing more to this database (its file was deleted or replaced under the
+        station): from now on every event goes to the journal, kept for the database restored."""
+        self.blocked = reason
+        self._set_failing(reason)
+        self._spill()
+
+    def _to_journal(self, entries: list[tuple[int, Event]]) -> bool:
+        """Put entries in the journal (durable on return). False if the journal cannot take them
+        either (its disk is full too): the caller holds them in memory as before."""
+        if self.journal is None:
+            return False
+        if not entries:
+            return True
+        with self._journal_lock:
+            try:
+                added = self.journal.append(entries)
+            except Exception as exc:  # noqa: BLE001 - disk full, I/O error: memory is what is left
+                self.stats["last_error"] = f"journal: {exc}"
+                log.error("db writer: the journal %s does not take events either (%s): held in memory",
+                          self.journal.path, exc)
+                return False
+        self.stats["journaled_events"] += added
+        return True
+
+    def _spill(self) -> None:
+        """From any thread: copy the hung commit's entries and move everything queued behind it into
+        the journal; flush markers behind them are done (durable), a stop marker goes back."""
+        if self.journal is None:
+            return
+        with self._journal_lock:
+            holding = [e for e in self._holding if e[0] not in self._copied]
+            if holding and self._to_journal(holding):
+                self._copied.update(s for s, _ in holding)
+            if not [e for e in self._holding if e[0] not in self._copied]:
+                for m in self._holding_markers:  # everything before them is durable now
+                    m.done.set()
+            items = []
+            while True:
+                try:
+                    items.append(self._q.get_nowait())
+                except queue.Empty:
+                    break
+            entries = [i for i in items if not isinstance(i, _Marker)]
+            if not self._to_journal(entries):
+                for i in items:  # the journal failed: back in order, for the writer
+                    self._q.put(i)
+                return
+            for i in items:
+                if isinstance(i, _Marker):
+                    if i.stop:
+                        self._q.put(i)
+                    else:
+                        i.done.set()
+
+    def _forward_journal(self, everything: bool = False) -> bool:
+        """Forward the journal to the database, oldest first, in transactions of FORWARD_CHUNK
+        events. True once the journal is empty; False when the database failed again (the next
+        try is after a backoff)."""
+        assert self.journal is not None
+        if self.blocked is not None:
+            self._set_failing(self.blocked)
+            return False
+        while self.journal.pending and not self._abandon.is_set():
+            chunk = self.journal.oldest(FORWARD_CHUNK)
+            if not chunk:
+                break
+            try:
+                self._commit_timed(chunk, False)
+            except OperationalError as exc:
+                self._backoff(exc)
+                return False
+            except Exception:  # noqa: BLE001 - a bad event among them: one by one, the rest stored
+                log.exception("db writer: forwarding %d journaled events failed; one by one", len(chunk))
+                for one in chunk:
+                    try:
+                        self._commit_timed([one], False)
+                    except OperationalError as exc:
+                        self._backoff(exc)
+                        return False
+                    except Exception as exc:  # noqa: BLE001
+                        self.stats["dropped_events"] += 1
+                        self.stats["last_error"] = repr(exc)
+                        log.error("db writer: dropped journaled %s: %r", type(one[1]).__name__, exc)
+                        self.journal.remove([one[0]])
+            self.journal.remove([s for s, _ in chunk])
+            self.stats["forwarded_events"] += len(chunk)
+            self._forward_failures = 0
+            self._set_failing(None)
+            if not everything and self._q.qsize() > self.max_events:
+                break  # new events keep their pace: they go behind the journal, forwarded next
+        return not self.journal.pending
+
+    def _backoff(self, exc: Exception) -> None:
+        reason = str(getattr(exc, "orig", exc)).strip() or type(exc).__name__
+        self.stats["last_error"] = reason
+        self.stats["storage_failures"] += 1
+        self._forward_failures += 1
+        self._next_forward = time.monotonic() + min(self.retry_max_s, 0.25 * 2 ** min(self._forward_failures, 6))
+        self._set_failing(reason)
+
     # ---- writer thread ----------------------------------------------------------------------
     def _loop(self) -> None:
         while True:
-            first = self._q.get()
+            if self.journal is not None and self.journal.pending and time.monotonic() >= self._next_forward \
+                    and not self._abandon.is_set():
+                self._forward_journal()
+            wait = None
+            if self.journal is not None and self.journal.pending:
+                wait = max(0.05, self._next_forward - time.monotonic())
+            try:
+                first = self._q.get(timeout=wait)
+            except queue.Empty:
+                continue
             items = [first]
             if not isinstance(first, _Marker):
                 deadline = time.monotonic() + self.interval_s
@@ -325,21 +489,41 @@ class DbWriter:
                     items.append(item)
                     if isinstance(item, _Marker):
                         break
-            events = [i for i in items if not isinstance(i, _Marker)]
+            entries = [i for i in items if not isinstance(i, _Marker)]
             markers = [i for i in items if isinstance(i, _Marker)]
             stop = any(m.stop for m in markers)
-            if events or stop:
-                self._commit_with_retry(events, seal_all=stop)
+            with self._journal_lock:
+                self._holding, self._holding_markers = entries, [m for m in markers if not m.stop]
+            if entries or stop:
+                self._store(entries, seal_all=stop)
+            with self._journal_lock:
+                self._holding, self._holding_markers = [], []
             for m in markers:
                 m.done.set()
             if stop:
                 return
 
+    def _store(self, entries: list[tuple[int, Event]], seal_all: bool) -> None:
+        """Commit entries, or (older events waiting in the journal) put them behind those."""
+        if self.journal is not None and self.journal.pending and self._to_journal(entries):
+            if seal_all and not self._abandon.is_set() and self._forward_journal(everything=True):
+                self._seal_all()
+            return
+        self._commit_with_retry(entries, seal_all=seal_all)
+
+    def _seal_all(self) -> None:
+        try:
+            self._commit([], True)
+        except Exception as exc:  # noqa: BLE001 - sealing is compaction: the next start goes on with it
+            self.stats["last_error"] = repr(exc)
+            log.error("db writer: final sealing failed: %r", exc)
+
     # ---- stall watchdog ---------------------------------------------------------------------
     def _watch_stalls(self) -> None:
         """Report a commit in progress for longer than stall_s as a storage failure. The commit
         itself cannot say so: it blocks inside SQLite's busy timeout (another process holds the
-        lock) or in a slow fsync, so only another thread can see the time pass."""
+        lock), in a slow fsync or on a server that stopped answering, so only another thread can
+        see the time pass. While it hangs, events are journaled here (_spill)."""
         tick_s = max(0.02, min(0.1, self.stall_s / 20))
         while self._thread.is_alive():
             started = self._commit_started
@@ -347,6 +531,8 @@ class DbWriter:
                 waited_s = time.monotonic() - started
                 if waited_s >= self.stall_s:
                     self._report_stall(waited_s)
+            if self._stalled and self._commit_started is not None:
+                self._spill()
             time.sleep(tick_s)
 
     def _report_stall(self, waited_s: float) -> None:
@@ -359,14 +545,20 @@ class DbWriter:
             self.stats["stalls"] += 1
             self._set_failing(f"stalled: a commit has been waiting {waited_s:.1f} s (database locked?)")
 
-    def _commit_timed(self, events: list[Event], seal_all: bool) -> None:
-        """_commit, watched by the stall watchdog while it runs."""
+    def _commit_timed(self, entries: list[tuple[int, Event]], seal_all: bool) -> None:
+        """_commit, watched by the stall watchdog while it runs. A commit that went through after
+        the watchdog copied its entries into the journal takes the copies out again."""
         self._commit_started = time.monotonic()
         try:
-            self._commit(events, seal_all)
+            self._commit([e for _, e in entries], seal_all)
         finally:
             with self._failing_lock:
                 self._commit_started = None
+        with self._journal_lock:
+            done = [s for s, _ in entries if s in self._copied]
+            self._copied.difference_update(done)
+        if done and self.journal is not None:
+            self.journal.remove(done)
 
     def _set_failing(self, reason: str | None) -> None:
         with self._failing_lock:
@@ -378,8 +570,8 @@ class DbWriter:
             self.failing = reason
             self.failing_since = time.time() if reason is not None else None
         if reason is not None and was is None:
-            log.critical("db writer: the database does not take writes (%s): %d events held in memory, "
-                         "retrying", reason, len(self._held))
+            where = f"journaled in {self.journal.path}" if self.journal is not None else "held in memory"
+            log.critical("db writer: the database does not take writes (%s): events %s, retrying", reason, where)
         elif reason is None:
             log.warning("db writer: the database takes writes again; held events stored")
         if self.on_storage is not None:
@@ -388,14 +580,18 @@ class DbWriter:
             except Exception:
                 log.exception("db writer: on_storage callback failed")
 
-    def _commit_storage_retry(self, events: list[Event], seal_all: bool) -> bool:
-        """Commit, retrying storage failures with backoff until they pass (True) or close() gives
-        up (False). Raises what is not a storage failure (a bad event)."""
+    def _commit_storage_retry(self, entries: list[tuple[int, Event]], seal_all: bool) -> bool:
+        """Commit, retrying storage failures with backoff until they pass (True), the entries are
+        in the journal (True) or close() gives up (False). Raises what is not a storage failure
+        (a bad event)."""
         attempt = 0
-        self._held = events
+        self._held = entries
+        if self.blocked is not None and self._to_journal(entries):
+            self._set_failing(self.blocked)
+            return True
         while True:
             try:
-                self._commit_timed(events, seal_all)
+                self._commit_timed(entries, seal_all)
                 self._set_failing(None)
                 return True
             except OperationalError as exc:  # disk full, I/O error, locked, lost connection
@@ -403,38 +599,42 @@ class DbWriter:
                 self.stats["last_error"] = reason
                 self.stats["storage_failures"] += 1
                 attempt += 1
-                if attempt >= 3 or "full" in reason or "I/O" in reason or "readonly" in reason:
+                hard = "full" in reason or "I/O" in reason or "readonly" in reason
+                if attempt >= 3 or hard or self._abandon.is_set():
+                    if self._to_journal(entries):  # durable now; forwarded when the database answers
+                        self._forward_failures = max(self._forward_failures, 1)
+                        self._next_forward = time.monotonic() + min(self.retry_max_s, 0.5)
+                        self._set_failing(reason)
+                        return True
                     self._set_failing(reason)
                 else:
                     log.warning("db writer: commit failed (%s), retrying", reason)
                 if self._abandon.is_set():
-                    n = len(events) + self._q.qsize()
+                    n = len(entries) + self._q.qsize()
                     self.stats["abandoned_events"] += n
                     log.critical("db writer: giving up at shutdown: %d events NOT stored (%s)", n, reason)
                     return False
                 time.sleep(min(self.retry_max_s, 0.2 * attempt))
 
-    def _commit_with_retry(self, events: list[Event], seal_all: bool = False) -> None:
+    def _commit_with_retry(self, entries: list[tuple[int, Event]], seal_all: bool = False) -> None:
         try:
-            if self._commit_storage_retry(events, seal_all) or self._abandon.is_set():
+            if self._commit_storage_retry(entries, seal_all) or self._abandon.is_set():
+                if seal_all and self.journal is not None and self.journal.pending:
+                    pass  # the database is down: the next start seals what is left
                 return
         except Exception as exc:  # a bad event: isolate it, keep the rest
             self.stats["last_error"] = repr(exc)
-            log.exception("db writer: commit of %d events failed; retrying one by one", len(events))
-        for ev in events:
+            log.exception("db writer: commit of %d events failed; retrying one by one", len(entries))
+        for entry in entries:
             try:
-                if not self._commit_storage_retry([ev], False):
+                if not self._commit_storage_retry([entry], False):
                     return
             except Exception as exc:
                 self.stats["dropped_events"] += 1
                 self.stats["last_error"] = repr(exc)
-                log.error("db writer: dropped %s: %r", type(ev).__name__, exc)
-        if seal_all:
-            try:
-                self._commit([], True)
-            except Exception as exc:
-                self.stats["last_error"] = repr(exc)
-                log.error("db writer: final sealing failed: %r", exc)
+                log.error("db writer: dropped %s: %r", type(entry[1]).__name__, exc)
+        if seal_all and not (self.journal is not None and self.journal.pending):
+            self._seal_all()
 
     def _commit(self, events: list[Event], seal_all: bool) -> None:
         saved = self._chunks.snapshot()
