@@ -444,6 +444,25 @@ class Database:
             )
         return ids
 
+    def unjudged_runs(self, exclude_batches: list[int]) -> dict[int, list[int]]:
+        """Runs of this station that ended with no verdict stored (the verdict was lost: a
+        station stopped while neither the database nor its journal took it), in ended batches of
+        real parts, not in `exclude_batches` (the batches this start marked interrupted: judged
+        there). Only runs this software line made (software_version set): older runs predate
+        verdicts and must not reach the MES now. {batch id: [run ids]}."""
+        with self.session() as s:
+            rows = s.execute(
+                select(DutRun.batch_id, DutRun.id).join(Batch, Batch.id == DutRun.batch_id)
+                .where(DutRun.verdict.is_(None), DutRun.state.in_(RUN_END_STATES), DutRun.attempt > NO_ATTEMPT,
+                       DutRun.software_version.is_not(None), Batch.replay_of.is_(None),
+                       Batch.state.in_(BATCH_END_STATES), self._mine(DutRun),
+                       Batch.id.not_in([int(b) for b in exclude_batches] or [-1]))
+                .order_by(DutRun.id)).all()
+        out: dict[int, list[int]] = {}
+        for bid, rid in rows:
+            out.setdefault(int(bid), []).append(int(rid))
+        return out
+
     def batch_trace(self, batch_id: int) -> Trace:
         """The work order, part, lot and label serials a batch was started with."""
         with self.session() as s:

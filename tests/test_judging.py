@@ -34,6 +34,7 @@ def station_and_batch(n: int = 2, ending: str = "finished"):
     for i in range(n):
         d = DutRun(slot=f"s{i + 1}", identity=Identity(serial=f"SER{i}", sensor="LIS3DSH"), state="running")
         d.run_id = db.create_run(batch_id, d.slot, d.serial)
+        d.attempt = db.run_attempt(d.run_id)  # as slots.connect_duts reads it when the run is made
         d.n_samples = 1000
         d.result = {"axes": {ax: {"tdb_mg_per_c": 0.1, "tdsf_ppm_per_c": -100.0, "tdsf_sigma_ppm_per_c": 1.0} for ax in "xyz"},
                     "residual": {"axes": {ax: {"drift_error_fs_pct": 0.3, "drift_error_fs_sigma_pct": 0.02, "bow_mg": 0.5,
@@ -115,6 +116,7 @@ def test_retest_attempt():
     d = seq.duts[0]
     retest = st.db.create_batch("fast-thermal", "op", {})
     d.run_id = st.db.create_run(retest, "s1", d.serial)  # the same serial seen again
+    d.attempt = st.db.run_attempt(d.run_id)
     d.state = "done"
     judge_final(st, seq)
     assert d.verdict["attempt"] == 2
@@ -125,3 +127,60 @@ def test_time_left_is_zero_after_the_end_and_capped_by_timeouts():
     seq.state = "finished"
     seq.step = None
     assert time_left(SimpleNamespace(config=CFG), seq)["batch_s"] == 0.0
+
+
+class _DatabaseDown:
+    """A database that answers nothing (a PostgreSQL restart, a hung server): every call raises."""
+
+    def __getattr__(self, name):
+        def down(*args, **kwargs):
+            raise ConnectionError(f"database down ({name})")
+        return down
+
+
+def test_judging_at_the_end_needs_no_database():
+    """Issue 37: one connection error at the end used to leave every run of the batch without a
+    verdict. Judging reads only the run's own state (its attempt was read when it was made)."""
+    import dataclasses
+
+    st, seq, q = station_and_batch()
+    down = dataclasses.replace(st, db=_DatabaseDown())
+    d1, d2 = seq.duts
+    d1.state, d2.state = "done", "done"
+    judge_final(down, seq)
+    verdicts = [e for e in events(q) if e.kind == "DutVerdict"]
+    assert [(e.slot, e.verdict["verdict"], e.verdict["attempt"]) for e in verdicts] == [("s1", "pass", 1), ("s2", "pass", 1)]
+
+
+def test_a_run_that_ended_with_no_verdict_stored_is_judged_error_at_the_next_start():
+    """Every run that ended gets exactly one final record: one whose verdict was lost (its disk
+    failed with the journal's) is judged error at the next start; a judged run, a run older than
+    verdicts (no software_version) and a replay's run are left alone."""
+    from db.models import MeasuredBy
+    from station.decisions.moment import judge_unjudged_runs
+
+    db = open_database(None)
+    bus = EventBus()
+    q = bus.subscribe()
+    ctx = VerdictContext(db=db, bus=bus, product_for=CFG.product_for, profiles=all_profiles(CFG))
+    bid = db.create_batch("fast-thermal", "op", {})
+    ours = MeasuredBy(software_version="1.0")
+    lost = db.create_run(bid, "s1", "LOST1", "LIS3DSH", {}, measured_by=ours)
+    judged = db.create_run(bid, "s2", "JUDGED1", "LIS3DSH", {}, measured_by=ours)
+    old = db.create_run(bid, "s3", "OLD1", "LIS3DSH", {})  # made before runs carried their software
+    for r in (lost, judged, old):
+        db.set_run_state(r, "done")
+    db.set_batch_state(bid, "finished")
+    from sqlalchemy import update
+
+    from db.models import DutRun as RunRow
+    with db.session() as s:
+        s.execute(update(RunRow).where(RunRow.id == judged).values(verdict="pass"))
+    replay = db.create_batch("fast-thermal", "op", {}, replay_of="logs")
+    db.set_run_state(db.create_run(replay, "s1", "LOST1", "LIS3DSH", {}, measured_by=ours), "done")
+    db.set_batch_state(replay, "finished")
+    assert judge_unjudged_runs(ctx, []) == 1
+    (ev,) = [e for e in events(q) if e.kind == "DutVerdict"]
+    assert ev.serial == "LOST1" and ev.verdict["verdict"] == "error" and ev.verdict["run_id"] == lost
+    assert "not stored before the station stopped" in ev.verdict["reason"]
+    assert judge_unjudged_runs(ctx, [bid]) == 0  # the batches this start marked interrupted are judged there

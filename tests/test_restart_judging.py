@@ -242,6 +242,9 @@ class _FlakyAttempts:
     def batch_trace(self, batch_id: int):
         return self._db.batch_trace(batch_id)
 
+    def unjudged_runs(self, exclude_batches: list[int]) -> dict[int, list[int]]:
+        return self._db.unjudged_runs(exclude_batches)
+
 
 def test_a_database_error_on_one_attempt_does_not_stop_the_other_verdicts(tmp_path, caplog):
     cfg = parse_config(SITE, "<site>")

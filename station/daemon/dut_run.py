@@ -30,6 +30,10 @@ class DutRun:
     state: str = "connecting"  # connecting, identified, running, done, faulted
     identity: Identity | None = None
     run_id: int | None = None
+    # the run's attempt number, read from the database when the run is made (or resumed): the
+    # verdict at the run's end carries it without a database round trip (a database that is down
+    # then must not stop a verdict)
+    attempt: int | None = None
     fault_reason: str = ""
     calibrator: Any = None
     blocks: list[SampleBlock] = field(default_factory=list)

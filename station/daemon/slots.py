@@ -28,6 +28,7 @@ from station.daemon.intake import pump
 from station.daemon.dut_run import DutRun
 from station.daemon.sequencer import Sequencer
 from station.daemon.states import TERMINAL
+from station.decisions.moment import attempt_of
 from station.version import software_version
 
 log = logging.getLogger(__name__)
@@ -172,6 +173,8 @@ async def connect_duts(st: Any, seq: Sequencer) -> None:
             d.run_id = int(await asyncio.to_thread(st.db.create_run, seq.batch_id, d.slot, ident.serial, ident.sensor,
                                                    identity_dict(ident), counts_as_attempt=mismatch is None,
                                                    measured_by=measured_by(seq, ident)))
+        if d.attempt is None:
+            d.attempt = await asyncio.to_thread(attempt_of, st.db, d.run_id)
         if st.writer is not None:
             st.writer.bind_run(seq.batch_id, d.slot, d.run_id)
         if mismatch is not None:

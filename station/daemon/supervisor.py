@@ -288,8 +288,10 @@ class Station:
         return self.batch_status(batch_id)
 
     def judge_interrupted(self, batch_ids: list[int], reason: str = "station restarted") -> int:
-        """Error verdicts for the runs of batches a killed daemon left running (decisions/moment.py)."""
-        return moment.judge_interrupted_runs(self.verdicts, list(batch_ids or []), reason)
+        """Error verdicts for the runs of batches a killed daemon left running, and for every run
+        that ended with no verdict stored (decisions/moment.py)."""
+        ids = list(batch_ids or [])
+        return moment.judge_interrupted_runs(self.verdicts, ids, reason) + moment.judge_unjudged_runs(self.verdicts, ids)
 
     # ================================================================== facade: slots and lamp
     def slots_status(self) -> list[dict]:

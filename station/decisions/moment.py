@@ -100,10 +100,11 @@ def run_record(ctx: VerdictContext, seq: EndedBatch, d: Any) -> RunRecord:
 
 
 def _judge(ctx: VerdictContext, batch_id: int, slot: str, serial: str | None, run_id: int | None, run: RunRecord,
-           spec: ProductSpec | None) -> dict:
-    """The final verdict of one run as the MES record carries it; published when the run exists."""
+           spec: ProductSpec | None, attempt: int | None) -> dict:
+    """The final verdict of one run as the MES record carries it; published when the run exists.
+    No database call: the verdict must go out (to the journal) while the database is down."""
     v = final_verdict(run, spec).to_json()
-    v["attempt"] = attempt_of(ctx.db, run_id)
+    v["attempt"] = attempt
     v["run_id"] = run_id
     if run_id is not None:
         ctx.bus.publish(DutVerdict(batch_id, slot=slot, serial=serial, verdict=v))
@@ -119,7 +120,7 @@ def judge_final(ctx: VerdictContext, seq: EndedBatch) -> None:
         if d.verdict is not None:
             continue  # judged once (release runs once; a second call must not send a second record)
         d.verdict = slim(_judge(ctx, seq.batch_id, d.slot, d.serial, d.run_id, run_record(ctx, seq, d),
-                                spec_of(ctx, d.identity, part)))
+                                spec_of(ctx, d.identity, part), d.attempt))
 
 
 def profile_of_batch(ctx: VerdictContext, name: str, snapshot: dict | None) -> Profile | None:
@@ -166,10 +167,47 @@ def judge_interrupted_runs(ctx: VerdictContext, batch_ids: list[int], reason: st
                             end_reason=f"interrupted: {reason} during the batch, DUT incomplete "
                                        "(resumable: station serve --resume)")
             identity = r.identity or {"sensor": r.sensor}
-            _judge(ctx, int(bid), r.slot, r.serial, r.run_id, run, spec_of(ctx, identity, part))
+            _judge(ctx, int(bid), r.slot, r.serial, r.run_id, run, spec_of(ctx, identity, part),
+                   attempt_of(ctx.db, r.run_id))
             n += 1
     return n
 
 
-__all__ = ["judge_final", "judge_interrupted_runs", "run_record", "end_of", "slim", "operating_range_c", "attempt_of",
+def judge_unjudged_runs(ctx: VerdictContext, exclude_batches: list[int]) -> int:
+    """At daemon start: every run that ended with no verdict stored gets one now (error: what
+    was decided then is gone, the part is retested), so every run that ended reaches the MES with
+    exactly one final verdict, whatever failed when. With the station's journal a verdict is lost
+    only when the journal's own disk failed too. Returns how many runs were judged."""
+    try:
+        lost = ctx.db.unjudged_runs(list(exclude_batches))
+    except Exception:  # noqa: BLE001 - logged; the next start tries again
+        log.warning("runs without a verdict not looked up (database)", exc_info=True)
+        return 0
+    n = 0
+    for bid, run_ids in lost.items():
+        try:
+            rp = ctx.db.resume_point(int(bid))
+            part = ctx.db.batch_trace(int(bid)).part_number
+        except Exception:  # noqa: BLE001 - one batch; the others are still judged
+            log.warning("batch %s: runs without a verdict not judged (database)", bid, exc_info=True)
+            continue
+        prof = profile_of_batch(ctx, rp.profile, rp.config_snapshot)
+        if prof is None or prof.analysis == "none":
+            continue
+        wanted = set(run_ids)
+        for r in rp.runs:
+            if r.run_id not in wanted:
+                continue
+            why = (f"{r.fault_reason}; " if r.fault_reason else "") + \
+                "its verdict was not stored before the station stopped (judged at restart): retest"
+            run = RunRecord(analysis=prof.analysis, program_verify=prof.program_step is not None,
+                            end_state="interrupted" if r.state == "done" else r.state, end_reason=why)
+            _judge(ctx, int(bid), r.slot, r.serial, r.run_id, run, spec_of(ctx, r.identity or {"sensor": r.sensor}, part),
+                   attempt_of(ctx.db, r.run_id))
+            log.warning("batch %s run %s (%s): no verdict was stored: judged error at restart", bid, r.run_id, r.serial)
+            n += 1
+    return n
+
+
+__all__ = ["judge_final", "judge_interrupted_runs", "judge_unjudged_runs", "run_record", "end_of", "slim", "operating_range_c", "attempt_of",
            "spec_of", "profile_of_batch"]

@@ -45,6 +45,10 @@ class VerdictStore(Protocol):
         """What the batch was started for (its part number chooses the product's limits)."""
         ...
 
+    def unjudged_runs(self, exclude_batches: list[int]) -> dict[int, list[int]]:
+        """Runs of this station that ended with no verdict stored: {batch id: [run ids]}."""
+        ...
+
 
 @runtime_checkable
 class Publisher(Protocol):
@@ -75,7 +79,7 @@ class VerdictContext:
     live_link_stats: LinkStatsLookup = no_live_links
 
     def __post_init__(self) -> None:
-        missing = [name for name in ("run_attempt", "resume_point", "batch_trace")
+        missing = [name for name in ("run_attempt", "resume_point", "batch_trace", "unjudged_runs")
                    if not callable(getattr(self.db, name, None))]
         if missing:
             raise TypeError(f"VerdictContext.db: {type(self.db).__name__} has no {', '.join(missing)}")
