@@ -157,3 +157,8 @@ class ThermalResult:
 
 class StationError(Exception):
     """A user-facing error: one clear line, no traceback (CLI exits non-zero, REST gives 4xx)."""
+
+
+class StorageUnavailable(StationError):
+    """The station's database cannot be used now (not answering, its file deleted): what needs it
+    (a new batch: its runs are numbered there) is refused; REST answers 503 with the reason."""

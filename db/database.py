@@ -132,7 +132,30 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
         event.listen(engine, "connect", _sqlite_on_connect)
         return engine
     kwargs.setdefault("pool_pre_ping", True)
+    kwargs.setdefault("pool_timeout", PG_POOL_TIMEOUT_S)
+    if u.get_backend_name() == "postgresql" and u.get_driver_name() in ("psycopg", "psycopg2"):
+        args = kwargs.setdefault("connect_args", {})
+        for k, v in PG_CONNECT_ARGS.items():
+            args.setdefault(k, v)
     return create_engine(u, **kwargs)
+
+
+# PostgreSQL: nothing the station asks may wait for ever (issue 37). A server that is down is met
+# in connect_timeout; a statement or a lock that takes too long is ended by the server; a
+# connection whose peer vanished (a network cut, a host that died) is found by TCP keepalives and
+# tcp_user_timeout. A server that is alive but stopped (SIGSTOP, a hung host) answers none of these:
+# the station's DbProbe (station/daemon/storage.py) says so, the routes fail fast, and the writer's
+# watchdog journals what waits behind a hung commit.
+PG_POOL_TIMEOUT_S = 5.0
+PG_CONNECT_ARGS: dict[str, Any] = {
+    "connect_timeout": 5,
+    "options": "-c statement_timeout=60000 -c lock_timeout=30000 -c idle_in_transaction_session_timeout=120000",
+    "keepalives": 1,
+    "keepalives_idle": 10,
+    "keepalives_interval": 5,
+    "keepalives_count": 3,
+    "tcp_user_timeout": 30000,
+}
 
 COLLISION_RETRIES = 5  # a unique collision or a serialization failure is retried this many times
 RETRY_PGCODES = ("40001", "40P01")  # PostgreSQL serialization_failure, deadlock_detected
@@ -191,6 +214,9 @@ class Database:
         self.collision_retries = 0  # create_run calls retried after a unique collision (see retry_collisions)
         self.engine = make_read_only_engine(url) if read_only else make_engine(url, echo=echo)
         self.Session = sessionmaker(self.engine, expire_on_commit=False)
+        # the SQLite file's watch and marker (db/file_guard.py), set by station/daemon/storage.py
+        # open_database: the marker is kept up to date with every batch made here
+        self.file_guard: Any = None
 
     @property
     def is_sqlite(self) -> bool:
@@ -320,7 +346,19 @@ class Database:
             )
             s.add(b)
             s.flush()
-            return b.id
+            batch_id = int(b.id)
+        if self.file_guard is not None:
+            try:
+                self.file_guard.write_marker(*self.batch_counts())
+            except Exception:  # noqa: BLE001 - the batch exists; the marker is the next start's check
+                log.warning("database marker not updated", exc_info=True)
+        return batch_id
+
+    def batch_counts(self) -> tuple[int, int]:
+        """(how many batches, the highest batch id): what the file's marker remembers."""
+        with self.session() as s:
+            n, top = s.execute(select(func.count(Batch.id), func.coalesce(func.max(Batch.id), 0))).one()
+            return int(n), int(top)
 
     def set_batch_state(
         self,

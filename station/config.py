@@ -208,6 +208,10 @@ class StationConfig(_Model):
     # one database (PostgreSQL) are told apart by it, so the default is the host's name
     name: str = Field(default_factory=_hostname, min_length=1, max_length=64)
     database_url: str = "sqlite:///var/station.db"
+    # the station's journal (db/journal.py): events the database has not taken yet, durable on this
+    # station, forwarded when the database answers. Default: beside a SQLite file (<file>.journal);
+    # for PostgreSQL, ~/.local/state/station/<name>-<host>-<port>-<database>.journal
+    journal_path: str | None = Field(default=None, min_length=1, max_length=1024)
     mes_webhook_url: str | None = None
     http: Http = Http()
     limits: Limits = Limits()

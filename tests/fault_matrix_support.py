@@ -93,6 +93,7 @@ ROWS = [
     "clock jump forward",
     "stuck temperature sensor",
     "--check during a batch",
+    "database locked mid-batch (12 s)",
     "healthy DUTs (finished batches)",
 ]
 

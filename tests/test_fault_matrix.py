@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import sys
 
 import pytest
 
@@ -178,6 +179,7 @@ SWAPPED = ("swapped", "answers")
 IDENTITY_ROWS = ["duplicate serial", "empty serial", "overlong serial", "board swapped mid-run (same port)",
                  "board reset mid-run (streams again)", "clock jump back", "clock jump forward",
                  "stuck temperature sensor", "--check during a batch"]
+STORE_ROWS = ["database locked mid-batch (12 s)"]
 
 
 def _serials(**by_board):
@@ -262,6 +264,31 @@ def _disk_full_at(moment):
             await ctx.wait(lambda: ctx.st.storage_status().startswith("error"), "the writer reports the full disk", 60)
         finally:
             ctx.sim.set_speed(ctx.plan.speed)
+    return inject
+
+
+LOCKER = """
+import sqlite3, sys, time
+con = sqlite3.connect(sys.argv[1], isolation_level=None, timeout=30)
+con.execute("BEGIN EXCLUSIVE")
+print("LOCKED", flush=True)
+time.sleep(float(sys.argv[2]))
+con.execute("ROLLBACK")
+"""
+
+
+def _db_locked_at(moment, hold_s):
+    """Another process holds the station database's write lock for hold_s (a backup tool, an
+    engineer's sqlite3 shell): the writer journals what it cannot commit, the batch goes on and is
+    judged on its data, and once the lock is gone the journal is forwarded before the checks."""
+    async def inject(ctx: Ctx) -> None:
+        path = str(ctx.st.db.url).removeprefix("sqlite:///")
+        async with moment(ctx):
+            locker = await asyncio.create_subprocess_exec(sys.executable, "-c", LOCKER, path, str(hold_s),
+                                                          stdout=asyncio.subprocess.PIPE)
+            assert (await locker.stdout.readline()).strip() == b"LOCKED"
+        await locker.wait()
+        await ctx.wait(lambda: ctx.st.storage_status() == "ok", "the journal is forwarded after the lock", 60)
     return inject
 
 
@@ -384,6 +411,7 @@ def _verified_plans() -> list[Plan]:
     }))
     _na(P, [r for r in IDENTITY_ROWS if r != "board swapped mid-run (same port)"],
         "n/a (connect and link path: the same for every profile, run in fast-thermal)")
+    _na(P, STORE_ROWS, "n/a (the writer's path: the same for every profile, run in fast-thermal)")
     return plans
 
 
@@ -430,6 +458,9 @@ def _fast_thermal_plans() -> list[Plan]:
     # a second station's `serve --check` on the same config mid-batch is refused and touches nothing
     plans.append(Plan("ft-check", P, FAST, 2, 1, 47, inject=check_during_batch,
                       expects=_all(_slots(2, 1), "--check during a batch", kind="unharmed")))
+    # another process holds the database's lock for 12 s mid-batch: the station journals and goes on
+    plans.append(Plan("ft-db-locked", P, FAST, 2, 1, 48, inject=_db_locked_at(lambda c: c.at_step(1, 10), 12.0),
+                      expects=_all(_slots(2, 1), "database locked mid-batch (12 s)", kind="unharmed")))
     return plans
 
 
@@ -472,6 +503,7 @@ def _sfem_plans() -> list[Plan]:
     _na(P, ["abort, 2nd step", "abort, 3rd step", "abort, 4th step"], "n/a (see 45 C / last)")
     _na(P, ["label serial mismatch"], "n/a (checked at connect, before any step: one code path for all profiles)")
     _na(P, IDENTITY_ROWS, "n/a (connect and link path: the same for every profile, run in fast-thermal)")
+    _na(P, STORE_ROWS, "n/a (the writer's path: the same for every profile, run in fast-thermal)")
     # x1000, not x3000: a person's seconds (and a wrong turn's correction within a static step's 600 s
     # timeout) must not vanish into one 150 s tick of the compressed plant
     plans += _people_plans(P, 1000.0, 94, n_serial=1, timeout_s=SFEM_PLAN_TIMEOUT_S)

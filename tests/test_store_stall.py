@@ -40,7 +40,7 @@ print("RELEASED", time.time(), flush=True)
 
 def _storage_status(writer: DbWriter, db) -> str:
     """The supervisor's own health logic on this writer (station/daemon/supervisor.py, not a copy)."""
-    return Station.storage_status(SimpleNamespace(writer=writer, db=db))
+    return Station.storage_status(SimpleNamespace(writer=writer, db=db, storage=SimpleNamespace(probe=None)))
 
 
 def test_a_commit_stalled_by_another_process_raises_the_storage_alarm_then_recovers(tmp_path):

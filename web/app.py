@@ -14,6 +14,7 @@ from pathlib import Path
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
+from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
@@ -23,6 +24,7 @@ from web import __version__
 from web.auth import TokenStore, install_log_redaction
 from web.guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
 from web.mes_outbox import MesOutbox, OutboxConfig
+from web.db_gate import unavailable
 from web.repo import NoRepository, WebRepository
 from web.routes import batches, duts, events, results, runs, station as station_routes
 from web.routes import diagnostics as diagnostics_routes
@@ -163,6 +165,13 @@ def create_app(
         if exc.status_code == 405:  # Starlette names only the first matching route's methods
             exc.headers = {**(exc.headers or {}), "Allow": ", ".join(_allowed_methods(app, request.scope))}
         return await http_exception_handler(request, exc)
+
+    @app.exception_handler(OperationalError)
+    async def _on_database_down(request: Request, exc: OperationalError):
+        # a route that reached the database through the station (a stored batch's status): the
+        # database is down or hung, which is no bug of the request (web/db_gate.py)
+        http = unavailable((str(getattr(exc, "orig", None) or exc).strip().splitlines() or ["connection error"])[0][:200])
+        return JSONResponse(status_code=503, content={"detail": http.detail}, headers=http.headers)
 
     @app.exception_handler(StationError)
     async def _on_station_error(request: Request, exc: StationError):

@@ -13,7 +13,8 @@ from typing import Any
 from urllib.parse import unquote
 
 from fastapi import Request
-from fastapi.concurrency import run_in_threadpool
+
+from web.db_gate import db_call
 
 log = logging.getLogger("station.web.audit")
 
@@ -40,6 +41,6 @@ def actor_of(request: Request) -> str:
 async def record(request: Request, action: str, target: str, detail: dict[str, Any] | None = None) -> None:
     actor = actor_of(request)
     try:
-        await run_in_threadpool(request.app.state.repo.audit_append, actor, action, target, detail or {})
+        await db_call(request, request.app.state.repo.audit_append, actor, action, target, detail or {})
     except Exception:  # noqa: BLE001 - see the module docstring
         log.critical("audit: could not record %s by %s on %s %s", action, actor, target, detail, exc_info=True)

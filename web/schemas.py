@@ -213,6 +213,11 @@ def error_responses(*codes: int, what: dict[int, str] | None = None) -> dict:
     return out
 
 
+HEALTH_OPERATION = "health_api_health_get"  # never 503: it reports the database, never waits on it
+DB_DOWN = ("the station's database is not available (not answering, unreachable, its file deleted: "
+           "web/db_gate.py); the detail says since when. Retry later")
+
+
 def install_openapi(app) -> None:
     """Make /openapi.json describe what is sent (a schemathesis run checks every answer against it):
 
@@ -249,6 +254,9 @@ def install_openapi(app) -> None:
                 resp = op["responses"]
                 if "422" in resp:
                     resp["422"]["content"] = {"application/json": {"schema": {"$ref": ref}}}
+                if op.get("operationId") != HEALTH_OPERATION:  # every route may meet a database that is down
+                    resp.setdefault("503", {"description": DB_DOWN, "headers": RETRY_AFTER,
+                                            "content": {"application/json": {"schema": err_ref}}})
                 if "requestBody" in op:
                     resp.setdefault("401", {"description": _WHAT[401], "content": {"application/json": {"schema": err_ref}}})
                     resp.setdefault("413", {"description": _WHAT[413], "content": {"application/json": {"schema": err_ref}}})

@@ -358,9 +358,20 @@ class LampHealth(_Out):
     trip: str | None = Field(default=None, description="why the safety tripped, if it did")
 
 
+class Forwarding(_Out):
+    events: int = Field(description="events (samples blocks, segments, results, verdicts...) waiting in the "
+                                    "station's journal, durable on the station")
+    batches: dict[int, int] = Field(default_factory=dict, description="batch id -> events of it waiting")
+
+
 class Health(_Out):
     status: str = Field(description="'ok' while the web app answers")
     version: str = Field(description="station software version")
     time: float = Field(description="the station's clock, Unix time s")
-    db: str | None = Field(default=None, description="'ok', 'none' (no database), or 'error: ...'")
+    db: str | None = Field(default=None, description="'ok', 'none' (no database), 'forwarding: N events ...' while "
+                                                      "the station's journal is forwarded to a database that answers "
+                                                      "again, or 'error: ...' (e.g. 'error: database not answering "
+                                                      "since 12 s'); never waits on the database")
+    forwarding: Forwarding | None = Field(default=None, description="what waits in the station's journal to be "
+                                                                    "forwarded to the database; null without a station")
     lamp: LampHealth | None = Field(default=None, description="the lamp; null without a station")

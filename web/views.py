@@ -9,6 +9,8 @@ from typing import Any
 
 from fastapi import HTTPException
 
+from contracts.types import StorageUnavailable
+
 
 async def call(fn, *args, conflict: bool = False, **kwargs):
     """Call a Station method that may be sync or async; map the facade's errors (contract:
@@ -22,6 +24,8 @@ async def call(fn, *args, conflict: bool = False, **kwargs):
             out = await out
     except KeyError as exc:
         raise HTTPException(status_code=404, detail=_msg(exc, "not found")) from None
+    except StorageUnavailable as exc:
+        raise HTTPException(status_code=503, detail=_msg(exc, "the database is not available")) from None
     except ValueError as exc:
         raise HTTPException(status_code=409 if conflict else 422, detail=_msg(exc, "invalid request")) from None
     return out

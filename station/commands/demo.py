@@ -44,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     p.add_argument("--no-web", action="store_true", help="do not serve the web page")
     p.add_argument("--db", default=None, help="database URL (default sqlite:///./var/demo.db)")
+    p.add_argument("--new-database", action="store_true",
+                   help="begin a new database where the marker says one with batches was (deleted or replaced)")
     p.add_argument("--json", dest="json_out", default=None, metavar="FILE", help="with --once: write the results as JSON")
     p.add_argument("--verbose", "-v", action="store_true")
 
@@ -323,7 +325,8 @@ async def _main(args: argparse.Namespace) -> int:
                           effects=tuple(args.effect), firmware=firmware) as sim:
         cfg = parse_config(sim_config(sim, speed=args.speed, db_url=db_url, fixture=not args.no_fixture,
                                       http_host=args.host, http_port=args.port), "<demo>")
-        db = open_database(cfg.database_url, station=cfg.name)
+        db = open_database(cfg.database_url, station=cfg.name, allow_new=args.new_database,
+                           journal_path=cfg.journal_path)
         interrupted = db.mark_interrupted("station restarted") if hasattr(db, "mark_interrupted") else []
         from station.decisions.limits_audit import record_limit_changes
 

@@ -32,6 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", default=None, metavar="BATCH",
                    help="resume an interrupted batch (an id, or 'latest') at the step after its last completed one")
     p.add_argument("--check", action="store_true", help="check the config and the links, then exit")
+    p.add_argument("--new-database", action="store_true",
+                   help="begin a new database where the marker beside the SQLite file says one with batches was "
+                        "(it was deleted or replaced): only when that database is really gone")
     p.add_argument("--verbose", "-v", action="store_true")
 
 
@@ -74,7 +77,8 @@ async def _serve(args: argparse.Namespace, cfg, claim) -> int:
     stop = asyncio.Event()
     install_stop_signals(stop)
     try:
-        db = open_database(cfg.database_url, station=cfg.name)
+        db = open_database(cfg.database_url, station=cfg.name, allow_new=args.new_database,
+                           journal_path=cfg.journal_path, forward=not args.check)
     except StationError:
         raise
     except Exception as exc:  # SQLAlchemy: bad URL, unwritable file, server down

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from contracts.types import SampleBlock
+from contracts.types import SampleBlock, StorageUnavailable
 from contracts.trace import Trace, label_mismatch
 from db import repository as repo
 from db.export import run_log
@@ -43,6 +43,10 @@ class BatchRt:
 def _require_running(st: Any) -> None:
     if not st.running:
         raise ValueError("the station is not running")
+    why = st.storage.blocked()
+    if why is not None:
+        raise StorageUnavailable(f"no new batch can start: {why} (a batch's runs are numbered in the database; "
+                                 "running batches go on and their records wait in the station's journal)")
 
 
 def _require_chamber(st: Any, profile: Profile) -> None:

@@ -73,7 +73,7 @@ class Station:
         self.claim = claim  # taken at start() unless given (station serve takes it before the database)
         self.bus = bus or EventBus()
         self.db = db if db is not None else open_database(None, station=config.name)
-        self.storage = Storage(self.db, self.bus)
+        self.storage = Storage(self.db, self.bus, config.journal_path)
         self.links = Links(config.timing.speed)
         self.profiles_by_name: dict[str, Profile] = all_profiles(config)
         self.slots: dict[str, SlotRuntime] = {s.name: SlotRuntime(s) for s in config.slots}
@@ -173,7 +173,7 @@ class Station:
     # ================================================================== storage
     def storage_status(self) -> str:
         """'ok', or 'error: ...' while the writer cannot store (what /api/health reports)."""
-        return storage_state(self.writer)
+        return storage_state(self.writer, self.storage.probe)
 
     async def flush_db(self) -> None:
         """Wait until every event published so far is committed (tests, --once summary)."""

@@ -5,10 +5,10 @@ from __future__ import annotations
 import time
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
-from fastapi.concurrency import run_in_threadpool
 
 from web import audit
 from web.auth import require_control, require_read
+from web.db_gate import db_call
 from contracts.trace import Trace
 from web.schemas import (Ack, BatchCreate, BatchCreated, BatchStatus, Prompt, PromptAnswer, RetestCreate,
                          error_responses)
@@ -122,7 +122,7 @@ async def get_batch(request: Request, batch_id: int = BatchId,
             except HTTPException as exc:
                 if exc.status_code != 404:
                     raise
-                stored = await run_in_threadpool(request.app.state.repo.batch, batch_id)
+                stored = await db_call(request, request.app.state.repo.batch, batch_id)
                 if stored is None:
                     raise
                 return stored

@@ -13,6 +13,7 @@ from fastapi.concurrency import run_in_threadpool
 from station.diagnostics.effects import REGISTRY
 from contracts.types import StationError
 from web.auth import require_read
+from web.db_gate import db_call
 from web.diag_plots import PLOTS, Busy, DiagnosisCache, check_effects, report_json
 from web.schemas import DiagnosisOut, DiagnosticModelOut, error_responses
 from web.views import not_found
@@ -45,7 +46,7 @@ async def _report(request: Request, run_id: int, add: list[str]):
         raise HTTPException(status_code=422, detail=str(exc)) from None
     repo = request.app.state.repo
     try:
-        rep = await run_in_threadpool(_cache(request).get, run_id, effects, lambda: repo.run_log(run_id))
+        rep = await db_call(request, _cache(request).get, run_id, effects, lambda: repo.run_log(run_id), timeout_s=None)
     except StationError as exc:  # the log cannot be diagnosed (too short, no temperature swing)
         raise HTTPException(status_code=409, detail=f"run {run_id}: {exc}") from None
     except Busy as exc:

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from web.auth import require_read
+from web.db_gate import db_call
 from web.schemas import DutOut, DutSummary, ErrorOut, RunOut, error_responses
 from web.views import clean, dut_view, not_found
 from contracts.filenames import safe_name
@@ -22,12 +21,12 @@ async def search_duts(
     serial_like: str | None = Query(default=None, max_length=64, description="part of a serial number"),
     limit: int = Query(default=50, ge=1, le=500),
 ):
-    return clean(await run_in_threadpool(request.app.state.repo.search_duts, serial_like, limit))
+    return clean(await db_call(request, request.app.state.repo.search_duts, serial_like, limit))
 
 
 @router.get("/{serial}", response_model=DutOut, dependencies=[Depends(require_read)])
 async def get_dut(request: Request, serial: str = Serial):
-    dut = await run_in_threadpool(request.app.state.repo.dut, serial)
+    dut = await db_call(request, request.app.state.repo.dut, serial)
     if dut is None:
         raise not_found(f"DUT {serial}")
     return dut_view(dut)
@@ -35,7 +34,7 @@ async def get_dut(request: Request, serial: str = Serial):
 
 @router.get("/{serial}/runs", response_model=list[RunOut], dependencies=[Depends(require_read)])
 async def dut_runs(request: Request, serial: str = Serial):
-    runs = await run_in_threadpool(request.app.state.repo.runs_of_dut, serial)
+    runs = await db_call(request, request.app.state.repo.runs_of_dut, serial)
     if runs is None:
         raise not_found(f"DUT {serial}")
     return [clean(r) for r in runs]
@@ -49,7 +48,7 @@ async def dut_certificate(request: Request, serial: str = Serial):
     station, operator, firmware, profile and limits version, coefficients with uncertainties,
     verdict and grade, fit plot (station/records/certificate.py)."""
     try:
-        pdf = await run_in_threadpool(request.app.state.repo.certificate_pdf, serial)
+        pdf = await db_call(request, request.app.state.repo.certificate_pdf, serial)
     except LookupError as exc:
         raise HTTPException(status_code=409, detail=str(exc).strip("'\"")) from None
     if pdf is None:

@@ -6,10 +6,10 @@ final), an unknown id 404."""
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Request
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from web.auth import require_read
+from web.db_gate import db_call
 from web.schemas import ErrorOut, error_responses
 from web.views import not_found
 
@@ -30,7 +30,7 @@ async def _export(request: Request, fmt: str, what: str, batch_id: int | None = 
     from station.records.export_model import ExportNotReady
 
     try:
-        data = await run_in_threadpool(request.app.state.repo.export_file, fmt, batch_id, run_id)
+        data = await db_call(request, request.app.state.repo.export_file, fmt, batch_id, run_id)
     except ExportNotReady as exc:
         raise HTTPException(status_code=409, detail=str(exc)) from None
     if data is None:

@@ -8,10 +8,10 @@ from dataclasses import asdict, dataclass
 from datetime import date, datetime, time, timedelta, timezone
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from web.auth import require_admin, require_read
+from web.db_gate import db_call
 from station.records.spc_rules import RULE_NAMES
 from web.schemas import error_responses
 from web.schemas_records import AuditEntry, ParetoOut, ReplayEntry, ReplayOut, SpcOut
@@ -29,7 +29,7 @@ async def audit_trail(
     station: str | None = Query(default=None, max_length=64, description="only this station's entries"),
 ):
     """Who did what through the API (batch start, abort, prompt answers, resume), newest first."""
-    return clean(await run_in_threadpool(request.app.state.repo.audit_list, limit, before_id, station))
+    return clean(await db_call(request, request.app.state.repo.audit_list, limit, before_id, station))
 
 
 # ---- yield, SPC and failure Pareto (station/records/spc.py, pareto.py) ------------------------------------
@@ -105,7 +105,7 @@ async def _runs(request: Request, f: Filters) -> tuple[list[dict], dict]:
     repo = request.app.state.repo
     day_from = _utc_day(f.date_from) if f.date_from else None
     day_to = _utc_day(f.date_to + timedelta(days=1)) if f.date_to else None
-    facets = await run_in_threadpool(repo.judged_facets, day_from, day_to)
+    facets = await db_call(request, repo.judged_facets, day_from, day_to)
     kw: dict = {"judged_from": day_from, "judged_to": day_to}
     if f.product == UNSPECIFIED:
         kw["part_number"] = ""
@@ -115,7 +115,7 @@ async def _runs(request: Request, f: Filters) -> tuple[list[dict], dict]:
         kw.update(part_number=pn, part_revision=rev)
     if f.work_order:
         kw["work_order"] = "" if f.work_order == UNSPECIFIED else f.work_order
-    runs = await run_in_threadpool(repo.judged_runs, f.limit, f.station, **kw)
+    runs = await db_call(request, repo.judged_runs, f.limit, f.station, **kw)
     if f.product and f.product != UNSPECIFIED:
         runs = [r for r in runs if r.get("product") == f.product]
     return runs, _options(facets)
@@ -207,13 +207,13 @@ async def failure_pareto_csv(request: Request, f: Filters = Depends(filters)):
 @router.get("/replays", response_model=list[ReplayEntry], dependencies=[Depends(require_read)])
 async def list_replays(request: Request, limit: int = Query(default=50, ge=1, le=1000)):
     """Replay batches (`station replay`), newest first: source, how many DUTs changed, verdict changes."""
-    return clean(await run_in_threadpool(request.app.state.repo.replays, limit))
+    return clean(await db_call(request, request.app.state.repo.replays, limit))
 
 
 @router.get("/replays/{batch_id}", response_model=ReplayOut, dependencies=[Depends(require_read)])
 async def get_replay(request: Request, batch_id: int = Path(ge=1, le=2**62)):
     """One replay's comparison with the recording: every changed number and word per DUT."""
-    out = await run_in_threadpool(request.app.state.repo.replay, batch_id)
+    out = await db_call(request, request.app.state.repo.replay, batch_id)
     if out is None:
         raise HTTPException(status_code=404, detail=f"batch {batch_id} is no replay (or does not exist)")
     return clean(out)

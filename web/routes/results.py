@@ -6,9 +6,9 @@ import re
 from datetime import datetime, timezone
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
-from fastapi.concurrency import run_in_threadpool
 
 from web.auth import require_admin, require_results
+from web.db_gate import db_call
 from web.schemas import MesResultPayload, OutboxEntry, ResultsPage, YieldOut, error_responses
 from web.views import clean, dut_view
 
@@ -104,7 +104,7 @@ async def results(
 ):
     after_id, since_time = parse_since(since)
     by_station = {"station": station} if station else {}  # repositories without stations still serve the rest
-    rows = await run_in_threadpool(request.app.state.repo.results_since, after_id, since_time, limit, **by_station)
+    rows = await db_call(request, request.app.state.repo.results_since, after_id, since_time, limit, **by_station)
     rows = rows[:limit]
     out = []
     for r in rows:
@@ -116,7 +116,7 @@ async def results(
 
 @router.get("/outbox", response_model=list[OutboxEntry], dependencies=[Depends(require_admin)])
 async def outbox(request: Request, limit: int = Query(default=100, ge=1, le=1000)):
-    return clean(await run_in_threadpool(request.app.state.repo.outbox_list, limit))
+    return clean(await db_call(request, request.app.state.repo.outbox_list, limit))
 
 
 @router.get("/yield", response_model=YieldOut, dependencies=[Depends(require_results)])
@@ -124,7 +124,7 @@ async def yield_summary(request: Request, batch_id: int | None = Query(default=N
                                                                           description="only the DUTs of this batch")):
     """First-pass and final yield: every attempt of each DUT counts; the latest valid attempt is
     the DUT's result (db.repository.yields)."""
-    return await run_in_threadpool(request.app.state.repo.yields, batch_id)
+    return await db_call(request, request.app.state.repo.yields, batch_id)
 
 
 def register_webhooks(app) -> None:

@@ -7,6 +7,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from contracts.logfile import format_log
 from web.auth import require_read
+from web.db_gate import db_call
 from web.diag_plots import BoundedCache, Busy
 from web.plots import render_run_png
 from web.schemas import RunOut, SegmentOut, error_responses
@@ -20,7 +21,7 @@ RunId = Path(ge=1, le=2**62, description="run id")
 
 @router.get("/{run_id}", response_model=RunOut, dependencies=[Depends(require_read)])
 async def get_run(request: Request, run_id: int = RunId):
-    run = await run_in_threadpool(request.app.state.repo.run, run_id)
+    run = await db_call(request, request.app.state.repo.run, run_id)
     if run is None:
         raise not_found(f"run {run_id}")
     return clean(run)
@@ -28,7 +29,7 @@ async def get_run(request: Request, run_id: int = RunId):
 
 @router.get("/{run_id}/segments", response_model=list[SegmentOut], dependencies=[Depends(require_read)])
 async def run_segments(request: Request, run_id: int = RunId):
-    segs = await run_in_threadpool(request.app.state.repo.segments, run_id)
+    segs = await db_call(request, request.app.state.repo.segments, run_id)
     if segs is None:
         raise not_found(f"run {run_id}")
     return clean(segs)
@@ -41,7 +42,7 @@ async def run_segments(request: Request, run_id: int = RunId):
     dependencies=[Depends(require_read)],
 )
 async def run_log_csv(request: Request, run_id: int = RunId):
-    log = await run_in_threadpool(request.app.state.repo.run_log, run_id)
+    log = await db_call(request, request.app.state.repo.run_log, run_id)
     if log is None:
         raise not_found(f"run {run_id}")
     text = await run_in_threadpool(format_log, log)
@@ -75,13 +76,13 @@ async def run_plot(request: Request, run_id: int = RunId):
     """A finished run's plot is rendered once (LRU); any plot is refused with 429 + Retry-After
     while RUN_PLOTS_AT_ONCE others are being rendered (a render takes seconds of CPU)."""
     repo = request.app.state.repo
-    run = await run_in_threadpool(repo.run, run_id)
+    run = await db_call(request, repo.run, run_id)
     if run is None:
         raise not_found(f"run {run_id}")
     finished = run.get("finished_at")
     key = (run_id, run.get("state"), str(finished), run.get("fault_reason"))
     try:
-        png = await run_in_threadpool(_plot_cache(request).get, key, lambda: _plot(repo, run_id), store=finished is not None)
+        png = await db_call(request, _plot_cache(request).get, key, lambda: _plot(repo, run_id), store=finished is not None, timeout_s=None)
     except Busy as exc:
         raise HTTPException(status_code=429, detail=str(exc), headers={"Retry-After": str(exc.retry_after_s)}) from None
     if png is None:

@@ -2,37 +2,48 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.concurrency import run_in_threadpool
 
 from web.auth import require_read
+from web.repo import NoRepository
 from web.schemas import Health, Me, ProfileOut, SlotOut, error_responses
 from web.views import call, clean, slot_view
 
 router = APIRouter(prefix="/api", tags=["station"])
 AUTHED = error_responses(401, 403)
+HEALTH_DB_TIMEOUT_S = 1.0
 
 
 @router.get("/health", response_model=Health)
 async def health(request: Request):
+    """Never waits on the database: with a station, its storage state (the database probe's last
+    answer, the writer, the journal); without one, the repository's check, bounded to 1 s."""
     from web import __version__
 
     repo = request.app.state.repo
+    station = getattr(request.app.state, "station", None)
     db_state = None
-    if repo is not None:
+    if repo is None or isinstance(repo, NoRepository):
+        db_state = None if repo is None else repo.health()
+    elif station is not None and hasattr(station, "storage_status"):
+        db_state = station.storage_status()
+    else:
         try:
-            db_state = await run_in_threadpool(repo.health)
+            db_state = await asyncio.wait_for(run_in_threadpool(repo.health), HEALTH_DB_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            db_state = f"error: database not answering within {HEALTH_DB_TIMEOUT_S:g} s"
         except Exception as exc:  # noqa: BLE001 - health reports, never raises
             db_state = f"error: {type(exc).__name__}"
     lamp = None
-    station = getattr(request.app.state, "station", None)
     if station is not None and hasattr(station, "lamp_status"):
         lamp = station.lamp_status()
-    if station is not None and hasattr(station, "storage_status") and db_state == "ok":
-        db_state = station.storage_status()  # reads may work while writes fail (disk full)
-    return {"status": "ok", "version": __version__, "time": time.time(), "db": db_state, "lamp": lamp}
+    waiting = station.storage.waiting() if station is not None and hasattr(station, "storage") else None
+    return {"status": "ok", "version": __version__, "time": time.time(), "db": db_state, "lamp": lamp,
+            "forwarding": waiting}
 
 
 @router.get("/slots", response_model=list[SlotOut], responses=AUTHED, dependencies=[Depends(require_read)])

@@ -393,6 +393,30 @@ function showView(name) {
   if (name === "records" && window.loadRecords) window.loadRecords();  // records.js
 }
 
+// ---- the station's database (issue 37) ------------------------------------------------------
+// /api/health never waits on the database: it says whether the database answers and what waits
+// in the station's journal to be forwarded. Tests go on through an outage; the operator sees why
+// a new batch is refused and that the records are kept on the station.
+function storageText(h) {
+  const waiting = (h.forwarding && h.forwarding.events) || 0;
+  const batches = Object.keys((h.forwarding && h.forwarding.batches) || {}).filter((b) => b !== "0");
+  const kept = waiting ? ` ${waiting} records wait on this station to be forwarded` +
+    (batches.length ? ` (batch ${batches.join(", ")})` : "") + ": nothing is lost." : "";
+  if (h.db && h.db.startsWith("error")) return [`Database: ${h.db.slice(7).split(";")[0]}. New batches cannot start.${kept}`, true];
+  if (waiting) return [`Database back: forwarding.${kept}`, false];
+  return ["", false];
+}
+
+async function pollStorage() {
+  try {
+    const r = await fetch("/api/health", { cache: "no-store" });
+    const [text, down] = storageText(await r.json());
+    $("storage").textContent = text;
+    $("storage").classList.toggle("down", down);
+    $("storage").classList.toggle("hidden", !text);
+  } catch (e) { /* the page's own connection state says offline */ }
+}
+
 // ---- start-up --------------------------------------------------------------------------------
 async function boot() {
   $("auth").classList.toggle("hidden", !!S.token);
@@ -443,6 +467,8 @@ async function boot() {
 }
 
 document.addEventListener("DOMContentLoaded", () => {
+  pollStorage();
+  setInterval(pollStorage, 3000);
   $("save-token").addEventListener("click", saveToken);
   $("token").addEventListener("keydown", (e) => { if (e.key === "Enter") saveToken(); });
   $("search-go").addEventListener("click", search);
