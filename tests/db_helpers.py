@@ -14,6 +14,19 @@ from contracts.types import Segment
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
 
+# Another PROCESS holding a SQLite database's write lock for argv[2] seconds (a backup tool, an
+# engineer's sqlite3 shell): prints "LOCKED <unix time>" once it holds it, "RELEASED <time>" after.
+HOLD_LOCK = """
+import sqlite3, sys, time
+con = sqlite3.connect(sys.argv[1], isolation_level=None, timeout=30)
+con.execute("BEGIN EXCLUSIVE")
+print("LOCKED", time.time(), flush=True)
+time.sleep(float(sys.argv[2]))
+con.execute("ROLLBACK")
+print("RELEASED", time.time(), flush=True)
+"""
+
+
 def sqlite_db(tmp_path, name: str = "station.db") -> Database:
     db = Database(f"sqlite:///{tmp_path / name}")
     db.upgrade()

@@ -34,6 +34,7 @@ import pytest
 
 from drivers.sim.operator import HumanTiming, Person
 from drivers.sim.station_sim import SimStation
+from tests.db_helpers import HOLD_LOCK
 from tests.ownership_support import check_during_batch
 from tests.fault_matrix_support import (
     MATRIX, PROFILES, VERIFIED, Ctx, Expect, KillCtx, Plan, board_hook, fill, run_all, wait_for,
@@ -267,16 +268,6 @@ def _disk_full_at(moment):
     return inject
 
 
-LOCKER = """
-import sqlite3, sys, time
-con = sqlite3.connect(sys.argv[1], isolation_level=None, timeout=30)
-con.execute("BEGIN EXCLUSIVE")
-print("LOCKED", flush=True)
-time.sleep(float(sys.argv[2]))
-con.execute("ROLLBACK")
-"""
-
-
 def _db_locked_at(moment, hold_s):
     """Another process holds the station database's write lock for hold_s (a backup tool, an
     engineer's sqlite3 shell): the writer journals what it cannot commit, the batch goes on and is
@@ -284,9 +275,9 @@ def _db_locked_at(moment, hold_s):
     async def inject(ctx: Ctx) -> None:
         path = str(ctx.st.db.url).removeprefix("sqlite:///")
         async with moment(ctx):
-            locker = await asyncio.create_subprocess_exec(sys.executable, "-c", LOCKER, path, str(hold_s),
+            locker = await asyncio.create_subprocess_exec(sys.executable, "-c", HOLD_LOCK, path, str(hold_s),
                                                           stdout=asyncio.subprocess.PIPE)
-            assert (await locker.stdout.readline()).strip() == b"LOCKED"
+            assert (await locker.stdout.readline()).split()[0] == b"LOCKED"
         await locker.wait()
         await ctx.wait(lambda: ctx.st.storage_status() == "ok", "the journal is forwarded after the lock", 60)
     return inject

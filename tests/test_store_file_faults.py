@@ -30,6 +30,7 @@ from sqlalchemy import func, select
 from db.database import Database
 from db.export import run_samples
 from db.models import DutRun, VerdictHistoryRow
+from db_helpers import HOLD_LOCK
 from test_daemon_e2e import _to_toml
 from web_support import free_port
 
@@ -37,14 +38,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SPEED = 120.0
 SIGTERM_BOUND_S = 10.0
 OPS = {"Authorization": "Bearer ops-token-0123456789"}
-LOCKER = """
-import sqlite3, sys, time
-con = sqlite3.connect(sys.argv[1], isolation_level=None, timeout=30)
-con.execute("BEGIN EXCLUSIVE")
-print("LOCKED", flush=True)
-time.sleep(float(sys.argv[2]))
-con.execute("ROLLBACK")
-"""
 
 
 class Rig:
@@ -238,9 +231,9 @@ def test_sigterm_while_another_process_holds_the_lock_ends_in_bound_and_loses_no
     rig.serve()
     bid = rig.start_batch()
     rig.wait(lambda: rig.get(f"/api/batches/{bid}")["step_index"] >= 1, "the batch mid-way", 120)
-    locker = subprocess.Popen([sys.executable, "-c", LOCKER, str(rig.db_path), "60"], stdout=subprocess.PIPE, text=True)
+    locker = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(rig.db_path), "60"], stdout=subprocess.PIPE, text=True)
     try:
-        assert locker.stdout.readline().strip() == "LOCKED"
+        assert locker.stdout.readline().split()[0] == "LOCKED"
         time.sleep(2.0)  # the writer's commit now waits on the lock; samples keep coming
         before = {s["run_id"]: s["samples"] for s in rig.get(f"/api/batches/{bid}")["slots"]}
         exit_s = rig.sigterm()

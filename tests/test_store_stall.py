@@ -18,7 +18,7 @@ from sqlalchemy import func, select
 
 from db import DbWriter
 from db.models import DutRun, SampleChunk, SegmentRow
-from db_helpers import lis3dsh_stream, segment, sqlite_db
+from db_helpers import HOLD_LOCK as LOCKER, lis3dsh_stream, segment, sqlite_db
 from contracts.events import DutVerdict, SamplesReceived, SegmentLogged
 from station.daemon.supervisor import Station
 from contracts.types import SampleBlock
@@ -27,15 +27,6 @@ HOLD_S = 30.0
 STALL_S = 5.0
 ALARM_WITHIN_S = 10.0
 
-LOCKER = """
-import sqlite3, sys, time
-con = sqlite3.connect(sys.argv[1], isolation_level=None, timeout=30)
-con.execute("BEGIN EXCLUSIVE")
-print("LOCKED", time.time(), flush=True)
-time.sleep(float(sys.argv[2]))
-con.execute("ROLLBACK")
-print("RELEASED", time.time(), flush=True)
-"""
 
 
 def _storage_status(writer: DbWriter, db) -> str:
