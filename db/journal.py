@@ -114,8 +114,11 @@ class Journal:
         self._conn = sqlite3.connect(str(self.path), timeout=5.0, check_same_thread=False, isolation_level=None)
         self._conn.execute("PRAGMA journal_mode=WAL")
         self._conn.execute("PRAGMA synchronous=FULL")
+        # token: the writer transaction these entries were in when its answer was lost (a commit
+        # that may have happened: the writer asks the database for the token before it stores them
+        # again); NULL for entries never sent
         self._conn.execute("CREATE TABLE IF NOT EXISTS journal (seq INTEGER PRIMARY KEY, kind TEXT NOT NULL, "
-                           "batch_id INTEGER NOT NULL, payload BLOB NOT NULL)")
+                           "batch_id INTEGER NOT NULL, payload BLOB NOT NULL, token TEXT)")
         self._pending = int(self._conn.execute("SELECT COUNT(*) FROM journal").fetchone()[0])
         self._max_seq = int(self._conn.execute("SELECT COALESCE(MAX(seq), 0) FROM journal").fetchone()[0])
 
@@ -129,18 +132,19 @@ class Journal:
         """The highest sequence number held (a restarted writer numbers its events after it)."""
         return self._max_seq
 
-    def append(self, entries: list[tuple[int, Event]]) -> int:
+    def append(self, entries: list[tuple[int, Event]], token: str | None = None) -> int:
         """Store (seq, event) pairs in one fsync'd transaction; a seq already held is kept once.
-        Returns how many were new."""
+        token: the writer transaction they were in, if its outcome is unknown. Returns how many
+        were new."""
         if not entries:
             return 0
-        rows = [(int(seq), e.kind, int(e.batch_id or 0), encode_event(e)) for seq, e in entries]
+        rows = [(int(seq), e.kind, int(e.batch_id or 0), encode_event(e), token) for seq, e in entries]
         with self._lock:
             before = self._conn.total_changes
             self._conn.execute("BEGIN IMMEDIATE")
             try:
-                self._conn.executemany("INSERT OR IGNORE INTO journal (seq, kind, batch_id, payload) "
-                                       "VALUES (?, ?, ?, ?)", rows)
+                self._conn.executemany("INSERT OR IGNORE INTO journal (seq, kind, batch_id, payload, token) "
+                                       "VALUES (?, ?, ?, ?, ?)", rows)
                 self._conn.execute("COMMIT")
             except BaseException:
                 self._conn.execute("ROLLBACK")
@@ -181,6 +185,31 @@ class Journal:
                 self._conn.execute("ROLLBACK")
                 raise
             self._pending -= self._conn.total_changes - before
+
+    def tokens(self, seqs: list[int]) -> dict[str, list[int]]:
+        """{token: [seqs]} of those entries that were in a transaction whose outcome is unknown."""
+        if not seqs:
+            return {}
+        out: dict[str, list[int]] = {}
+        with self._lock:
+            for i in range(0, len(seqs), 500):
+                part = [int(x) for x in seqs[i:i + 500]]
+                q = f"SELECT token, seq FROM journal WHERE token IS NOT NULL AND seq IN ({','.join('?' * len(part))})"
+                for token, seq in self._conn.execute(q, part):
+                    out.setdefault(str(token), []).append(int(seq))
+        return out
+
+    def set_token(self, seqs: list[int], token: str | None) -> None:
+        """Mark entries held as in a transaction whose outcome is unknown (token), or, once it is
+        known not to have happened, as plain entries again (None)."""
+        with self._lock:
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                self._conn.executemany("UPDATE journal SET token = ? WHERE seq = ?", [(token, int(x)) for x in seqs])
+                self._conn.execute("COMMIT")
+            except BaseException:
+                self._conn.execute("ROLLBACK")
+                raise
 
     def batches(self) -> dict[int, int]:
         """Entries waiting per batch id (the page's 'waiting to be forwarded')."""

@@ -30,7 +30,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 # The revision of the newest schema this code knows (db/migrations/versions/).
-SCHEMA_REVISION = "0009"
+SCHEMA_REVISION = "0010"
 # dut_run.attempt of a run that never tested its part (the label scanned for the slot is not the
 # board's serial: stopped at connect, before any data). Stored and judged error, so the MES sees which
 # board was there, but no attempt of the board's serial: attempt numbers, attempts and yields skip it.
@@ -348,6 +348,17 @@ class AuditRow(Base):
     detail: Mapped[dict[str, Any]] = mapped_column(default=dict)
 
 
+class WriterCommit(Base):
+    """One row per writer transaction (migration 0010): a commit whose answer was lost is found by
+    its token before its events are stored again (db/writer.py)."""
+
+    __tablename__ = "writer_commit"
+
+    token: Mapped[str] = mapped_column(String(64), primary_key=True)
+    station: Mapped[str] = mapped_column(String(64), default="", server_default="")
+    committed_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+
+
 class SampleChunk(Base):
     """A compressed block of a run's sample stream (db/codec.py); seq orders the chunks."""
 
@@ -392,6 +403,7 @@ __all__ = [
     "SfemResultRow",
     "ProgramVerifyRow",
     "SampleChunk",
+    "WriterCommit",
     "Outbox",
     "ResultCounter",
     "AuditRow",

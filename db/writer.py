@@ -56,10 +56,13 @@ import math
 import queue
 import threading
 import time
+import uuid
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from sqlalchemy import func, insert, select, update
+from datetime import timedelta
+
+from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.engine import Connection
 from sqlalchemy.exc import OperationalError
 
@@ -78,6 +81,7 @@ from db.models import (
     SfemResultRow,
     ThermalResultRow,
     VerdictHistoryRow,
+    WriterCommit,
     utcnow,
 )
 from contracts.events import (
@@ -97,6 +101,8 @@ from contracts.types import AXES
 
 log = logging.getLogger(__name__)
 
+TOKEN_KEEP = timedelta(days=1)  # writer_commit rows older than this are removed (every TOKEN_PRUNE_EVERY commits)
+TOKEN_PRUNE_EVERY = 1000
 CLOSE_BOUND_S = 5.0  # close() with a journal: what is not committed by then waits in the journal
 FORWARD_CHUNK = 500  # journaled events forwarded per transaction
 STALL_ALARM_S = 5.0  # a commit in progress longer than this raises the storage alarm (DbWriter(stall_s=))
@@ -217,6 +223,11 @@ class CommitInfo:
     results: list[tuple[int, int]]  # (run_id, result_seq)
 
 
+class _OutcomeUnknown(Exception):
+    """A commit failed in a way that may have committed, the database cannot say now, and its
+    entries are in the journal under its token (DbWriter._settle_lost_answer)."""
+
+
 class _Marker:
     def __init__(self, stop: bool = False) -> None:
         self.done = threading.Event()
@@ -248,6 +259,10 @@ class DbWriter:
         # hangs (then those markers are done: durable), and a commit that goes through afterwards
         # takes its copies out again (_copied: their sequence numbers)
         self._holding: list[tuple[int, Event]] = []
+        # the commit in progress: its token (db.models.WriterCommit) and entries; the sqlite3
+        # connection it runs on (interrupted when close() gives up on it: it must not commit later)
+        self._inflight: tuple[str, list[tuple[int, Event]]] | None = None
+        self._inflight_dbapi: Any = None
         self._holding_markers: list[_Marker] = []
         self._copied: set[int] = set()
         self._next_forward = 0.0  # time.monotonic() of the next try to forward the journal
@@ -279,7 +294,7 @@ class DbWriter:
         self.stats: dict[str, Any] = {
             "submitted": 0, "committed_events": 0, "committed_samples": 0, "commits": 0,
             "dropped_events": 0, "unbound_events": 0, "last_error": "", "storage_failures": 0,
-            "abandoned_events": 0, "stalls": 0, "journaled_events": 0, "forwarded_events": 0,
+            "abandoned_events": 0, "stalls": 0, "journaled_events": 0, "forwarded_events": 0, "lost_answers": 0,
         }
         self._thread = threading.Thread(target=self._loop, name="db-writer", daemon=True)
         self._thread.start()
@@ -341,6 +356,7 @@ class DbWriter:
                 return
             self._abandon.set()
             self._spill()
+            self._interrupt_inflight()
             n = self.journal.pending
             log.critical("db writer: the database did not finish within %.1f s at shutdown: %d events wait in the "
                          "journal %s (forwarded at the next start)", bound, n, self.journal.path)
@@ -360,6 +376,18 @@ class DbWriter:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
+    def _interrupt_inflight(self) -> None:
+        """A SQLite commit close() gave up on (it waits on another process's lock) is interrupted:
+        left alone it could commit after its events were journaled, and be stored twice. A server
+        database's hung commit cannot be interrupted safely (the server may have it): its token
+        decides at the next forward."""
+        conn = self._inflight_dbapi
+        if conn is not None and self.db.is_sqlite:
+            try:
+                conn.interrupt()
+            except Exception:  # noqa: BLE001 - the connection closed meanwhile: nothing to stop
+                pass
+
     # ---- the journal (db/journal.py) -----------------------------------------------------------
     def block(self, reason: str) -> None:
         """Write nothing more to this database (its file was deleted or replaced under the
@@ -368,16 +396,17 @@ class DbWriter:
         self._set_failing(reason)
         self._spill()
 
-    def _to_journal(self, entries: list[tuple[int, Event]]) -> bool:
-        """Put entries in the journal (durable on return). False if the journal cannot take them
-        either (its disk is full too): the caller holds them in memory as before."""
+    def _to_journal(self, entries: list[tuple[int, Event]], token: str | None = None) -> bool:
+        """Put entries in the journal (durable on return); token: the transaction they were in
+        when its answer was lost. False if the journal cannot take them either (its disk is full
+        too): the caller holds them in memory as before."""
         if self.journal is None:
             return False
         if not entries:
             return True
         with self._journal_lock:
             try:
-                added = self.journal.append(entries)
+                added = self.journal.append(entries, token)
             except Exception as exc:  # noqa: BLE001 - disk full, I/O error: memory is what is left
                 self.stats["last_error"] = f"journal: {exc}"
                 log.error("db writer: the journal %s does not take events either (%s): held in memory",
@@ -392,6 +421,11 @@ class DbWriter:
         if self.journal is None:
             return
         with self._journal_lock:
+            if self._inflight is not None:  # the hung commit: its outcome is its token's
+                token, inflight = self._inflight
+                fresh = [e for e in inflight if e[0] not in self._copied]
+                if fresh and self._to_journal(fresh, token):
+                    self._copied.update(s for s, _ in fresh)
             holding = [e for e in self._holding if e[0] not in self._copied]
             if holding and self._to_journal(holding):
                 self._copied.update(s for s, _ in holding)
@@ -428,8 +462,19 @@ class DbWriter:
             chunk = self.journal.oldest(FORWARD_CHUNK)
             if not chunk:
                 break
+            settled = self._settle_tokens([s for s, _ in chunk])
+            if settled is None:
+                self._backoff(OperationalError("SELECT writer_commit", {}, Exception("no answer")))
+                return False
+            if settled:
+                chunk = [e for e in chunk if e[0] not in settled]
+                if not chunk:
+                    continue
             try:
                 self._commit_timed(chunk, False)
+            except _OutcomeUnknown:
+                self._backoff(OperationalError("COMMIT", {}, Exception(self.stats["last_error"] or "answer lost")))
+                return False
             except OperationalError as exc:
                 self._backoff(exc)
                 return False
@@ -438,6 +483,9 @@ class DbWriter:
                 for one in chunk:
                     try:
                         self._commit_timed([one], False)
+                    except _OutcomeUnknown:
+                        self._backoff(OperationalError("COMMIT", {}, Exception("answer lost")))
+                        return False
                     except OperationalError as exc:
                         self._backoff(exc)
                         return False
@@ -453,6 +501,27 @@ class DbWriter:
             if not everything and self._q.qsize() > self.max_events:
                 break  # new events keep their pace: they go behind the journal, forwarded next
         return not self.journal.pending
+
+    def _settle_tokens(self, seqs: list[int]) -> set[int] | None:
+        """Journal entries held under a token (a commit whose answer was lost): those whose commit
+        did happen are removed from the journal, not stored again (their seqs are returned); those
+        whose commit did not are plain entries again. None: the database cannot tell now."""
+        assert self.journal is not None
+        done: set[int] = set()
+        for token, tseqs in self.journal.tokens(seqs).items():
+            verdict = self._committed(token)
+            if verdict is None:
+                return None
+            if verdict:
+                self.journal.remove(tseqs)
+                done.update(tseqs)
+                self._chunks.bufs.clear()
+                self.stats["lost_answers"] += 1
+                log.warning("db writer: %d journaled events were committed by a commit whose answer was lost: "
+                            "not stored again", len(tseqs))
+            else:
+                self.journal.set_token(tseqs, None)
+        return done
 
     def _backoff(self, exc: Exception) -> None:
         reason = str(getattr(exc, "orig", exc)).strip() or type(exc).__name__
@@ -546,19 +615,62 @@ class DbWriter:
             self._set_failing(f"stalled: a commit has been waiting {waited_s:.1f} s (database locked?)")
 
     def _commit_timed(self, entries: list[tuple[int, Event]], seal_all: bool) -> None:
-        """_commit, watched by the stall watchdog while it runs. A commit that went through after
-        the watchdog copied its entries into the journal takes the copies out again."""
+        """_commit under a new token, watched by the stall watchdog while it runs. A commit whose
+        answer is lost (an OperationalError: the connection cut while COMMIT was on its way) may
+        have happened: the database is asked for its token (`_settle_lost_answer`) before the
+        events are stored again. A commit that went through after the watchdog copied its entries
+        into the journal takes the copies out again."""
+        token = uuid.uuid4().hex
+        with self._journal_lock:
+            self._inflight = (token, entries)
         self._commit_started = time.monotonic()
         try:
-            self._commit([e for _, e in entries], seal_all)
+            self._commit([e for _, e in entries], seal_all, token)
+        except OperationalError:
+            if self._settle_lost_answer(token, entries):
+                return  # it did commit: nothing to store again
+            raise
         finally:
             with self._failing_lock:
                 self._commit_started = None
+            with self._journal_lock:
+                self._inflight = None
+                self._inflight_dbapi = None
+        self._done_with_copies(entries)
+
+    def _done_with_copies(self, entries: list[tuple[int, Event]]) -> None:
         with self._journal_lock:
             done = [s for s, _ in entries if s in self._copied]
             self._copied.difference_update(done)
         if done and self.journal is not None:
             self.journal.remove(done)
+
+    def _committed(self, token: str) -> bool | None:
+        """Did the transaction with this token commit? None: the database cannot tell now."""
+        try:
+            with self.db.engine.connect() as conn:
+                return conn.execute(select(WriterCommit.token).where(WriterCommit.token == token)).first() is not None
+        except Exception:  # noqa: BLE001 - down, hung, refused: unknown
+            return None
+
+    def _settle_lost_answer(self, token: str, entries: list[tuple[int, Event]]) -> bool:
+        """After a failed commit: True when it did commit after all (its token is there); its
+        sample chunks are then read back from the database (this process's bookkeeping was rolled
+        back with the error). False when it did not. When it cannot be told now (the database is
+        away), the entries are journaled with the token and _OutcomeUnknown is raised: the forward
+        asks again before it stores them, so they are never stored twice."""
+        verdict = self._committed(token)
+        if verdict:
+            self.stats["lost_answers"] += 1
+            self._chunks.bufs.clear()  # re-read each run's chunks: the commit stored them
+            log.warning("db writer: a commit's answer was lost but it did commit (%d events): not stored again",
+                        len(entries))
+            self._done_with_copies(entries)
+            return True
+        if verdict is None and self.journal is not None and self._to_journal(entries, token):
+            self.journal.set_token([s for s, _ in entries], token)  # those it held already
+            raise _OutcomeUnknown(token)
+        return False
 
     def _set_failing(self, reason: str | None) -> None:
         with self._failing_lock:
@@ -593,6 +705,11 @@ class DbWriter:
             try:
                 self._commit_timed(entries, seal_all)
                 self._set_failing(None)
+                return True
+            except _OutcomeUnknown:  # journaled under its token: the forward decides
+                self._forward_failures = max(self._forward_failures, 1)
+                self._next_forward = time.monotonic() + min(self.retry_max_s, 0.5)
+                self._set_failing(self.stats["last_error"] or "the database's answer to a commit was lost")
                 return True
             except OperationalError as exc:  # disk full, I/O error, locked, lost connection
                 reason = str(getattr(exc, "orig", exc)).strip() or type(exc).__name__
@@ -636,11 +753,18 @@ class DbWriter:
         if seal_all and not (self.journal is not None and self.journal.pending):
             self._seal_all()
 
-    def _commit(self, events: list[Event], seal_all: bool) -> None:
+    def _commit(self, events: list[Event], seal_all: bool, token: str | None = None) -> None:
         saved = self._chunks.snapshot()
         info = CommitInfo(len(events), 0, [], [])
         try:
             with self.db.engine.begin() as conn:
+                with self._journal_lock:
+                    self._inflight_dbapi = conn.connection.dbapi_connection
+                if token is not None:  # first: the transaction's own proof that it committed
+                    conn.execute(insert(WriterCommit).values(token=token, station=self.station[:64],
+                                                             committed_at=utcnow()))
+                    if self.stats["commits"] % TOKEN_PRUNE_EVERY == 0:
+                        conn.execute(delete(WriterCommit).where(WriterCommit.committed_at < utcnow() - TOKEN_KEEP))
                 samples: dict[int, list[SamplesReceived]] = {}
                 seal: set[int] = set()
                 # verdicts take their result_seq last (take_result_seq), so the counter's row lock

@@ -22,7 +22,7 @@ from contracts.types import SampleBlock, StationError
 from db_helpers import SFEM_JSON, THERMAL_JSON, lis3dsh_stream, pg_database, pg_reachable, segment
 
 TABLES = {"dut", "batch", "dut_run", "segment", "thermal_result", "sfem_result", "sample_chunk", "outbox", "alembic_version",
-          "result_counter", "audit", "verdict_history",
+          "result_counter", "audit", "verdict_history", "writer_commit",
           "program_verify"}
 
 

@@ -20,6 +20,7 @@ import zlib
 import numpy as np
 import pytest
 from sqlalchemy import func, select
+from sqlalchemy.exc import OperationalError
 
 from contracts.events import (BatchStateChanged, DutProgrammed, DutResult, DutVerdict, DutVerified, SamplesReceived,
                               SegmentLogged, SlotStateChanged, StepCompleted, StepStarted)
@@ -89,9 +90,9 @@ def test_the_journal_keeps_order_across_a_reopen_once_per_seq_and_never_runs_cod
     assert [s for s, _ in j.oldest(100)][:2] == [12, 13] and j.pending == len(evs) - 2
     assert j.batches() == {7: len(evs) - 2}
     # a damaged entry (by hand) is named and removed; one that is not a station event is refused
-    j._conn.execute("INSERT INTO journal VALUES (5, 'x', 7, ?)", (b"not zlib",))
+    j._conn.execute("INSERT INTO journal (seq, kind, batch_id, payload) VALUES (5, 'x', 7, ?)", (b"not zlib",))
     evil = zlib.compress(b'{"__type__": "Popen", "args": ["touch", "/tmp/pwned"]}')
-    j._conn.execute("INSERT INTO journal VALUES (6, 'x', 7, ?)", (evil,))
+    j._conn.execute("INSERT INTO journal (seq, kind, batch_id, payload) VALUES (6, 'x', 7, ?)", (evil,))
     j._pending += 2
     got = j.oldest(100)
     assert [s for s, _ in got][:1] == [12] and j.pending == len(evs) - 2
@@ -203,4 +204,73 @@ def test_close_with_the_database_locked_is_bounded_and_the_next_writer_forwards_
     print(f"\nclose with the database locked: {close_s:.2f} s (bound {CLOSE_BOUND_S:g} s); forwarded at the restart")
     n_samples, _, records, verdicts = _stored(db)
     assert n_samples == 2000 and len(records) == 1 and verdicts == {"s0": "error"}
+    assert np.allclose(run_samples(db, run).time_s, time_s, rtol=0, atol=1e-6)
+
+
+class _LostAnswers:
+    """The real engine, with a network between it and the writer that can lose the answer to a
+    COMMIT (the transaction commits, the writer gets a connection error: a PostgreSQL restart or
+    a cut cable at that instant) and then be away for a while (`away` connections fail)."""
+
+    def __init__(self, engine) -> None:
+        self._engine = engine
+        self.lose_next_answer = False
+        self.away = 0
+
+    def __getattr__(self, name):
+        return getattr(self._engine, name)
+
+    def _check(self) -> None:
+        if self.away > 0:
+            self.away -= 1
+            raise OperationalError("connect", {}, Exception("server closed the connection unexpectedly"))
+
+    def connect(self):
+        self._check()
+        return self._engine.connect()
+
+    def begin(self):
+        import contextlib
+
+        self._check()
+
+        @contextlib.contextmanager
+        def tx():
+            with self._engine.begin() as conn:
+                yield conn
+            if self.lose_next_answer:  # committed: only the answer is lost
+                self.lose_next_answer = False
+                raise OperationalError("COMMIT", {}, Exception("server closed the connection unexpectedly"))
+        return tx()
+
+
+@pytest.mark.parametrize("away", [0, 6])
+def test_a_commit_whose_answer_is_lost_is_stored_once(tmp_path, away):
+    """The commit happened, its answer did not arrive: the writer finds its token (at once, or
+    from the journal once the database answers again) and stores nothing twice: one chunk of each
+    sample, one verdict record with one result_seq (the CI run that found it: duplicate key
+    uq_sample_chunk_run_id_seq after a restart cut a COMMIT's answer)."""
+    db = sqlite_db(tmp_path)
+    batch = db.create_batch("fast-thermal", "op", {})
+    run = db.create_run(batch, "s0", "J0", "LIS3DSH", {})
+    flaky = _LostAnswers(db.engine)
+    db.engine = flaky
+    journal = Journal(tmp_path / "station.db.journal")
+    w = DbWriter(db, interval_s=0.05, journal=journal, retry_max_s=0.2)
+    w.bind_run(batch, "s0", run)
+    time_s, acc, temp = lis3dsh_stream(600)
+    _publish(w, batch, [run], time_s, acc, temp, 0, 300)
+    assert w.flush(10)
+    flaky.lose_next_answer = True
+    flaky.away = away  # the token cannot be asked for at once: journaled under it
+    _publish(w, batch, [run], time_s, acc, temp, 300, 600)
+    w.submit(DutVerdict(batch, "s0", "J0", verdict={"verdict": "pass", "grade": "A"}))
+    assert w.flush(20)
+    t0 = time.monotonic()
+    while (journal.pending or w.failing is not None) and time.monotonic() - t0 < 30:
+        time.sleep(0.05)
+    w.close()
+    assert journal.pending == 0 and w.stats["lost_answers"] == 1 and w.stats["dropped_events"] == 0, w.stats
+    n_samples, _, records, verdicts = _stored(db)
+    assert n_samples == 600 and len(records) == 1 and verdicts == {"s0": "pass"}, (n_samples, records)
     assert np.allclose(run_samples(db, run).time_s, time_s, rtol=0, atol=1e-6)
