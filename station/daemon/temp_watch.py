@@ -42,7 +42,10 @@ Rules (each a named constant below, with its unit):
   less than `STUCK_OWN_RISE_C` (0.75 C: under one LIS3DSH count; a level that moved by a whole count
   is a sensor that works, only late: a QEMU-emulated firmware board on a loaded CI host read 1.0 C
   when its peers read 5.0 C, 160 s after the lamp went on, and was faulted with 1.5 C here; a stuck
-  sensor reads exactly one count, 0 C of rise) and less than `STUCK_FRACTION` (0.25) of that median: a
+  sensor reads exactly one count, 0 C of rise), less than `STUCK_FRACTION` (0.25) of that median, and
+  its reading has not changed at all for `STUCK_MIN_S` (a stuck sensor repeats one value; a late one
+  changes, if only by noise: a second QEMU board under heavier load read 0.5 C of rise against 5.1 C
+  and was faulted before this): a
   healthy DUT is at >= 0.5 of the median (2.5 C when the median is 5 C), twice the fraction, and a
   LIS3DSH that sits on one count at the start of heating reads 0 C of rise only while the peers
   are far below 5 C. The lamp's hot plateau (on for long, flat) still reads the whole rise since
@@ -215,19 +218,21 @@ class TempWatch:
         own = f" (it rose {rise:.1f} C)" if rise >= 0.05 else ""
         head = f"temperature sensor stuck at {_c(level)}{own}"
         when = f"in the {since_s:.0f} s since the lamp went on"
+        assert self._flat_since_t is not None
+        # a stuck sensor repeats one reading; a late one (a lagging link) changes, if only by noise
+        unchanged = self.last_t - self._flat_since_t >= STUCK_MIN_S
         rises = [r for p in peers if p is not self and (r := p.rise_at_c(since_s)) is not None]
         if rises:
             med = float(np.median(rises))
-            if med >= STUCK_PEER_RISE_C and rise < min(STUCK_OWN_RISE_C, STUCK_FRACTION * med):
+            if unchanged and med >= STUCK_PEER_RISE_C and rise < min(STUCK_OWN_RISE_C, STUCK_FRACTION * med):
                 others = "DUT" if len(rises) == 1 else "DUTs"
                 words = f"the plate's other {others} rose {med:.1f} C{' (median)' if len(rises) > 1 else ''} {when}"
                 return TempFinding("stuck", f"{head}: {words}", self.last_t)
         elif plate_temp_c is not None and self._plate_base_c is not None:
             plate_rise = plate_temp_c - self._plate_base_c
-            if plate_rise >= STUCK_REF_RISE_C and rise < min(STUCK_OWN_RISE_C, STUCK_FRACTION * plate_rise):
+            if unchanged and plate_rise >= STUCK_REF_RISE_C and rise < min(STUCK_OWN_RISE_C, STUCK_FRACTION * plate_rise):
                 words = f"the plate's reference thermometer rose {plate_rise:.1f} C {when}"
                 return TempFinding("stuck", f"{head}: {words}", self.last_t)
-        assert self._flat_since_t is not None
         flat_s = self.last_t - max(self._flat_since_t, self._own_on_t)
         early = self._flat_since_t - self.lamp_on_t <= STUCK_FLAT_S  # not the hot plateau: flat by nature
         if self._cool and early and flat_s >= STUCK_FLAT_S:
