@@ -259,6 +259,10 @@ async def test_check_during_a_running_batch_is_refused_and_touches_nothing(tmp_p
         db_path = tmp_path / "station.db"
         data = sim_config(sim, speed=speed, db_url=f"sqlite:///{db_path}")
         data["limits"] = {"lamp_max_on_s": 9000.0}
+        # this test's own lock folder: the default one is the user's, shared with every test that
+        # runs beside it (test_daemon_e2e's --check holds /dev/ttyNOSUCH7 there at times, and the
+        # second serve below would be refused for that port instead of for the database)
+        data["lock_dir"] = str(tmp_path / "locks")
         toml = tmp_path / "station.toml"
         toml.write_text(_to_toml(data))
         daemon = await asyncio.create_subprocess_exec(
