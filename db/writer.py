@@ -223,6 +223,11 @@ class CommitInfo:
     results: list[tuple[int, int]]  # (run_id, result_seq)
 
 
+def _reason(exc: Exception) -> str:
+    """A storage error in the operator's words: the driver's own message."""
+    return str(getattr(exc, "orig", exc)).strip() or type(exc).__name__
+
+
 class _OutcomeUnknown(Exception):
     """A commit failed in a way that may have committed, the database cannot say now, and its
     entries are in the journal under its token (DbWriter._settle_lost_answer)."""
@@ -464,7 +469,7 @@ class DbWriter:
                 break
             settled = self._settle_tokens([s for s, _ in chunk])
             if settled is None:
-                self._backoff(OperationalError("SELECT writer_commit", {}, Exception("no answer")))
+                self._backoff("no answer to the commit tokens' question")
                 return False
             if settled:
                 chunk = [e for e in chunk if e[0] not in settled]
@@ -473,10 +478,10 @@ class DbWriter:
             try:
                 self._commit_timed(chunk, False)
             except _OutcomeUnknown:
-                self._backoff(OperationalError("COMMIT", {}, Exception(self.stats["last_error"] or "answer lost")))
+                self._backoff(self.stats["last_error"] or "a commit's answer was lost")
                 return False
             except OperationalError as exc:
-                self._backoff(exc)
+                self._backoff(_reason(exc))
                 return False
             except Exception:  # noqa: BLE001 - a bad event among them: one by one, the rest stored
                 log.exception("db writer: forwarding %d journaled events failed; one by one", len(chunk))
@@ -484,10 +489,10 @@ class DbWriter:
                     try:
                         self._commit_timed([one], False)
                     except _OutcomeUnknown:
-                        self._backoff(OperationalError("COMMIT", {}, Exception("answer lost")))
+                        self._backoff(self.stats["last_error"] or "a commit's answer was lost")
                         return False
                     except OperationalError as exc:
-                        self._backoff(exc)
+                        self._backoff(_reason(exc))
                         return False
                     except Exception as exc:  # noqa: BLE001
                         self.stats["dropped_events"] += 1
@@ -523,8 +528,8 @@ class DbWriter:
                 self.journal.set_token(tseqs, None)
         return done
 
-    def _backoff(self, exc: Exception) -> None:
-        reason = str(getattr(exc, "orig", exc)).strip() or type(exc).__name__
+    def _backoff(self, reason: str) -> None:
+        """The forward failed (why): try again after a growing pause (at most retry_max_s)."""
         self.stats["last_error"] = reason
         self.stats["storage_failures"] += 1
         self._forward_failures += 1
@@ -712,7 +717,7 @@ class DbWriter:
                 self._set_failing(self.stats["last_error"] or "the database's answer to a commit was lost")
                 return True
             except OperationalError as exc:  # disk full, I/O error, locked, lost connection
-                reason = str(getattr(exc, "orig", exc)).strip() or type(exc).__name__
+                reason = _reason(exc)
                 self.stats["last_error"] = reason
                 self.stats["storage_failures"] += 1
                 attempt += 1
@@ -736,8 +741,6 @@ class DbWriter:
     def _commit_with_retry(self, entries: list[tuple[int, Event]], seal_all: bool = False) -> None:
         try:
             if self._commit_storage_retry(entries, seal_all) or self._abandon.is_set():
-                if seal_all and self.journal is not None and self.journal.pending:
-                    pass  # the database is down: the next start seals what is left
                 return
         except Exception as exc:  # a bad event: isolate it, keep the rest
             self.stats["last_error"] = repr(exc)

@@ -24,7 +24,7 @@ from web import __version__
 from web.auth import TokenStore, install_log_redaction
 from web.guard import DEFAULT_MAX_BODY_BYTES, RequestGuard
 from web.mes_outbox import MesOutbox, OutboxConfig
-from web.db_gate import unavailable
+from web.db_gate import driver_line, unavailable
 from web.repo import NoRepository, WebRepository
 from web.routes import batches, duts, events, results, runs, station as station_routes
 from web.routes import diagnostics as diagnostics_routes
@@ -170,7 +170,7 @@ def create_app(
     async def _on_database_down(request: Request, exc: OperationalError):
         # a route that reached the database through the station (a stored batch's status): the
         # database is down or hung, which is no bug of the request (web/db_gate.py)
-        http = unavailable((str(getattr(exc, "orig", None) or exc).strip().splitlines() or ["connection error"])[0][:200])
+        http = unavailable(driver_line(exc))
         return JSONResponse(status_code=503, content={"detail": http.detail}, headers=http.headers)
 
     @app.exception_handler(StationError)

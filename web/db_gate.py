@@ -34,6 +34,11 @@ def storage_problem(request: Request) -> str | None:
     return blocked() if callable(blocked) else None
 
 
+def driver_line(exc: OperationalError) -> str:
+    """The first line of the driver's own message (psycopg's run over several)."""
+    return (str(getattr(exc, "orig", None) or exc).strip().splitlines() or ["connection error"])[0][:200]
+
+
 def unavailable(why: str) -> HTTPException:
     return HTTPException(status_code=503, detail=f"the station's database is not available: {why}",
                          headers={"Retry-After": "5"})
@@ -54,8 +59,7 @@ async def db_call(request: Request, fn: Callable[..., T], *args: object, timeout
     except StorageUnavailable as exc:
         raise unavailable(str(exc)) from None
     except OperationalError as exc:
-        first = (str(getattr(exc, "orig", None) or exc).strip().splitlines() or ["connection error"])[0]
-        raise unavailable(first[:200]) from None
+        raise unavailable(driver_line(exc)) from None
 
 
-__all__ = ["db_call", "storage_problem", "unavailable", "DB_READ_TIMEOUT_S"]
+__all__ = ["db_call", "driver_line", "storage_problem", "unavailable", "DB_READ_TIMEOUT_S"]
