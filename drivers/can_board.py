@@ -20,10 +20,10 @@ import numpy as np
 
 from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats
 from drivers.protocol import can_frames as cf
-from drivers.protocol.serial_frames import SeqTracker
+from drivers.protocol.stream_timeline import SeqTracker
+from drivers.sample_buffer import MAX_PENDING_SAMPLES as MAX_PENDING_SAMPLES, Row, SampleBuffer
 from contracts.types import Identity, SampleBlock
 
-MAX_PENDING_SAMPLES = 2_000_000
 MAX_UNREADABLE_IN_A_ROW = 1000  # then it is not noise but a broken adapter: fail the bus
 
 
@@ -45,6 +45,12 @@ def _drop_partial_line(bus) -> None:
     buf = getattr(bus, "_buffer", None)
     if isinstance(buf, bytearray):
         buf.clear()
+
+
+def _columns(rows: list[Row]) -> tuple[np.ndarray, np.ndarray]:
+    """A CAN row's time is already in seconds (the extended sample index / ODR)."""
+    arr = np.array(rows, dtype=np.float64)
+    return arr[:, 0], arr[:, 1:]
 
 
 def _sensor_from_ug(ug_per_lsb: float) -> str:
@@ -274,10 +280,7 @@ class CanBoard(BoardDriver):
         self._odr_hz: float | None = None
         self._time_base_s = 0.0
         self._index_base = 0
-        self._pending: list[tuple[float, int, int, int, int]] = []
-        self._pending_lost = 0
-        self._data = asyncio.Event()
-        self._got = False
+        self._held = SampleBuffer(self.stats, _columns)  # time: seconds from the sample index
         self._ident: cf.IdentityAssembler | None = None
         self._ident_fut: asyncio.Future[Identity] | None = None
         self._error: DriverError | None = None
@@ -300,7 +303,7 @@ class CanBoard(BoardDriver):
         return f"CanBoard({self.bus.channel!r}, node={self.node_id})"
 
     async def open(self) -> None:
-        self._data = asyncio.Event()
+        self._held.renew()
         await self.bus.open()
         self.bus.register(self)
         self._opened = True
@@ -317,16 +320,14 @@ class CanBoard(BoardDriver):
             self.stats.frames_ok += 1
             lost = self._seq.update(s.seq)
             if lost:
-                self.stats.samples_lost += lost
-                self._pending_lost += lost
+                self._held.count_lost(lost)
             odr = self._odr_hz or (self.identity.odr_hz if self.identity else 0.0)
             if not odr:
                 self.stats.frames_malformed += 1  # cannot time a sample without an ODR
                 return
             t = self._time_base_s + (self._seq.index - self._index_base) / odr
-            self._pending.append((t, s.ax, s.ay, s.az, s.t))
+            self._held.add((t, s.ax, s.ay, s.az, s.t))
             self.last_sample_t = t
-            self._got = True
         elif func == cf.IDENT_BASE and cf.is_cal_reply(data):
             try:
                 idx, value = cf.decode_cal_reply(data)
@@ -366,21 +367,14 @@ class CanBoard(BoardDriver):
             self.stats.frames_malformed += 1
 
     def _flush(self) -> None:
-        if self._got:
-            self._got = False
-            if len(self._pending) > MAX_PENDING_SAMPLES:
-                drop = len(self._pending) - MAX_PENDING_SAMPLES
-                del self._pending[:drop]
-                self.stats.samples_lost += drop
-                self._pending_lost += drop
-            self._data.set()
+        self._held.flush()
 
     def _on_bus_error(self, error: DriverError) -> None:
         self._error = error
         for fut in (self._ident_fut, self._cal_fut):
             if fut is not None and not fut.done():
                 fut.set_exception(error)
-        self._data.set()
+        self._held.wake()
 
     def _check(self) -> None:
         if self._error is not None:
@@ -426,10 +420,7 @@ class CanBoard(BoardDriver):
         await self._send(cf.encode_command(cf.CMD_START))
 
     def discard_held(self) -> int:
-        n = len(self._pending)
-        self._pending.clear()
-        self._pending_lost = 0
-        return n
+        return self._held.discard()
 
     async def stop(self) -> None:
         await self._send(cf.encode_command(cf.CMD_STOP))
@@ -489,27 +480,8 @@ class CanBoard(BoardDriver):
 
     # ---- samples ---------------------------------------------------------------------------
     async def read_block(self, timeout_s: float = 1.0) -> SampleBlock:
-        if not self._pending:
-            self._check()
-            self._data.clear()
-            try:
-                await asyncio.wait_for(self._data.wait(), timeout_s)
-            except asyncio.TimeoutError:
-                pass
-            if not self._pending and self._error is not None:
-                raise self._error
-        rows, self._pending = self._pending, []
-        lost, self._pending_lost = self._pending_lost, 0
-        if not rows:
-            return SampleBlock(np.empty(0), np.empty((0, 3)), np.empty(0), lost)
-        ident = self.identity or Identity(serial="")
-        arr = np.array(rows, dtype=np.float64)
-        return SampleBlock(
-            time_s=arr[:, 0],
-            acc_g=ident.acc_g(arr[:, 1:4]),
-            temp_c=ident.temp_c(arr[:, 4]),
-            lost_samples=lost,
-        )
+        await self._held.wait(timeout_s, self._check, lambda: self._error)
+        return self._held.take_block(self.identity)
 
     async def close(self) -> None:
         self.bus.unregister(self)

@@ -20,9 +20,22 @@ import serial
 
 from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats, StreamBreak
 from drivers.protocol import serial_frames as sf
+from drivers.protocol.stream_timeline import ClockUnwrapper, SeqTracker, StreamTimeline
+from drivers.sample_buffer import MAX_PENDING_SAMPLES as MAX_PENDING_SAMPLES, Row, SampleBuffer
 from contracts.types import Identity, SampleBlock
 
-MAX_PENDING_SAMPLES = 2_000_000  # if nobody reads, the oldest samples are dropped (counted lost)
+
+def _columns(rows: list[Row]) -> tuple[np.ndarray, np.ndarray]:
+    """A serial row's time is the board's clock in microseconds (unwrapped)."""
+    try:
+        arr = np.array(rows, dtype=np.int64)
+        t_us, counts = arr[:, 0], arr[:, 1:]
+    except OverflowError:
+        # a 64-bit board clock past 2**63 us (in range for the protocol's uint64): the time goes
+        # through float64 instead of int64; the counts (int32 by the frame checks) stay exact
+        t_us = np.array([r[0] for r in rows], dtype=np.float64)
+        counts = np.array([r[1:] for r in rows], dtype=np.int64)
+    return t_us / 1e6, counts
 
 
 class BoardErrorReply(DriverError):
@@ -59,19 +72,17 @@ class SerialBoard(BoardDriver):
         self.stats = LinkStats()
         self.identity: Identity | None = None
         self._parser = sf.FrameParser(self.stats)
-        self._seq = sf.SeqTracker(32)
-        self._clock = sf.ClockUnwrapper()
-        self._timeline = sf.StreamTimeline(speed)  # one board, one timeline: resets and clock jumps
+        self._seq = SeqTracker(32)
+        self._clock = ClockUnwrapper()
+        self._timeline = StreamTimeline(speed)  # one board, one timeline: resets and clock jumps
         self._ser: serial.SerialBase | None = None
         self._fd: int | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._running = False
-        self._pending: list[tuple[int, int, int, int, int]] = []  # t_us, ax, ay, az, t
-        self._pending_lost = 0
+        self._held = SampleBuffer(self.stats, _columns)  # rows: t_us, ax, ay, az, t
         self._broken = False  # a StreamBreak was seen: samples are not taken until the next START
         self._breaks: list[StreamBreak] = []
-        self._data = asyncio.Event()
         self._error: DriverError | None = None
         self._ident_fut: asyncio.Future[Identity] | None = None
         self._ack_waiters: dict[str, asyncio.Future[sf.AckFrame]] = {}
@@ -85,7 +96,7 @@ class SerialBoard(BoardDriver):
         if self._ser is not None:
             return
         self._loop = asyncio.get_running_loop()
-        self._data = asyncio.Event()
+        self._held.renew()
         self._cmd_lock = asyncio.Lock()
         try:
             self._ser = await asyncio.to_thread(
@@ -142,7 +153,7 @@ class SerialBoard(BoardDriver):
         for fut in [self._ident_fut, *self._ack_waiters.values()]:
             if fut is not None and not fut.done():
                 fut.set_exception(self._error)
-        self._data.set()
+        self._held.wake()
 
     def _stop_reading(self) -> None:
         if self._fd is not None and self._loop is not None:
@@ -153,7 +164,6 @@ class SerialBoard(BoardDriver):
     # ---- frames ----------------------------------------------------------------------------
     def _feed(self, data: bytes) -> None:
         self.last_rx_wall = time.monotonic()
-        got_samples = False
         for frame in self._parser.feed(data):
             if type(frame) is sf.SampleFrame:
                 if self._broken:  # after a break: not this run's timeline (until the next START)
@@ -168,15 +178,13 @@ class SerialBoard(BoardDriver):
                     continue
                 lost = self._seq.update(frame.seq)
                 if lost:
-                    self.stats.samples_lost += lost
-                    self._pending_lost += lost
+                    self._held.count_lost(lost)
                 t_us = self._clock.update(frame.t_us, lost + 1)
                 if t_us is None:  # a time that follows nothing: a corrupt frame, not a clock wrap
                     self._malformed()
                     continue
-                self._pending.append((t_us, frame.ax, frame.ay, frame.az, frame.t))
+                self._held.add((t_us, frame.ax, frame.ay, frame.az, frame.t))
                 self.last_sample_t = t_us / 1e6
-                got_samples = True
             elif isinstance(frame, sf.IdentityFrame):
                 if self._ident_fut is not None and not self._ident_fut.done():
                     self._ident_fut.set_result(frame.identity)
@@ -189,13 +197,7 @@ class SerialBoard(BoardDriver):
                 for fut in self._ack_waiters.values():
                     if not fut.done():
                         fut.set_exception(BoardErrorReply(self.port, frame.code, frame.text))
-        if got_samples:
-            if len(self._pending) > MAX_PENDING_SAMPLES:
-                drop = len(self._pending) - MAX_PENDING_SAMPLES
-                del self._pending[:drop]
-                self.stats.samples_lost += drop
-                self._pending_lost += drop
-            self._data.set()
+        self._held.flush()
 
     def _malformed(self) -> None:
         """A frame the parser counted ok that is no sample after all: counted malformed instead."""
@@ -227,7 +229,7 @@ class SerialBoard(BoardDriver):
         where = f" after {at:.1f} s board time" if at is not None else ""
         self._breaks.append(StreamBreak(kind, at, f"{self.port}: {words}{where}; one run is one board's "
                                                   "one timeline: its run ends here"))
-        self._data.set()
+        self._held.wake()
 
     def take_breaks(self) -> list[StreamBreak]:
         out, self._breaks = self._breaks, []
@@ -311,10 +313,7 @@ class SerialBoard(BoardDriver):
         await self._command(sf.cmd_start(), "START")
 
     def discard_held(self) -> int:
-        n = len(self._pending)
-        self._pending.clear()
-        self._pending_lost = 0
-        return n
+        return self._held.discard()
 
     async def stop(self) -> None:
         await self._command(sf.cmd_stop(), "STOP")
@@ -373,39 +372,10 @@ class SerialBoard(BoardDriver):
 
     # ---- samples ---------------------------------------------------------------------------
     async def read_block(self, timeout_s: float = 1.0) -> SampleBlock:
-        if not self._pending:
-            if self._error is not None:
-                raise self._error
-            if self._ser is None:
-                raise DriverError(f"serial port {self.port} is not open")
-            self._data.clear()
-            try:
-                await asyncio.wait_for(self._data.wait(), timeout_s)
-            except asyncio.TimeoutError:
-                pass
-            if not self._pending and self._error is not None:
-                raise self._error
-        if self.identity is None and self._pending:
+        await self._held.wait(timeout_s, self._check, lambda: self._error)
+        if self.identity is None and len(self._held):
             await self.identify()
-        rows, self._pending = self._pending, []
-        lost, self._pending_lost = self._pending_lost, 0
-        ident = self.identity or Identity(serial="")
-        if not rows:
-            return SampleBlock(np.empty(0), np.empty((0, 3)), np.empty(0), lost)
-        try:
-            arr = np.array(rows, dtype=np.int64)
-            t_us, counts = arr[:, 0], arr[:, 1:]
-        except OverflowError:
-            # a 64-bit board clock past 2**63 us (in range for the protocol's uint64): the time goes
-            # through float64 instead of int64; the counts (int32 by the frame checks) stay exact
-            t_us = np.array([r[0] for r in rows], dtype=np.float64)
-            counts = np.array([r[1:] for r in rows], dtype=np.int64)
-        return SampleBlock(
-            time_s=t_us / 1e6,
-            acc_g=ident.acc_g(counts[:, 0:3]),
-            temp_c=ident.temp_c(counts[:, 3]),
-            lost_samples=lost,
-        )
+        return self._held.take_block(self.identity)
 
     async def close(self) -> None:
         self._stop_reading()

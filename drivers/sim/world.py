@@ -19,6 +19,9 @@ Noise: one np.random.Generator per DUT, consumed in sample order (4 normals per 
 output does not depend on how advance() is chunked. The bias wander of the noise model
 (physics.NoiseModel: random walk and flicker; default `realistic`, `white` = none) draws from a
 second per-DUT stream, so a `white` world's output is exactly what it was before noise models.
+
+What the DUTs' hidden effects add is drivers/sim/hidden_effects.py; the temperature sensor faults
+that tests arm on a board (stick_temp_sensor, temp_sensor_reads) are drivers/sim/sensor_faults.py.
 """
 
 from __future__ import annotations
@@ -28,7 +31,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.signal import lfilter
 
+from drivers.sim.hidden_effects import HiddenEffects
 from drivers.sim.physics import DEFAULT_NOISE, SENSORS, DutTruth, NoiseModel, noise_model
+from drivers.sim.sensor_faults import TempSensorFaults
 from contracts.positions import GRAVITY_DIRECTIONS
 from contracts.types import T_REF_C, Identity
 
@@ -123,7 +128,7 @@ class SimWorld:
     """All DUTs of a simulated station (see module doc). Deterministic from `seed`."""
 
     def __init__(self, duts: list[DutTruth], env: EnvConfig | None = None, odr_hz: float | None = None, seed: int = 0,
-                 noise: str | NoiseModel = DEFAULT_NOISE):
+                 noise: str | NoiseModel = DEFAULT_NOISE) -> None:
         self.duts = list(duts)
         self.noise_name = noise.name if isinstance(noise, NoiseModel) else str(noise)
         self.noise_models = [noise_model(noise, t.sensor) for t in self.duts]
@@ -170,15 +175,10 @@ class SimWorld:
         self._die_lag = np.full(n, amb)  # die without self-heating
         self._mems = np.full(n, amb)
         self._die_prev = np.full(n, amb)
-        self._hyst_z = np.zeros(n)
         self._heat = np.zeros(n)  # self-heating of the die above the plate (all powered up at t = 0)
         self._t_on = np.zeros(n)
-        # hidden effects as arrays (zeros where off)
-        self._fx = self._effect_arrays()
-        # temperature sensor faults armed by tests (stick_temp_sensor, temp_sensor_reads): DUT index ->
-        # [from sample time, the count it reports from then (None: stuck, taken from the reading before)]
-        self._temp_faults: dict[int, list] = {}
-        self._last_temp_count: list[int | None] = [None] * n
+        self._effects = HiddenEffects(self.duts)  # as arrays over DUTs (zeros where off)
+        self._temp_faults = TempSensorFaults(n)  # armed by tests (stick_temp_sensor, temp_sensor_reads)
 
     # --- properties ---------------------------------------------------------------------------
     @property
@@ -244,64 +244,18 @@ class SimWorld:
         """DUT i's temperature sensor sticks from sample time from_s (default: the next sample) at
         its reading just before: its board reports that count ever after (a serial board and a CAN
         board alike: both send the counts made here). The die and the MEMS go on heating."""
-        self._temp_faults[int(i)] = [self.time_s if from_s is None else float(from_s), None]
+        self._temp_faults.arm(i, self.time_s if from_s is None else float(from_s), None)
 
     def temp_sensor_reads(self, i: int, temp_c: float, from_s: float | None = None) -> None:
         """DUT i's temperature sensor reads temp_c (as counts, clipped to the sensor's word) from
         sample time from_s (default: the next sample) on, whatever the die's temperature."""
         tc = np.rint((float(temp_c) - T_REF_C) * self._t_lsb_per_c[i] + self._t_lsb_at_25[i])
         count = int(np.clip(tc, *self._t_lim[i]))
-        self._temp_faults[int(i)] = [self.time_s if from_s is None else float(from_s), count]
+        self._temp_faults.arm(i, self.time_s if from_s is None else float(from_s), count)
 
     def heal_temp_sensor(self, i: int) -> None:
         """DUT i's temperature sensor reads the die again from the next sample on."""
-        self._temp_faults.pop(int(i), None)
-
-    def _temp_fault(self, i: int, time_s: np.ndarray, counts: np.ndarray) -> None:
-        """Apply DUT i's armed sensor fault to its counts of this chunk (in place)."""
-        fault = self._temp_faults.get(i)
-        if fault is None or not counts.size:
-            return
-        m = int(np.searchsorted(time_s, fault[0] - 1e-9))
-        if m >= counts.size:
-            return
-        if fault[1] is None:  # stuck at the reading before from_s (the chunk's first if none came before)
-            prev = counts[m - 1] if m > 0 else self._last_temp_count[i]
-            fault[1] = int(counts[m] if prev is None else prev)
-        counts[m:] = fault[1]
-
-    # --- hidden effects -----------------------------------------------------------------------
-    def _effect_arrays(self) -> dict[str, np.ndarray]:
-        n = self.n_duts
-        z3 = lambda: np.zeros((n, 3))  # noqa: E731
-        fx = {
-            "c2": z3(), "c3": z3(), "k2": z3(), "lag_tau": np.zeros(n), "h": z3(), "h_width": np.ones(n),
-            "w": z3(), "w_tau": np.ones(n), "x": np.zeros((n, 3, 3)), "nl": z3(),
-        }
-        self._has = set()
-        for i, t in enumerate(self.duts):
-            for name, p in t.effects.items():
-                self._has.add(name)
-                if name == "bias_t2":
-                    fx["c2"][i] = np.asarray(p["c2_mg_per_c2"]) * 1e-3
-                elif name == "bias_t3":
-                    fx["c3"][i] = np.asarray(p["c3_mg_per_c3"]) * 1e-3
-                elif name == "scale_t2":
-                    fx["k2"][i] = np.asarray(p["k2_ppm_per_c2"]) * 1e-6
-                elif name == "thermal_lag":
-                    fx["lag_tau"][i] = float(p["tau_s"])
-                elif name == "hysteresis":
-                    fx["h"][i] = np.asarray(p["h_mg"]) * 1e-3
-                    fx["h_width"][i] = float(p["width_c"])
-                elif name == "self_heating":
-                    fx["w"][i] = np.asarray(p["w_mg"]) * 1e-3
-                    fx["w_tau"][i] = float(p["tau_s"])
-                elif name == "cross_axis":
-                    x = np.asarray(p["x_ppm_per_c"], dtype=np.float64).reshape(3, 3) * 1e-6
-                    fx["x"][i] = x - np.diag(np.diag(x))
-                elif name == "scale_nonlinearity":
-                    fx["nl"][i] = np.asarray(p["n_ppm_per_c_per_g"]) * 1e-6
-        return fx
+        self._temp_faults.heal(i)
 
     # --- stepping -----------------------------------------------------------------------------
     def _air_series(self, n: int, dt: float) -> np.ndarray:
@@ -391,8 +345,8 @@ class SimWorld:
         since_on = np.maximum(time_s[None, :] - self._t_on[:, None], 0.0)
         heat, self._heat = _first_order(np.repeat(self._sh_c[:, None], n, axis=1), self._heat, self._sh_tau, dt)
         die = die_lag + heat  # (nd, n)
-        fx = self._fx
-        if "thermal_lag" in self._has:
+        fx = self._effects.fx
+        if "thermal_lag" in self._effects.has:
             lag = np.where(fx["lag_tau"] > 0, fx["lag_tau"], 1e-9)
             mems, self._mems = _first_order(die, self._mems, lag, dt)
             mems = np.where((fx["lag_tau"] > 0)[:, None], mems, die)
@@ -406,8 +360,8 @@ class SimWorld:
         acc0 = self._bias + self._A_inv @ g  # (nd, 3)
         dT = (mems - T_REF_C)[:, :, None]  # (nd, n, 1)
         acc = acc0[:, None, :] + dT * (self._tdb + self._tdsf * acc0)[:, None, :]
-        if self._has:
-            acc += self._hidden(acc0, dT, die, since_on, n)
+        if self._effects.has:
+            acc += self._effects.acceleration(acc0, dT, die, self._die_prev, since_on, n)
         if n:
             self._die_prev = die[:, -1].copy()
 
@@ -423,10 +377,7 @@ class SimWorld:
             t = die[i] + z[:, 3] * self._tnoise[i]
             tc = np.rint((t - T_REF_C) * self._t_lsb_per_c[i] + self._t_lsb_at_25[i])
             temp_counts[i] = np.clip(tc, *self._t_lim[i]).astype(np.int64)
-            if self._temp_faults:
-                self._temp_fault(i, time_s, temp_counts[i])
-            if n:
-                self._last_temp_count[i] = int(temp_counts[i, -1])
+            self._temp_faults.apply(i, time_s, temp_counts[i])
         return WorldChunk(
             time_s=time_s,
             acc_counts=acc_counts,
@@ -456,41 +407,6 @@ class SimWorld:
                 self._fl[i][:, c] = y[-1]
                 out = out + y
         return out
-
-    def _hidden(self, acc0: np.ndarray, dT: np.ndarray, die: np.ndarray, since_on: np.ndarray, n: int) -> np.ndarray:
-        fx = self._fx
-        has = self._has
-        out = np.zeros((self.n_duts, n, 3))
-        if "bias_t2" in has:
-            out += fx["c2"][:, None, :] * dT**2
-        if "bias_t3" in has:
-            out += fx["c3"][:, None, :] * dT**3
-        if "scale_t2" in has:
-            out += (fx["k2"] * acc0)[:, None, :] * dT**2
-        if "cross_axis" in has:
-            out += dT * np.einsum("dij,dj->di", fx["x"], acc0)[:, None, :]
-        if "scale_nonlinearity" in has:
-            out += dT * (fx["nl"] * acc0**2)[:, None, :]
-        if "self_heating" in has:
-            out += fx["w"][:, None, :] * np.exp(-since_on / fx["w_tau"][:, None])[:, :, None]
-        if "hysteresis" in has:
-            z = self._hysteresis_state(die, n)
-            out += fx["h"][:, None, :] * z[:, :, None]
-        return out
-
-    def _hysteresis_state(self, die: np.ndarray, n: int) -> np.ndarray:
-        """Play-type state z in [-1, 1]: z_k = s + (z_{k-1} - s) exp(-|dT_k| / width), s = sign(dT_k)."""
-        d = np.diff(die, axis=1, prepend=self._die_prev[:, None])
-        s = np.sign(d)
-        decay = np.exp(-np.abs(d) / self._fx["h_width"][:, None])
-        z = np.empty_like(die)
-        zk = self._hyst_z.copy()
-        for k in range(n):
-            zk = s[:, k] + (zk - s[:, k]) * decay[:, k]
-            z[:, k] = zk
-        self._hyst_z = zk
-        return z
-
 
 def _first_order(x: np.ndarray, y0: np.ndarray, tau_s: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """y_k = a y_{k-1} + (1 - a) x_k per row, a = exp(-dt/tau): exact for an input held over each
