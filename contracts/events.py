@@ -10,14 +10,27 @@ import asyncio
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
+from contracts.json_safe import JsonDict
 from contracts.types import SampleBlock, Segment
 
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
-def _jsonable(value: Any) -> Any:
+
+def _fields_json(record: DataclassInstance) -> JsonDict:
+    return {f.name: _jsonable(getattr(record, f.name)) for f in dataclasses.fields(record)}
+
+
+def _jsonable(value: object) -> object:
+    """A JSON value of what an event carries: a typed record through its own to_json(), a
+    dataclass field by field, lists/tuples, dicts and numpy arrays (tolist) item by item."""
+    to_json = getattr(value, "to_json", None)
+    if callable(to_json) and not isinstance(value, type):
+        return _jsonable(to_json())
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        return _fields_json(value)
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
     if isinstance(value, dict):
@@ -36,8 +49,8 @@ class Event:
     def kind(self) -> str:
         return type(self).__name__
 
-    def to_json(self) -> dict:
-        data = _jsonable(self)
+    def to_json(self) -> JsonDict:
+        data = _fields_json(self)
         data["kind"] = self.kind
         return data
 
@@ -102,8 +115,8 @@ class DutResult(Event):
 
     slot: str
     serial: str
-    thermal: dict | None = None
-    sfem: dict | None = None
+    thermal: JsonDict | None = None
+    sfem: JsonDict | None = None
 
 
 @dataclass(frozen=True)
@@ -114,7 +127,7 @@ class DutVerdict(Event):
 
     slot: str
     serial: str | None
-    verdict: dict
+    verdict: JsonDict
 
 
 @dataclass(frozen=True)
@@ -124,7 +137,7 @@ class DutProgrammed(Event):
 
     slot: str
     serial: str
-    program: dict
+    program: JsonDict
 
 
 @dataclass(frozen=True)
@@ -134,7 +147,7 @@ class DutVerified(Event):
 
     slot: str
     serial: str
-    verification: dict
+    verification: JsonDict
 
 
 @dataclass(frozen=True)
@@ -163,32 +176,34 @@ class Alarm(Event):
 
 
 class EventBus:
-    """In-process fan-out: each subscriber gets its own bounded queue.
+    """In-process fan-out: each subscriber gets a queue of its own.
 
-    A slow subscriber (a stalled browser) loses its oldest events rather than stalling the
-    daemon; the database writer subscribes with drop=False and gets back-pressure instead.
+    A lossy subscriber (drop=True, the default: the web page's server-sent events, the MES outbox,
+    a stalled browser) gets a queue bounded by `maxsize` and loses its oldest events rather than
+    stalling the daemon. A lossless subscriber (drop=False: the database writer's forwarder,
+    station/daemon/storage.py) gets an unbounded queue (`maxsize` is not used): `publish` never
+    blocks and never drops, and nothing here bounds its memory. That subscriber must drain its
+    queue promptly; the database writer does, and bounds its own memory by spilling what the
+    database cannot take to its journal (db/writer.py).
     """
 
     def __init__(self) -> None:
-        self._subscribers: list[tuple[asyncio.Queue, bool]] = []
+        self._subscribers: list[tuple[asyncio.Queue[Event], bool]] = []
 
-    def subscribe(self, maxsize: int = 10000, drop: bool = True) -> asyncio.Queue:
-        q: asyncio.Queue = asyncio.Queue(maxsize=maxsize)
+    def subscribe(self, maxsize: int = 10000, drop: bool = True) -> asyncio.Queue[Event]:
+        """A new queue of every event published from now on; maxsize bounds it only when drop."""
+        q: asyncio.Queue[Event] = asyncio.Queue(maxsize=maxsize if drop else 0)
         self._subscribers.append((q, drop))
         return q
 
-    def unsubscribe(self, q: asyncio.Queue) -> None:
+    def unsubscribe(self, q: asyncio.Queue[Event]) -> None:
         self._subscribers = [(s, d) for s, d in self._subscribers if s is not q]
 
     def publish(self, event: Event) -> None:
         for q, drop in self._subscribers:
-            if q.full():
-                if not drop:
-                    # Never drop data for a lossless subscriber; grow instead of losing.
-                    q._maxsize = q.maxsize * 2  # type: ignore[attr-defined]
-                else:
-                    try:
-                        q.get_nowait()
-                    except asyncio.QueueEmpty:
-                        pass
-            q.put_nowait(event)
+            if drop and q.full():  # lossy: make room by dropping the oldest event
+                try:
+                    q.get_nowait()
+                except asyncio.QueueEmpty:
+                    pass
+            q.put_nowait(event)  # a lossless queue is unbounded: never full

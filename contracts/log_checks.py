@@ -13,6 +13,7 @@ nothing from contracts.logfile, so the reader can import it without a circle.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -43,10 +44,14 @@ G_DIVISOR = {"g": 1.0, "mg": 1000.0, "m/s2": G0_M_S2}  # a value in these units 
 
 def g_divisor(units: str, counts_per_g: float | None = None) -> float:
     """What a value in `units` is divided by to give g (counts: the sensor's LSB per g)."""
-    return float(counts_per_g) if units == "counts" else G_DIVISOR[units]
+    if units == "counts":
+        if counts_per_g is None:  # what float(None) raised before: a caller's mistake, not a log's
+            raise TypeError("g_divisor: units 'counts' need counts_per_g (the sensor's LSB per g)")
+        return float(counts_per_g)
+    return G_DIVISOR[units]
 ODR_MATCH = (0.5, 2.0)  # header odr_hz x median sample interval
 # Numeric header keys the station writes or reads: (test, rule shown in the error, integer?)
-META_NUMBERS = {
+META_NUMBERS: dict[str, tuple[Callable[[float], bool], str, bool]] = {
     "odr_hz": (lambda v: 0.0 < v <= ODR_MAX_HZ, f"0 < odr_hz <= {ODR_MAX_HZ:.0f} Hz", False),
     "ug_per_lsb": (lambda v: 0.0 < v <= 1e5, "0 < ug_per_lsb <= 100000", False),
     "t_power_on_s": (lambda v: abs(v) <= 1e9, "-1e9 <= t_power_on_s <= 1e9 s", False),
@@ -157,7 +162,7 @@ class LogChecker:
         self.temp_for_median: np.ndarray | None = None  # check_log: the DutLog's own column
 
     # -- per chunk ---------------------------------------------------------------------------
-    def _arrays(self):
+    def _arrays(self) -> list[np.ndarray]:
         return [a for a in (self.norm, self.time, self.acc, self.temp, self.lamp, self.position, self.ref) if a is not None]
 
     def _grow(self, need: int) -> None:
@@ -218,19 +223,19 @@ class LogChecker:
         end = start + m
         with np.errstate(over="ignore", invalid="ignore"):  # a row beyond the range: |a| inf, reported in finish
             self.norm[start:end] = np.sqrt(np.einsum("ij,ij->i", acc, acc))
-        if self.store:
+        if self.time is not None and self.acc is not None and self.temp is not None:  # self.store
             self.time[start:end] = time_s
             self.acc[start:end] = acc
             self.temp[start:end] = temp_c
             if self.lamp is not None:
-                self.lamp[start:end] = lamp
+                self.lamp[start:end] = _given(lamp, "lamp")
             if self.position is not None:
-                self.position[start:end] = position
+                self.position[start:end] = _given(position, "position")
             if self.ref is not None:
-                self.ref[start:end] = ref
+                self.ref[start:end] = _given(ref, "ref")
         self.n = end
 
-    def _add_times(self, time_s: np.ndarray, where) -> None:
+    def _add_times(self, time_s: np.ndarray, where: Callable[[int], str]) -> None:
         m = int(time_s.shape[0])
         full = time_s if self._prev is None else np.concatenate(([self._prev[0]], time_s))
         d = np.diff(full)
@@ -239,7 +244,11 @@ class LogChecker:
             if bad.size:
                 j = int(bad[0])
                 k = j if self._prev is not None else j + 1  # chunk index of the offending row
-                prev_v, prev_at = (self._prev if k == 0 else (float(time_s[k - 1]), where(k - 1)))
+                if k > 0:
+                    prev_v, prev_at = float(time_s[k - 1]), where(k - 1)
+                else:  # k == 0 only after an earlier chunk: against that chunk's last row
+                    assert self._prev is not None
+                    prev_v, prev_at = self._prev
                 tn, v = self.names["time"], float(time_s[k])
                 if v == prev_v:
                     self._time_error = (f"{self.source}: {where(k)}: {tn} = {_num(v)} repeats {prev_at} "
@@ -282,7 +291,8 @@ class LogChecker:
                 raise StationError(f"{src}: {tn} looks like kelvin, not C (median {med:.2f}): give --temp-units K")
         acc_row = self._acc_error[0] if self._acc_error is not None else math.inf
         temp_row = self._temp_error[0] if self._temp_error is not None else math.inf
-        if acc_row < temp_row:  # the first row beyond the sensor's range, whichever column
+        # the first row beyond the sensor's range, whichever column
+        if self._acc_error is not None and acc_row < temp_row:
             _, at, axis, v = self._acc_error
             lim = ACC_RANGE_G
             raw = "" if self.accel_units == "g" else (
@@ -301,6 +311,13 @@ class LogChecker:
             if not ODR_MATCH[0] <= ratio <= ODR_MATCH[1]:
                 raise StationError(f"{src}: header '# odr_hz: {_show(raw)}' does not match the sample times "
                                    f"(median interval {dt:.6g} s, {1.0 / dt:.6g} Hz)")
+
+
+def _given(values: np.ndarray | None, column: str) -> np.ndarray:
+    """A column the checker stores (made with it) must be given to every `add`."""
+    if values is None:
+        raise TypeError(f"LogChecker.add: no {column} column, but the checker stores one")
+    return values
 
 
 __all__ = ["LogChecker", "accel_units_problem", "check_meta", "g_divisor", "guess_accel_units", "G0_M_S2",

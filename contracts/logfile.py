@@ -15,15 +15,18 @@ from __future__ import annotations
 import io
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NoReturn, TextIO, TypeVar
 
 import numpy as np
 
 from contracts.log_checks import LogChecker, _show, check_meta
 from contracts.log_checks import guess_accel_units  # noqa: F401 - also reachable as contracts.logfile.guess_accel_units
 from contracts.types import SampleBlock, StationError
+
+_T = TypeVar("_T")
 
 REQUIRED_COLUMNS = ("time_s", "ax_g", "ay_g", "az_g", "temp_c")
 OPTIONAL_COLUMNS = ("lamp", "position", "ref_x", "ref_y", "ref_z")
@@ -105,7 +108,7 @@ def _blocks_of_text(text: str, size: int = CHUNK_BYTES, source: str = "<log>") -
         pos = end
 
 
-def _blocks_of_file(f, source: str = "<log>") -> Iterator[list[str]]:
+def _blocks_of_file(f: TextIO, source: str = "<log>") -> Iterator[list[str]]:
     """The lines of a text file (universal newlines, then str.splitlines: what read_text().
     splitlines() gave before) a few MB at a time, never more than CHUNK_BYTES + MAX_LINE_CHARS
     characters in memory; text that is no log refused as soon as it is read (_check_text)."""
@@ -125,7 +128,7 @@ def _blocks_of_file(f, source: str = "<log>") -> Iterator[list[str]]:
 class _Header:
     """The metadata and header row at the top of a log; `rows()` then yields the data lines."""
 
-    def __init__(self, blocks: Iterator[list[str]], is_meta) -> None:
+    def __init__(self, blocks: Iterator[list[str]], is_meta: Callable[[str], bool]) -> None:
         self.meta: dict[str, str] = {}
         self.line: str | None = None
         self.line_no = 0
@@ -161,7 +164,7 @@ class _Header:
                 yield rows, nos
 
 
-def _chain(*iterables):
+def _chain(*iterables: Iterable[_T]) -> Iterator[_T]:
     for it in iterables:
         yield from it
 
@@ -199,7 +202,8 @@ def _float_or_nan(x: str) -> float:
         return math.nan
 
 
-def _raise_bad_row(rows, nos, ncol, delimiter, source, exc) -> None:
+def _raise_bad_row(rows: list[str], nos: np.ndarray, ncol: int, delimiter: str, source: str,
+                   exc: Exception) -> NoReturn:
     for k, ln in enumerate(rows):
         fields = ln.split("#", 1)[0].strip().split(delimiter)
         if len(fields) != ncol:
@@ -279,6 +283,7 @@ def _parse(blocks: Iterator[list[str]], source: str, size: int) -> DutLog:
     if chk is None or chk.n == 0:
         return _empty_log(meta, header)
     chk.finish(meta)
+    assert chk.time is not None and chk.acc is not None and chk.temp is not None  # stored (store=True)
     return DutLog(time_s=chk.time, acc_g=chk.acc, temp_c=chk.temp, meta=meta,
                   lamp=chk.lamp, position=chk.position, ref_dir=chk.ref)
 
@@ -296,12 +301,18 @@ def format_log(log: DutLog) -> str:
     arrays: list[np.ndarray] = [log.time_s, log.acc_g[:, 0], log.acc_g[:, 1], log.acc_g[:, 2], log.temp_c]
     fmts = [f"%.{TIME_DECIMALS}f"] + [f"%.{ACC_DECIMALS}f"] * 3 + [f"%.{TEMP_DECIMALS}f"]
     if log.lamp is not None:
-        cols.append("lamp"), arrays.append(log.lamp), fmts.append("%d")
+        cols.append("lamp")
+        arrays.append(log.lamp)
+        fmts.append("%d")
     if log.position is not None:
-        cols.append("position"), arrays.append(log.position), fmts.append("%d")
+        cols.append("position")
+        arrays.append(log.position)
+        fmts.append("%d")
     if log.ref_dir is not None:
         for k, name in enumerate(("ref_x", "ref_y", "ref_z")):
-            cols.append(name), arrays.append(log.ref_dir[:, k]), fmts.append("%.6f")
+            cols.append(name)
+            arrays.append(log.ref_dir[:, k])
+            fmts.append("%.6f")
     buf.write(",".join(cols) + "\n")
     if len(log):
         np.savetxt(buf, np.column_stack(arrays), fmt=fmts, delimiter=",")

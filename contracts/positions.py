@@ -10,19 +10,20 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 _S = 1.0 / math.sqrt(3.0)  # 0.577 g on every axis (martinez2022 eq. 5)
 
 
 def _ring(axis: int) -> list[tuple[float, float, float]]:
     """Eight directions 45 deg apart in the plane perpendicular to `axis` (sensors2023 Table 1)."""
-    out = []
+    out: list[tuple[float, float, float]] = []
     a, b = [k for k in range(3) if k != axis]
     for step in range(8):
         ang = math.radians(45.0 * step)
         v = [0.0, 0.0, 0.0]
         v[a], v[b] = math.cos(ang), math.sin(ang)
-        out.append(tuple(round(c, 12) for c in v))
+        out.append((round(v[0], 12), round(v[1], 12), round(v[2], 12)))
     return out
 
 
@@ -43,17 +44,17 @@ for _axis, _label in ((2, "z"), (1, "y"), (0, "x")):
 
 POSITION_NAMES: list[str] = [name for name, _ in _TABLE]
 POSITION_INDEX: dict[str, int] = {name: i for i, name in enumerate(POSITION_NAMES)}
-GRAVITY_DIRECTIONS: np.ndarray = np.array([v for _, v in _TABLE], dtype=np.float64)
+GRAVITY_DIRECTIONS: npt.NDArray[np.float64] = np.array([v for _, v in _TABLE], dtype=np.float64)
 SFEM24 = [f"sfem-{label}{k * 45}" for label in ("z", "y", "x") for k in range(8)]
 SIX_POSITION = ["+x", "-x", "+y", "-y", "+z", "-z"]
 
 
-def direction(position: int | str) -> np.ndarray:
+def direction(position: int | str) -> npt.NDArray[np.float64]:
     """Nominal gravity direction (unit vector, DUT frame) of a position index or name."""
     idx = POSITION_INDEX[position] if isinstance(position, str) else int(position)
     if not 0 <= idx < len(POSITION_NAMES):
         raise KeyError(f"unknown position {position!r}")
-    return GRAVITY_DIRECTIONS[idx].copy()
+    return GRAVITY_DIRECTIONS[idx, :].copy()
 
 
 FACING_MAX_ANGLE_DEG = 20.0  # under half the 45 deg between neighbouring sfem-24 positions

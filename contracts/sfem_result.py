@@ -28,17 +28,19 @@ Units are in the names; bias and b in g (station logs are in g), scale in g per 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TypeAlias, TypedDict
 
-from contracts.json_safe import finite_or_none, plain_json
+from contracts.json_safe import JsonDict, finite_or_none, plain_json_dict
 
 SFEM_RESULT_SHAPE = "sfem-record/1"
 
+Vec3: TypeAlias = tuple[float | None, float | None, float | None]  # x, y, z; None: not a finite number
 
-def _vec3(d: dict, key: str, *, required: bool = True) -> tuple[float | None, float | None, float | None]:
+
+def _vec3(d: JsonDict, key: str, *, required: bool = True) -> Vec3:
     v = d.get(key)
     if isinstance(v, (list, tuple)) and len(v) == 3:
-        return tuple(finite_or_none(x) for x in v)  # type: ignore[return-value]
+        return (finite_or_none(v[0]), finite_or_none(v[1]), finite_or_none(v[2]))
     if required:
         raise ValueError(f"SFEM step: {key!r} must be a list of 3 numbers")
     return (None, None, None)
@@ -52,26 +54,27 @@ class SfemStepResult:
     temperature_step: int
     temp_c: float
     n_positions: int
-    bias_g: tuple[float | None, float | None, float | None]
-    bias_sigma_g: tuple[float | None, float | None, float | None]
-    scale: tuple[float | None, float | None, float | None]
-    scale_sigma: tuple[float | None, float | None, float | None]
+    bias_g: Vec3
+    bias_sigma_g: Vec3
+    scale: Vec3
+    scale_sigma: Vec3
     rmse_before_mg: float | None
     rmse_after_mg: float | None
     rmse_heldout_mg: float | None
     residual_ratio: float | None  # RMS |a| - 1 g residual / what the part's noise predicts
     misses_effect: bool  # the residual is far above the noise: the model misses an effect
     fit_words: str  # the goodness of fit in words
-    detail: dict
+    detail: JsonDict
 
     @classmethod
-    def from_json(cls, d: Any, index: int) -> "SfemStepResult":
+    def from_json(cls, d: object, index: int) -> "SfemStepResult":
         if not isinstance(d, dict):
             raise ValueError("SFEM step: not an object")
         temp = finite_or_none(d.get("temp_c"))
         if temp is None:
             raise ValueError("SFEM step: no temp_c")
-        gof = d.get("goodness_of_fit") if isinstance(d.get("goodness_of_fit"), dict) else {}
+        raw_gof = d.get("goodness_of_fit")
+        gof: JsonDict = raw_gof if isinstance(raw_gof, dict) else {}
         return cls(
             temperature_step=int(d.get("temperature_step", index)),
             temp_c=temp,
@@ -89,8 +92,8 @@ class SfemStepResult:
             detail=dict(d),
         )
 
-    def to_json(self) -> dict:
-        return plain_json({**self.detail, "temperature_step": self.temperature_step})
+    def to_json(self) -> JsonDict:
+        return plain_json_dict({**self.detail, "temperature_step": self.temperature_step})
 
 
 @dataclass(frozen=True)
@@ -98,14 +101,14 @@ class SfemDrift:
     """The thermal model's drift at t_ref_c in the TDSF/TDB convention of the thermal calibration
     (martinez2022 eq. 1: the raw output per g changes by TDSF per C), per axis x, y, z."""
 
-    tdsf_ppm_per_c: tuple[float | None, float | None, float | None]
-    tdsf_sigma_ppm_per_c: tuple[float | None, float | None, float | None]
-    tdb_mg_per_c: tuple[float | None, float | None, float | None]
-    tdb_sigma_mg_per_c: tuple[float | None, float | None, float | None]
+    tdsf_ppm_per_c: Vec3
+    tdsf_sigma_ppm_per_c: Vec3
+    tdb_mg_per_c: Vec3
+    tdb_sigma_mg_per_c: Vec3
     convention: str
 
     @classmethod
-    def from_thermal(cls, thermal: dict | None) -> "SfemDrift | None":
+    def from_thermal(cls, thermal: JsonDict | None) -> "SfemDrift | None":
         d = (thermal or {}).get("drift_at_t_ref")
         if not isinstance(d, dict):
             return None
@@ -114,15 +117,24 @@ class SfemDrift:
                    str(d.get("convention") or ""))
 
 
+class SfemModelCheck(TypedDict):
+    """The goodness of fit of the worst step (SfemResult.model_check, the JSON's "model_check")."""
+
+    worst_residual_ratio: float | None
+    worst_step_temp_c: float
+    misses_effect: bool
+    words: str
+
+
 @dataclass(frozen=True)
 class SfemResult:
     """The SFEM of one run (module doc): its steps, the temperature it refers to, its thermal model."""
 
     steps: tuple[SfemStepResult, ...]  # coldest first
     t_ref_c: float
-    thermal: dict | None = None
+    thermal: JsonDict | None = None
     n_static_intervals: int = 0
-    skipped_steps: tuple[dict, ...] = ()
+    skipped_steps: tuple[JsonDict, ...] = ()
     notes: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -148,16 +160,17 @@ class SfemResult:
     def drift(self) -> SfemDrift | None:
         return SfemDrift.from_thermal(self.thermal)
 
-    def model_check(self) -> dict:
+    def model_check(self) -> SfemModelCheck:
         w = self.worst
         return {"worst_residual_ratio": w.residual_ratio, "worst_step_temp_c": w.temp_c,
                 "misses_effect": any(s.misses_effect for s in self.steps),
                 "words": w.fit_words if w.fit_words else "not testable"}
 
-    def to_json(self) -> dict:
+    def to_json(self) -> JsonDict:
         ref = self.reference
-        merged = list(dict.fromkeys([*(ref.detail.get("notes") or []), *self.notes]))
-        return plain_json({
+        ref_notes = ref.detail.get("notes")
+        merged = list(dict.fromkeys([*(ref_notes if isinstance(ref_notes, (list, tuple)) else []), *self.notes]))
+        return plain_json_dict({
             **ref.detail,
             "shape": SFEM_RESULT_SHAPE,
             "t_ref_c": self.t_ref_c,
@@ -173,7 +186,7 @@ class SfemResult:
         })
 
     @classmethod
-    def from_json(cls, d: Any) -> "SfemResult":
+    def from_json(cls, d: object) -> "SfemResult":
         """The record from its JSON (to_json, or the database's rows put back together); ValueError
         for any other shape."""
         if not isinstance(d, dict) or d.get("shape") != SFEM_RESULT_SHAPE:
@@ -194,11 +207,11 @@ class SfemResult:
             notes=tuple(str(n) for n in (d.get("record_notes") or [])),
         )
 
-    def record_row_json(self) -> dict:
+    def record_row_json(self) -> JsonDict:
         """The record without its steps (the database keeps each step in a row of its own)."""
         out = self.to_json()
         out.pop("steps")
         return out
 
 
-__all__ = ["SFEM_RESULT_SHAPE", "SfemDrift", "SfemResult", "SfemStepResult"]
+__all__ = ["SFEM_RESULT_SHAPE", "SfemDrift", "SfemModelCheck", "SfemResult", "SfemStepResult"]

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from contracts.json_safe import JsonDict
+
 AXES = ("x", "y", "z")
 T_REF_C = 25.0  # reference temperature of the thermal model (martinez2022 eq. 1)
 
@@ -135,24 +137,25 @@ class ThermalResult:
     orientations: dict[str, list[OrientationDrift]] = field(default_factory=dict)
     n_segments: int = 0
 
-    def to_json(self) -> dict:
-        out: dict = {"method": self.method, "n_segments": self.n_segments, "axes": {}}
-        for name, ax in self.axes.items():
-            out["axes"][name] = {
+    def to_json(self) -> JsonDict:
+        axes: JsonDict = {
+            name: {
                 "tdb_mg_per_c": ax.tdb_mg_per_c,
                 "tdsf_ppm_per_c": ax.tdsf_ppm_per_c,
                 "tdb_sigma_mg_per_c": ax.tdb_sigma_mg_per_c,
                 "tdsf_sigma_ppm_per_c": ax.tdsf_sigma_ppm_per_c,
                 "tdsf_clamped": ax.tdsf_clamped,
             }
-        out["orientations"] = {
+            for name, ax in self.axes.items()
+        }
+        orientations: JsonDict = {
             name: [
                 {"orientation": o.orientation, "td_mg_per_c": o.td_mg_per_c, "acc0_g": o.acc0_g}
                 for o in lst
             ]
             for name, lst in self.orientations.items()
         }
-        return out
+        return {"method": self.method, "n_segments": self.n_segments, "axes": axes, "orientations": orientations}
 
 
 class StationError(Exception):
