@@ -17,6 +17,7 @@ COPY station ./station
 COPY drivers ./drivers
 COPY db ./db
 COPY web ./web
+COPY cli ./cli
 # Serial boards and Modbus RTU adapters are group dialout on the host; the daemon never runs as root.
 RUN pip install . \
     && useradd --system --uid 10001 --gid dialout --home-dir /var/lib/station --create-home station \

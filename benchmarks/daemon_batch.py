@@ -45,7 +45,7 @@ def one(speed: float, n_serial: int, n_can: int, seed: int) -> dict:
             cfg["database_url"] = f"sqlite:///{tmp / 'station.db'}"
             (tmp / "station.toml").write_text(_to_toml(cfg))
             t0 = time.monotonic()
-            daemon = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--config", str(tmp / "station.toml"),
+            daemon = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--config", str(tmp / "station.toml"),
                                        "--no-web", "--start-batch", "fast-thermal", "--once"],
                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
             _, status, rusage = os.wait4(daemon.pid, 0)

@@ -19,10 +19,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from drivers.sim.physics import draw_population  # noqa: E402
 from drivers.sim.station_sim import SimStation  # noqa: E402
-from station.commands.demo import serve_web, sim_config, stop_web  # noqa: E402
+from cli.commands.demo import sim_config  # noqa: E402
 from station.config import parse_config  # noqa: E402
+from station.daemon.heap import freeze_startup_heap  # noqa: E402
 from station.daemon.storage import open_database  # noqa: E402
 from station.daemon.supervisor import Station  # noqa: E402
+from web.server import serve_web, stop_web  # noqa: E402
 
 PROFILE = "fast-thermal"
 
@@ -41,6 +43,7 @@ async def main(url: str, name: str, seed: int, n_serial: int, speed: float, port
         station = Station(cfg, db=db)
         await station.start()
         server, task = await serve_web(station, "127.0.0.1", port)
+        freeze_startup_heap()  # as station serve does after its web server started
         print("READY", flush=True)
         loop = asyncio.get_running_loop()
         batches: list[int] = []

@@ -97,7 +97,7 @@ async def check_during_batch(ctx: _Ctx) -> None:
             writes = len(ctx.sim.modbus.writes) if ctx.sim.modbus is not None else 0
             t0 = time.monotonic()
             proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "station.cli", "serve", "--config", str(toml), "--check", cwd=ROOT, env=env,
+                sys.executable, "-m", "cli", "serve", "--config", str(toml), "--check", cwd=ROOT, env=env,
                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
             talk = asyncio.ensure_future(proc.communicate())
             done, _ = await asyncio.wait({talk}, timeout=HOLD_S)

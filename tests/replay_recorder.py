@@ -33,7 +33,7 @@ class Script:
 async def _record(url: str, sc: Script) -> dict:
     from drivers.sim.operator import operator_confirms, operator_hands
     from drivers.sim.station_sim import SimStation
-    from station.commands.demo import sim_config
+    from cli.commands.demo import sim_config
     from station.config import parse_config
     from station.daemon.storage import open_database
     from station.daemon.supervisor import Station
@@ -82,7 +82,7 @@ def record(url: str, script: Script) -> dict:
 
 
 def station_cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True,
                           timeout=timeout)
 
 

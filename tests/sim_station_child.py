@@ -14,7 +14,7 @@ import json
 import signal
 
 from drivers.sim.station_sim import SimStation
-from station.commands.demo import sim_config, truth_by_slot
+from cli.commands.demo import sim_config, truth_by_slot
 
 
 async def main(args: argparse.Namespace) -> None:

@@ -8,7 +8,7 @@ column like NaN does (contracts/log_checks.py), a BOM is skipped, and a file tha
 refused as soon as the block holding the NUL byte / undecodable byte / overlong line is read
 (contracts/logfile.py), in bounded memory.
 
-Every case runs the real command line in a subprocess (`python -m station.cli`, as test_cli.py),
+Every case runs the real command line in a subprocess (`python -m cli`, as test_cli.py),
 on files written to tmp_path; `write_cases` and `run_measured` are also benchmarks/bad_files.py's.
 """
 
@@ -119,15 +119,15 @@ LAUNCHER = textwrap.dedent("""
 
 
 def run_measured(args: list[str], cwd: Path, timeout: float = 600) -> dict:
-    """`python -m station.cli ARGS` in cwd: exit code, stdout, stderr, its peak RSS (MB), seconds."""
-    out = subprocess.run([sys.executable, "-c", LAUNCHER, str(cwd), sys.executable, "-m", "station.cli", *args],
+    """`python -m cli ARGS` in cwd: exit code, stdout, stderr, its peak RSS (MB), seconds."""
+    out = subprocess.run([sys.executable, "-c", LAUNCHER, str(cwd), sys.executable, "-m", "cli", *args],
                          capture_output=True, text=True, timeout=timeout, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout)
 
 
 def _station(*args, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "station.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "cli", *map(str, args)], capture_output=True, text=True,
                           timeout=300, cwd=cwd)
 
 

@@ -41,7 +41,7 @@ def test_three_demo_batches_from_the_page_with_a_person_at_the_plate(tmp_path):
     url = f"http://127.0.0.1:{port}"
     log = open(tmp_path / "demo.log", "w")
     demo = subprocess.Popen(
-        [sys.executable, "-m", "station.cli", "demo", "--no-fixture", "--no-batch", "--speed", "500",
+        [sys.executable, "-m", "cli", "demo", "--no-fixture", "--no-batch", "--speed", "500",
          "--port", str(port), "--db", f"sqlite:///{tmp_path / 'demo.db'}", "--seed", "3"],
         cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": str(ROOT)})
     try:

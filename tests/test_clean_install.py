@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = ("pyproject.toml", "README.md", "contracts", "station", "drivers", "db", "web")
+SOURCES = ("pyproject.toml", "README.md", "contracts", "station", "drivers", "db", "web", "cli")
 
 pytestmark = pytest.mark.slow
 
@@ -106,7 +106,7 @@ def test_missing_web_app_is_a_hard_error(tmp_path):
     """
     port = _free_port()
     env = dict(os.environ, MPLCONFIGDIR=str(tmp_path / "mpl"))
-    code = ("import sys; sys.modules['web.app'] = None; from station.cli import main; "
+    code = ("import sys; sys.modules['web.app'] = None; from cli.main import main; "
             f"sys.exit(main(['demo', '--no-batch', '--serial', '1', '--can', '0', '--port', '{port}', "
             f"'--db', 'sqlite:///{tmp_path / 'demo.db'}']))")
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,

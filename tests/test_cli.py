@@ -5,7 +5,7 @@ import sys
 
 
 def _station(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=120)
 
 
 def test_help_lists_every_command():
@@ -48,7 +48,7 @@ def test_a_validation_batch_says_it_yields_no_calibration_result():
 def test_an_error_with_control_characters_stays_one_line(monkeypatch, capsys):
     """Seen in CI: a corrupted SQLite file's error text carried a \\x1c byte, and str.splitlines()
     (like a terminal or a log reader) broke the one-line error in two."""
-    from station import cli
+    from cli import main as cli
     from contracts.types import StationError
 
     class _Boom:
@@ -75,7 +75,7 @@ class _Parser:
 
 def test_log_commands_share_the_import_and_units_options():
     """Issue 22: an error names the option that converts a log's units; calibrate, sfem and diagnose
-    all have it (station/commands/log_import.py add_import_arguments)."""
+    all have it (cli/commands/log_import.py add_import_arguments)."""
     for cmd in ("calibrate", "sfem", "diagnose"):
         out = _station(cmd, "--help")
         assert out.returncode == 0, cmd

@@ -49,14 +49,14 @@ def _env(**extra: str) -> dict[str, str]:
 
 
 def _station(args: list[str], cwd: Path, env: dict[str, str] | None = None, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], cwd=cwd, env=env or _env(),
+    return subprocess.run([sys.executable, "-m", "cli", *args], cwd=cwd, env=env or _env(),
                           capture_output=True, text=True, timeout=120, **kw)
 
 
 def _cli(args: list[str], cwd: Path, monkeypatch, capsys) -> tuple[int, str]:
     """`station ARGS` in this process (the same main() as the entry point, a second faster than a
     subprocess): its exit code and its one stderr line."""
-    from station.cli import main
+    from cli.main import main
 
     monkeypatch.chdir(cwd)
     capsys.readouterr()
@@ -162,7 +162,7 @@ def test_the_environment_and_the_config_are_named_when_their_database_is_missing
 
 
 def test_only_db_upgrade_creates_and_a_reader_leaves_the_database_file_as_it_was(workdir, monkeypatch, capsys):
-    from station.cli import main
+    from cli.main import main
 
     monkeypatch.delenv("STATION_DB_URL", raising=False)
     monkeypatch.chdir(workdir)
@@ -193,7 +193,7 @@ def test_only_db_upgrade_creates_and_a_reader_leaves_the_database_file_as_it_was
 @pytest.fixture(scope="module")
 def log(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("logs")
-    r = subprocess.run([sys.executable, "-m", "station.cli", "simulate", "--out", str(folder), "--duts", "1",
+    r = subprocess.run([sys.executable, "-m", "cli", "simulate", "--out", str(folder), "--duts", "1",
                         "--seed", "3"], capture_output=True, text=True, timeout=120, env=_env(), cwd=ROOT)
     assert r.returncode == 0, r.stderr
     (path,) = folder.glob("*.csv")
@@ -211,7 +211,7 @@ def _run_into_pipe(args: list[str], read: int, pipe_size: int | None = None, str
         os.close(r_fd)
     kw = {"stdout": w_fd, "stderr": subprocess.PIPE} if stream == "stdout" else \
         {"stdout": subprocess.DEVNULL, "stderr": w_fd}
-    p = subprocess.Popen([sys.executable, "-m", "station.cli", *args], env=env or _env(), cwd=ROOT, **kw)
+    p = subprocess.Popen([sys.executable, "-m", "cli", *args], env=env or _env(), cwd=ROOT, **kw)
     os.close(w_fd)
     got = b""
     if read:
@@ -236,13 +236,13 @@ def test_calibrate_json_into_head_ends_quietly(log, unbuffered):
     # a reader gone before the first byte (`| true`)
     rc, _, err = _run_into_pipe(["calibrate", str(log), "--json"], read=0, env=env)
     assert err == "" and rc == SIGPIPE_EXIT, (rc, err)
-    # the table too, and any other command: it is handled once, in station/cli.py
+    # the table too, and any other command: it is handled once, in cli/main.py
     rc, _, err = _run_into_pipe(["calibrate", str(log)], read=0, env=env)
     assert err == "" and rc == SIGPIPE_EXIT, (rc, err)
 
 
 def test_a_real_shell_pipeline_into_head(log):
-    r = subprocess.run(["bash", "-c", f'"{sys.executable}" -m station.cli calibrate "{log}" --json | head -c 100; '
+    r = subprocess.run(["bash", "-c", f'"{sys.executable}" -m cli calibrate "{log}" --json | head -c 100; '
                         'echo " status=${PIPESTATUS[0]}"'], capture_output=True, text=True, timeout=120,
                        env=_env(), cwd=ROOT)
     body, _, status = r.stdout.rpartition(" status=")
@@ -262,7 +262,7 @@ def test_help_and_an_error_into_a_closed_pipe_end_quietly(tmp_path):
 def test_a_broken_pipe_of_the_station_own_links_is_not_swallowed(monkeypatch):
     """Only a closed stdout/stderr ends quietly: a BrokenPipeError from a socket or pty of the
     station's links is a real error and still raises."""
-    from station import cli
+    from cli import main as cli
 
     class _Link:
         @staticmethod

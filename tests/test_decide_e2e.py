@@ -21,7 +21,7 @@ import pytest
 
 from drivers.sim.physics import draw_population
 from drivers.sim.station_sim import SimStation
-from station.commands.demo import sim_config
+from cli.commands.demo import sim_config
 from station.config import parse_config
 from station.decisions.limits import default_products
 from station.daemon.storage import open_database

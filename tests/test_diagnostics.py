@@ -196,7 +196,7 @@ def test_unknown_effects_file_and_effect_are_clear_errors(tmp_path):
 
 
 def _station(*args, cwd=None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "station.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "cli", *map(str, args)], capture_output=True, text=True,
                           timeout=600, cwd=cwd or ROOT)
 
 
@@ -240,7 +240,7 @@ def test_cli_end_to_end_on_a_simulated_log(tmp_path):
 
 
 def _cli(capsys, *args) -> tuple[int, str, str]:
-    from station.cli import main
+    from cli.main import main
 
     rc = main([str(a) for a in args])
     out = capsys.readouterr()

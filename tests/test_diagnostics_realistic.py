@@ -62,7 +62,7 @@ def test_realistic_noise_wanders_and_white_does_not():
 
 
 def test_simulate_cli_noise_option_recorded_in_truth(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "station.cli", "simulate", "--out", tmp_path, "--duts", "1",
+    out = subprocess.run([sys.executable, "-m", "cli", "simulate", "--out", tmp_path, "--duts", "1",
                           "--noise", "adxl355", "--sensor", "ADXL355", "--quiet"], capture_output=True, text=True,
                          timeout=120, cwd=ROOT)
     assert out.returncode == 0, out.stderr
@@ -70,7 +70,7 @@ def test_simulate_cli_noise_option_recorded_in_truth(tmp_path):
     assert doc["noise"]["name"] == "adxl355" and doc["noise"]["bias_rw_g_per_sqrt_s"] > 0
     head = [ln for ln in (tmp_path / "SIM0001.csv").read_text().splitlines()[:30] if ln.startswith("#")]
     assert "# noise: adxl355" in head
-    bad = subprocess.run([sys.executable, "-m", "station.cli", "simulate", "--out", tmp_path, "--noise", "pink"],
+    bad = subprocess.run([sys.executable, "-m", "cli", "simulate", "--out", tmp_path, "--noise", "pink"],
                          capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert bad.returncode != 0 and "unknown noise model" in bad.stderr and "Traceback" not in bad.stderr
 

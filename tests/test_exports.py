@@ -23,7 +23,7 @@ from contracts.trace import Trace
 from db import Database, DbWriter
 from exports_support import (check_ocptv, check_stdf, db_truth, load_validator, mutate, read_ocptv,
                              read_stdf, rewrite, set_at)
-from station.cli import main
+from cli.main import main
 from station.decisions.limits import Grade, Limit, ProductSpec
 from station.decisions.verdicts import Measurement, decide
 from web.app import create_app

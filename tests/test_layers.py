@@ -1,10 +1,15 @@
 """The house's floors (README "Map"): every import points down or sideways, never up, never round.
 
-    station.cli, station.commands     the command line (starts the daemon, the web, the demo)
-    web                               REST API and operator page
-    station                           the daemon, science, diagnostics, decisions, records, replay
-    drivers | db                      hardware links and simulators | storage (neither imports the other)
-    contracts                         identity, sample blocks, events, log format, recordings
+    6  cli                     the command line (starts the daemon, the web, the demo)
+    5  web                     REST API and operator page
+    4  station                 the daemon, decisions, records, replay
+    3  station.diagnostics     the engineer's model loop
+    2  station.science         calibration science
+    1  drivers | db            hardware links and simulators | storage (neither imports the other)
+    0  contracts               identity, sample blocks, events, log format, recordings
+
+The daemon knows nothing of the web: the web reads the station, the command line starts both, so no
+module under station/ imports web (its own test below names any that does).
 
 Within station, science and diagnostics are pure: they import only the ground floor and each other
 (science below diagnostics), so a live stream, a replay and a CSV give the same answer.
@@ -20,7 +25,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("contracts", "drivers", "db", "station", "web")
+PACKAGES = ("contracts", "drivers", "db", "station", "web", "cli")
 
 # (module prefix, rank): the longest matching prefix gives a module its floor.
 FLOORS: tuple[tuple[str, int], ...] = (
@@ -31,8 +36,7 @@ FLOORS: tuple[tuple[str, int], ...] = (
     ("station.diagnostics", 3),
     ("station", 4),
     ("web", 5),
-    ("station.commands", 6),
-    ("station.cli", 6),
+    ("cli", 6),
 )
 # Same floor, different houses: these may not import each other either.
 SIBLINGS = {frozenset({"drivers", "db"})}
@@ -151,6 +155,22 @@ def test_no_import_circle():
     assert circles(import_graph()) == []
 
 
+def web_imports_of_station(graph: dict[str, set[str]]) -> list[str]:
+    """Every module under station/ that imports a module of web/, with what it imports."""
+    def under(module: str, package: str) -> bool:
+        return module == package or module.startswith(package + ".")
+
+    return sorted(f"{mod} imports {t}" for mod, targets in graph.items() if under(mod, "station")
+                  for t in targets if under(t, "web"))
+
+
+def test_station_never_imports_web():
+    """The daemon runs without the web: the web app reads the station and the command line (cli/)
+    starts both. A lazy import inside a function counts too."""
+    bad = web_imports_of_station(import_graph())
+    assert not bad, "station/ imports web/: " + "; ".join(bad)
+
+
 def test_every_module_has_a_floor():
     assert [m for m in import_graph() if floor_of(m)[1] < 0] == []
 
@@ -173,5 +193,9 @@ def test_the_check_can_fail():
     assert any(b.startswith("drivers.base imports db.models") for b in bad)
     assert any(b.startswith("station.science.sfem imports station.decisions.verdicts") for b in bad)
     assert not any(b.startswith("station.daemon.supervisor") for b in bad)
+    assert web_imports_of_station({"station.daemon.supervisor": {"web.app", "contracts.types"},
+                                   "station.records.spc": set(), "cli.main": {"web.server"},
+                                   "web.server": {"station.daemon.heap"}}) == [
+        "station.daemon.supervisor imports web.app"]
     # the upward arrow above also closes a circle with the supervisor's own import
     assert sorted(circles(graph)) == [["contracts.types", "station.daemon.supervisor"], ["db.repository", "db.writer"]]

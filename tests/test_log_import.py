@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import diag_helpers as H
-from station.commands.log_import import G0_M_S2, import_log, parse_import
+from cli.commands.log_import import G0_M_S2, import_log, parse_import
 from contracts.logfile import write_log
 from contracts.types import StationError
 
@@ -69,9 +69,9 @@ def test_diagnose_cli_on_an_imported_log_matches_the_station_csv(sweep_log, tmp_
     own = tmp_path / "own.csv"
     write_log(own, sweep_log)
     args = ["--candidates", "bias_t2,hysteresis", "--json"]
-    a = subprocess.run([sys.executable, "-m", "station.cli", "diagnose", own, *args], capture_output=True,
+    a = subprocess.run([sys.executable, "-m", "cli", "diagnose", own, *args], capture_output=True,
                        text=True, timeout=300, cwd=ROOT)
-    b = subprocess.run([sys.executable, "-m", "station.cli", "diagnose", ext, *args, "--accel-units", "m/s2",
+    b = subprocess.run([sys.executable, "-m", "cli", "diagnose", ext, *args, "--accel-units", "m/s2",
                         "--time-units", "ms", "--columns", "time=timestamp,temp=temperature"],
                        capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert a.returncode == 0, a.stderr
@@ -85,7 +85,7 @@ def test_diagnose_cli_on_an_imported_log_matches_the_station_csv(sweep_log, tmp_
 # ---- issue 22: an imported log is looked at before any science, like a station log -----------------
 def test_other_units_are_named_with_the_option_that_converts_them(sweep_log, tmp_path, capsys):
     """The TSV above is in m/s2: read as g (no --accel-units) it gave TDB x9.8; now one line, exit 2."""
-    from station import cli
+    from cli import main as cli
 
     p = _tsv(sweep_log, tmp_path / "ext.tsv")
     with pytest.raises(StationError) as err:

@@ -5,7 +5,6 @@ must never step over a result that commits late (result_seq is taken in commit o
 
 from __future__ import annotations
 
-import asyncio
 import json
 import subprocess
 import sys
@@ -24,10 +23,10 @@ from db.models import DutRun
 from db.writer import take_result_seq
 from contracts.events import DutVerdict
 from db_helpers import pg_database, pg_reachable
-from web.app import create_app, make_server
+from web.app import create_app
 from web.auth import TokenStore
 from web.db_repo import DbRepository
-from web_support import bound_socket
+from web_support import serve_in_thread
 
 pytestmark = [pytest.mark.postgres, pytest.mark.skipif(not pg_reachable(), reason="PostgreSQL not reachable")]
 
@@ -37,28 +36,20 @@ CHILD = Path(__file__).resolve().parent / "multi_station_child.py"
 
 class _Api:
     """The web app on a free loopback port, in a thread with its own loop (no daemon needed: the
-    results feed reads the database)."""
+    results feed reads the database), started as the daemon starts its own (web_support)."""
 
     def __init__(self, db: Database) -> None:
         self.app = create_app(SimpleNamespace(config=None, bus=None, db=db), repo=DbRepository(db),
                               tokens=TokenStore([(MES_TOKEN, "mes", "mes-client")]), outbox=False)
-        sock = bound_socket()
-        self.port = sock.getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.server = make_server(self.app, "127.0.0.1", self.port, access_log=False)
-        self.thread = threading.Thread(target=lambda: asyncio.run(self.server.serve(sockets=[sock])), daemon=True)
+        self.url = ""
+        self._stop = None
 
     def __enter__(self) -> "_Api":
-        self.thread.start()
-        t0 = time.monotonic()
-        while not self.server.started:
-            assert time.monotonic() - t0 < 30, "web app did not start"
-            time.sleep(0.02)
+        self.url, self._stop = serve_in_thread(self.app)
         return self
 
     def __exit__(self, *exc) -> None:
-        self.server.should_exit = True
-        self.thread.join(10)
+        self._stop()
 
 
 def test_counter_gives_commit_order_on_postgresql():

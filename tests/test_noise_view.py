@@ -295,7 +295,7 @@ def test_a_missing_effect_is_unmodelled_signal_and_the_plot_renders(realistic):
 
 
 def test_station_diagnose_prints_the_noise_statement_and_puts_it_in_the_json(realistic, tmp_path, capsys):
-    from station.commands import diagnose as cmd
+    from cli.commands import diagnose as cmd
 
     _, _, logs, _ = realistic
     path = tmp_path / "SIM0001.csv"

@@ -23,7 +23,7 @@ import pytest
 
 from db_helpers import pg_database, pg_reachable
 from drivers.sim.station_sim import SimStation
-from station.commands.demo import sim_config
+from cli.commands.demo import sim_config
 from station.config import StationConfig, parse_config
 from station.daemon.ownership import ClaimRefused, StationClaim, station_resources
 from station.daemon.storage import open_database
@@ -240,7 +240,7 @@ def _one_line(err: bytes) -> str:
 
 async def _station(*args: str) -> tuple[int, str, str, float]:
     t0 = time.monotonic()
-    proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "station.cli", *args, cwd=ROOT, env=_env(),
+    proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "cli", *args, cwd=ROOT, env=_env(),
                                                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
     out, err = await asyncio.wait_for(proc.communicate(), 60)
     assert proc.returncode is not None
@@ -266,7 +266,7 @@ async def test_check_during_a_running_batch_is_refused_and_touches_nothing(tmp_p
         toml = tmp_path / "station.toml"
         toml.write_text(_to_toml(data))
         daemon = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "station.cli", "serve", "--config", str(toml), "--no-web",
+            sys.executable, "-m", "cli", "serve", "--config", str(toml), "--no-web",
             "--start-batch", "fast-thermal", "--once", cwd=ROOT, env=_env(),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         try:

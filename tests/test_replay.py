@@ -23,7 +23,7 @@ SERIALS_OF_DEMO = [f"SIM{i:04d}" for i in range(1, 13)]
 
 
 def _station(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

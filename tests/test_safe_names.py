@@ -112,7 +112,7 @@ def _tree(root: Path) -> set[str]:
 
 
 def _station(*args, cwd) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "station.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "cli", *map(str, args)], capture_output=True, text=True,
                           timeout=600, cwd=cwd)
 
 
@@ -171,7 +171,7 @@ def test_diagnose_save_model_of_one_hostile_log_into_a_folder(sim_log, tmp_path)
 def test_a_serial_with_a_newline_or_nul_from_memory_stays_inside(tmp_path):
     """A DutLog built in memory (another tool, the database) can carry any character."""
     import diag_helpers as H
-    from station.commands.diagnose import _save_models
+    from cli.commands.diagnose import _save_models
     from station.diagnostics.plots import write_plots
     from station.diagnostics.ranking import diagnose
 

@@ -39,11 +39,11 @@ def test_six_positions_heldout_halves_beside_in_sample():
 
 
 def test_sfem_cli_json_and_text_show_heldout(tmp_path):
-    sim = subprocess.run([sys.executable, "-m", "station.cli", "simulate", "--out", tmp_path, "--duts", "1",
+    sim = subprocess.run([sys.executable, "-m", "cli", "simulate", "--out", tmp_path, "--duts", "1",
                           "--profile", "sfem-24", "--noise", "white", "--quiet"], capture_output=True, text=True,
                          timeout=120, cwd=ROOT)
     assert sim.returncode == 0, sim.stderr
-    out = subprocess.run([sys.executable, "-m", "station.cli", "sfem", tmp_path / "SIM0001.csv", "--json"],
+    out = subprocess.run([sys.executable, "-m", "cli", "sfem", tmp_path / "SIM0001.csv", "--json"],
                          capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     doc = json.loads(out.stdout)

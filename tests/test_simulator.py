@@ -268,7 +268,7 @@ def test_validation_profile_cycles_have_their_own_position_and_ramp_rate(validat
 
 
 def _station(*args):
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=120)
 
 
 def test_cli_writes_logs_and_truth(tmp_path):
@@ -299,7 +299,7 @@ def test_cli_writes_logs_and_truth(tmp_path):
     ],
 )
 def test_cli_rejects_bad_input_in_one_line(tmp_path, capsys, args, word):
-    from station.cli import main
+    from cli.main import main
 
     assert main(["simulate", "--out", str(tmp_path / "o"), *args]) == 2
     err = capsys.readouterr().err

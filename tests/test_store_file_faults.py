@@ -62,7 +62,7 @@ class Rig:
         self.daemon: subprocess.Popen | None = None
 
     def serve(self, *extra: str) -> subprocess.Popen:
-        self.daemon = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--config", str(self.toml),
+        self.daemon = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--config", str(self.toml),
                                         "--port", str(self.port), *extra], stdout=subprocess.PIPE,
                                        stderr=subprocess.PIPE, text=True, env=self.env, cwd=ROOT)
         deadline = time.monotonic() + 60
@@ -206,7 +206,7 @@ def test_the_database_file_deleted_or_replaced_mid_batch_alarms_loses_nothing_an
     assert len(rescued) == 1, list(rig.tmp.iterdir())
     assert rig.db_path.exists() == (fault == "replaced")
 
-    out = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--config", str(rig.toml), "--no-web"],
+    out = subprocess.run([sys.executable, "-m", "cli", "serve", "--config", str(rig.toml), "--no-web"],
                          capture_output=True, text=True, env=rig.env, cwd=ROOT, timeout=60)
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert out.returncode != 0 and len(lines) == 1, out.stderr

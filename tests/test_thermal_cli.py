@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from station import cli
+from cli import main as cli
 from contracts.logfile import DutLog, write_log
 from station.science.thermal_calibration import calibrate
 from thermal_synth import fast_thermal
@@ -96,7 +96,7 @@ def test_user_mistakes_are_one_line(tmp_path, capsys):
 def test_subprocess_exit_code_and_no_traceback(tmp_path):
     short = fast_thermal(seed=1, phases_min=(25.0, 30.0, 0.5, 0.5), **TRUTH)
     p = _log(tmp_path / "short.csv", short)
-    out = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", str(p), "--json"],
+    out = subprocess.run([sys.executable, "-m", "cli", "calibrate", str(p), "--json"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "Traceback" not in out.stderr and out.stdout == ""
     assert len(out.stderr.strip().splitlines()) == 1

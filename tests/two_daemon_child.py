@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from drivers.sim.physics import draw_population  # noqa: E402
 from drivers.sim.station_sim import SimStation  # noqa: E402
-from station.commands.demo import sim_config  # noqa: E402
+from cli.commands.demo import sim_config  # noqa: E402
 from station.config import parse_config  # noqa: E402
 from station.daemon.storage import open_database  # noqa: E402
 from station.daemon.supervisor import Station

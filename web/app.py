@@ -1,7 +1,8 @@
 """The station's web app: REST API (design 5.3), server-sent events, operator page, MES outbox.
 
 `create_app(station)` builds the FastAPI app around the daemon's `Station` facade; the daemon runs
-it with uvicorn in its own event loop (`make_server`), so routes call the facade directly.
+it with uvicorn in its own event loop (web/server.py `serve_web`, also what the tests start), so
+routes call the facade directly.
 """
 
 from __future__ import annotations
@@ -182,10 +183,10 @@ def create_app(
 
     for module in (station_routes, batches, duts, runs, results, events):
         app.include_router(module.router)
-    app.include_router(diagnostics_routes.router)  # model diagnostics of stored runs (issue 6)
-    app.include_router(records_routes.router)  # audit trail, yield and SPC (issue 13)
-    app.include_router(exports_routes.router)  # STDF and OCPTV exports for yield tools
-    results.register_webhooks(app)  # the MES webhook payload in the OpenAPI (issue 12)
+    app.include_router(diagnostics_routes.router)  # model diagnostics of stored runs (design 7)
+    app.include_router(records_routes.router)  # audit trail, yield and SPC (docs/records.md)
+    app.include_router(exports_routes.build_router())  # every registered export format (STDF, OCPTV, ...)
+    results.register_webhooks(app)  # the MES webhook payload in the OpenAPI, so an MES integrator reads it there
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
@@ -227,23 +228,3 @@ def _jsonable_errors(exc: RequestValidationError) -> list[dict]:
         out.append({"loc": [str(x) for x in err.get("loc", ())], "msg": str(err.get("msg", "")), "type": str(err.get("type", ""))})
     return out
 
-
-def make_server(app: FastAPI, host: str = "127.0.0.1", port: int = 8080, access_log: bool = True):
-    """A uvicorn.Server for the daemon's own event loop: `await make_server(app).serve()`.
-
-    Short graceful-shutdown timeout because open SSE streams never end by themselves; the access
-    log goes through the token-redacting filter.
-    """
-    import uvicorn
-
-    install_log_redaction()
-    config = uvicorn.Config(
-        app,
-        host=host,
-        port=port,
-        log_level="info",
-        access_log=access_log,
-        timeout_graceful_shutdown=2,
-        lifespan="on",
-    )
-    return uvicorn.Server(config)

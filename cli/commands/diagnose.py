@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated effects to rank (default: every registered effect)")
     parser.add_argument("--basis", choices=("window", "sample"), default="window",
                         help="RMS of 1-minute residual means (default) or of every sample")
-    from station.commands.log_import import add_import_arguments
+    from cli.commands.log_import import add_import_arguments
 
     add_import_arguments(parser)
     parser.add_argument("--save-model", metavar="PATH",
@@ -192,8 +192,8 @@ def run(args: argparse.Namespace) -> int:
 def _read(path: str, args: argparse.Namespace):
     """A station log (design 5.1), or with any import option a delimited log from another tool;
     a log without the station's columns is imported with the column names recognised. Both are
-    checked before any science (station.commands.log_import.read_any_log)."""
-    from station.commands.log_import import read_any_log
+    checked before any science (cli.commands.log_import.read_any_log)."""
+    from cli.commands.log_import import read_any_log
 
     return read_any_log(path, args)
 

@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 
-from station.commands.log_import import add_import_arguments, read_any_log
+from cli.commands.log_import import add_import_arguments, read_any_log
 from station.science.thermal_calibration import calibrate
 from contracts.types import AXES
 

@@ -26,7 +26,7 @@ import sys
 import numpy as np
 
 from contracts.json_safe import plain_json
-from station.commands.log_import import add_import_arguments, read_any_log
+from cli.commands.log_import import add_import_arguments, read_any_log
 from contracts.types import T_REF_C
 from station.science.sfem import DEFAULT_REF_SIGMA_DEG
 from station.science.sfem_model import MISALIGNMENT_NOTE, SfemFit

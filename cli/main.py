@@ -1,6 +1,6 @@
 """`station` command line (design 5.2).
 
-Each subcommand lives in its own module under station/commands/ with two functions:
+Each subcommand lives in its own module under cli/commands/ with two functions:
 `add_arguments(parser)` and `run(args) -> int`. A user's mistake raises StationError and becomes
 one line on stderr with exit code 2; no traceback. A reader that closes the pipe early (`| head`)
 ends any command quietly with exit code 141 (128 + SIGPIPE), handled here once for all commands.
@@ -41,9 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
     for name, help_text in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         try:
-            module = importlib.import_module(f"station.commands.{name.replace('-', '_')}")
+            module = importlib.import_module(f"cli.commands.{name.replace('-', '_')}")
         except ModuleNotFoundError as exc:
-            if exc.name and exc.name.startswith("station.commands"):
+            if exc.name and exc.name.startswith("cli.commands"):
                 p.set_defaults(_module=None, _command=name)
                 continue
             raise

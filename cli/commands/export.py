@@ -1,11 +1,11 @@
-"""`station export {stdf,ocptv} (--batch ID | --run ID) [--db PATH|URL] [--config FILE] --out FILE`:
-a stored batch (every DUT run) or one run, with every verdict and every judged measurement, as
-STDF V4 or OCP Test & Validation JSON lines for a factory's yield and traceability tools
-(docs/exports.md).
+"""`station export FORMAT (--batch ID | --run ID) [--db PATH|URL] [--config FILE] --out FILE`:
+a stored batch (every DUT run) or one run, with every verdict and every judged measurement, in a
+registered export format (station/records/export_formats.py: `stdf` STDF V4, `ocptv` OCP Test &
+Validation JSON lines, ...) for a factory's yield and traceability tools (docs/exports.md).
 
 --db takes a SQLite file path or any SQLAlchemy URL; without it the URL comes from --config
 (`database_url`), $STATION_DB_URL or the station default, as for `station db`; the database must
-exist (it is opened read-only, never created or migrated: station/commands/db_source.py). A batch
+exist (it is opened read-only, never created or migrated: cli/commands/db_source.py). A batch
 still running is refused (its verdicts are not final), as is an unknown id.
 """
 
@@ -15,13 +15,13 @@ import argparse
 from pathlib import Path
 
 from contracts.types import StationError
-
-FORMATS = ("stdf", "ocptv")
+from station.records.export_formats import export_format, export_formats
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("format", choices=FORMATS, help="stdf: STDF V4 (binary); ocptv: OCP Test & Validation "
-                        "JSON lines (one testRun per DUT run)")
+    formats = export_formats()  # as registered when the parser is built
+    parser.add_argument("format", choices=tuple(formats),
+                        help="; ".join(f"{f.name}: {f.help or f.title}" for f in formats.values()))
     which = parser.add_mutually_exclusive_group(required=True)
     which.add_argument("--batch", type=int, metavar="ID", help="every DUT run of this batch")
     which.add_argument("--run", type=int, metavar="ID", help="this DUT run only")
@@ -32,11 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from station.commands.db_source import choose_from_args, open_existing
+    from cli.commands.db_source import choose_from_args, open_existing
     from station.records.export_model import ExportNotFound, ExportNotReady, load_report
-    from station.records.export_ocptv import write_ocptv
-    from station.records.export_stdf import write_stdf
 
+    fmt = export_format(args.format)
     for ident in (args.batch, args.run):
         if ident is not None and ident < 1:
             raise StationError(f"an id is a positive number, not {ident}")
@@ -48,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
             raise StationError(str(exc).strip("'\"")) from None
     finally:
         db.dispose()
-    data = write_stdf(report) if args.format == "stdf" else write_ocptv(report)
+    data = fmt.write(report)
     out = Path(args.out)
     try:
         out.write_bytes(data)
@@ -57,6 +56,6 @@ def run(args: argparse.Namespace) -> int:
     counts = {v: sum(1 for p in report.parts if p.verdict == v) for v in ("pass", "marginal", "fail", "error")}
     what = f"batch {report.batch_id}" if args.batch is not None else f"run {args.run} of batch {report.batch_id}"
     n_tests = sum(len(p.tests) for p in report.parts)
-    print(f"{out}: {'STDF V4' if args.format == 'stdf' else 'OCPTV JSON'} of {what}: {len(report.parts)} parts ("
+    print(f"{out}: {fmt.title} of {what}: {len(report.parts)} parts ("
           + ", ".join(f"{n} {v}" for v, n in counts.items() if n) + f"), {n_tests} measurements, {len(data)} bytes")
     return 0

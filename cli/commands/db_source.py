@@ -1,4 +1,4 @@
-"""Which database a command reads, and opening it without ever creating it (issue 34).
+"""Which database a command reads, and opening it without ever creating it: a typo in a path must never make an empty database look like a real one.
 
 A command that reads a database (certificate, export, db check|export|prune, replay's source)
 opens an existing one only. The URL comes from the command's own option (`--db`, `--url`,

@@ -4,7 +4,7 @@ The database URL comes from --url (a URL or a SQLite file path), else $STATION_D
 `database_url` of --config FILE (station TOML), else the station's default sqlite:///var/station.db.
 Only `upgrade` creates a database (that is its job); check, export and prune open an existing one
 (check and export read-only) and name where they looked when there is none
-(station/commands/db_source.py).
+(cli/commands/db_source.py).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 
 from contracts.types import StationError
-from station.commands.db_source import choose_from_args, open_existing, plain_url
+from cli.commands.db_source import choose_from_args, open_existing, plain_url
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -4,7 +4,7 @@ firmware, profile and limits version, coefficients with their expanded uncertain
 the verdict, program and verify, the ISO/IEC 17025 statements, and the fit plot.
 
 --db takes a SQLite file path or any SQLAlchemy URL; without it, the URL comes from $STATION_DB_URL
-or the station default, as for `station db` (station/commands/db_source.py). The database is only
+or the station default, as for `station db` (cli/commands/db_source.py). The database is only
 read: opened read-only, never created (a missing file is one line and exit 2), never migrated.
 The issuer (`[certificate]`) is the one stored with the run's batch; --config prints that config's
 `[certificate]` instead (e.g. for runs stored before the section was configured).
@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from station.commands.db_source import choose, open_existing, plain_url
+    from cli.commands.db_source import choose, open_existing, plain_url
     from station.records.certificate import certificate_for
     from station.records.certificate_pdf import render_pdf
 

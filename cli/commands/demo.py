@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import logging
 import sys
 import time
 from pathlib import Path
 
-from contracts.types import AXES, StationError
+from cli.report import results_table
+from cli.runtime import install_stop_signals, setup_logging
+from contracts.types import StationError
+from web.server import serve_web, stop_web
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -97,197 +99,6 @@ def truth_by_slot(sim) -> dict[str, object]:
     return out
 
 
-def results_table(status: dict, truths: dict | None = None) -> tuple[str, dict]:
-    """Text table of a batch's per-DUT results (and errors vs truth); also the numbers as a dict."""
-    lines = []
-    head = f"{'slot':5} {'serial':14} {'state':9} " + " ".join(f"TDB{a}" .rjust(8) for a in AXES) + " " + \
-        " ".join(f"TDSF{a}".rjust(8) for a in AXES)
-    if truths:
-        head += "  max|dTDB| max|dTDSF|"
-    lines.append(head)
-    summary: dict = {"batch": status["id"], "state": status["state"], "error": status["error"], "duts": {}}
-    for s in status["slots"]:
-        res = s.get("result") or {}
-        axes = res.get("axes") or {}
-        row = f"{s['slot']:5} {str(s['serial'] or '-'):14} {s['state']:9} "
-        entry: dict = {"serial": s["serial"], "state": s["state"], "fault_reason": s["fault_reason"]}
-        if axes:
-            tdb = [axes[a]["tdb_mg_per_c"] for a in AXES]
-            tdsf = [axes[a]["tdsf_ppm_per_c"] for a in AXES]
-            row += " ".join(f"{v:8.4f}" for v in tdb) + " " + " ".join(f"{v:8.1f}" for v in tdsf)
-            entry.update(tdb_mg_per_c=tdb, tdsf_ppm_per_c=tdsf)
-            t = truths.get(s["slot"]) if truths else None
-            if t is not None:
-                e_tdb = max(abs(a - b) for a, b in zip(tdb, list(t.tdb_mg_per_c)))
-                e_tdsf = max(abs(a - b) for a, b in zip(tdsf, list(t.tdsf_ppm_per_c)))
-                row += f"  {e_tdb:9.4f} {e_tdsf:9.1f}"
-                entry.update(err_tdb_mg_per_c=e_tdb, err_tdsf_ppm_per_c=e_tdsf,
-                             true_tdb_mg_per_c=[float(x) for x in t.tdb_mg_per_c],
-                             true_tdsf_ppm_per_c=[float(x) for x in t.tdsf_ppm_per_c])
-        elif res.get("steps"):  # SFEM (sfem-24, contracts/sfem_result.py): the residual before -> after per step
-            temps = res["steps"]
-            row += "SFEM " + "  ".join(
-                f"{t['temp_c']:.0f} C: {t['rmse_before_mg']:.1f} -> {t['rmse_after_mg']:.2f} mg" for t in temps)
-            entry["sfem"] = [{"temp_c": t["temp_c"], "rmse_before_mg": t["rmse_before_mg"],
-                              "rmse_after_mg": t["rmse_after_mg"], "rmse_heldout_mg": t.get("rmse_heldout_mg")}
-                             for t in temps]
-        elif s["fault_reason"]:
-            row += s["fault_reason"]
-        v = s.get("decision")
-        if v:  # the station's decision (station/decisions/verdicts.py)
-            row += f"  {v['verdict'].upper()} {v.get('grade') or ''} ({v.get('reason') or ''})"
-            entry.update(verdict=v["verdict"], grade=v.get("grade"), tray=v.get("tray"), reason=v.get("reason"),
-                         attempt=v.get("attempt"))
-        lines.append(row)
-        pv = program_verify_summary(s.get("program"), s.get("verification"))
-        if pv is not None:
-            entry["program_verify"] = pv
-            lines.append(" " * 6 + program_verify_line(pv))
-        summary["duts"][s["slot"]] = entry
-    return "\n".join(lines), summary
-
-
-def program_verify_summary(program: dict | None, verification: dict | None) -> dict | None:
-    """Program and verify of one DUT as the demo reports it (None: the profile has no program step)."""
-    if not program:
-        return None
-    ver = verification or {}
-    return {
-        "programmed": bool(program.get("programmed")),
-        "crc": program.get("crc"),
-        "readback_crc": program.get("readback_crc"),
-        "crc_match": bool(program.get("readback_identical")),
-        "comp_on": bool(program.get("comp")),
-        "attempts": program.get("attempts"),
-        "error_kind": program.get("error_kind"),
-        "error": program.get("error"),
-        "written_tdb_mg_per_c": program.get("tdb_mg_per_c"),
-        "written_tdsf_ppm_per_c": program.get("tdsf_ppm_per_c"),
-        "verified": ver.get("passed") if verification else None,
-        "e_before_mg": ver.get("e_before_mg"),
-        "e_after_mg": ver.get("e_after_mg"),
-        "flags": list(ver.get("flags") or []),
-    }
-
-
-def program_verify_line(pv: dict) -> str:
-    """One table line: what was written and proven, and the verified drift error per axis."""
-    if not pv["programmed"]:
-        return f"program: NOT programmed ({pv.get('error_kind') or '-'}: {pv.get('error') or '-'})"
-    text = (f"program: CRC {pv['crc']} {'= read back' if pv['crc_match'] else '!= read back ' + str(pv['readback_crc'])}"
-            f", compensation {'on' if pv['comp_on'] else 'OFF'}, {pv['attempts']} attempt(s)")
-    after, before = pv.get("e_after_mg") or {}, pv.get("e_before_mg") or {}
-    if pv["verified"] is None:
-        return text + "; not verified"
-    per_axis = " ".join(f"{a} {_mg(after.get(a))} (was {_mg(before.get(a))})" for a in AXES)
-    return text + f"; verified E after [mg]: {per_axis}: {'PASS' if pv['verified'] else 'FAIL'}"
-
-
-def _mg(v) -> str:
-    return "-" if v is None else f"{float(v):.2f}"
-
-
-async def serve_web(station, host: str, port: int, *, header_timeout_s: float | None = None,
-                    keep_alive_s: float | None = None, max_connections: int | None = None):
-    """The web app in this event loop (same loop as the daemon: the facade is not thread-safe).
-
-    A web app that cannot be imported is a hard error (one line, non-zero exit), never a warning:
-    a daemon without its page looks alive to an operator who cannot reach it.
-    header_timeout_s / keep_alive_s / max_connections: default from the station's config [http].
-    """
-    try:
-        from web.app import create_app
-    except ImportError as exc:
-        raise StationError(f"the operator page cannot be served: {exc} "
-                           "(the installation is incomplete: run `pip install .` or ./scripts/setup.sh)") from exc
-    import contextlib
-
-    import uvicorn
-
-    class _Server(uvicorn.Server):
-        @contextlib.contextmanager
-        def capture_signals(self):  # the daemon owns SIGINT/SIGTERM (lamp off first)
-            yield
-
-    from web.http_guard import ACCEPT_BATCH, HttpGuard, install_accept_error_filter
-
-    http_cfg = getattr(getattr(station, "config", None), "http", None)
-    header_timeout_s = getattr(http_cfg, "header_timeout_s", 10.0) if header_timeout_s is None else header_timeout_s
-    keep_alive_s = getattr(http_cfg, "keep_alive_s", 5) if keep_alive_s is None else keep_alive_s
-    max_connections = getattr(http_cfg, "max_connections", 512) if max_connections is None else max_connections
-    install_accept_error_filter()  # a full file table: one line per 10 s, not a traceback per accept()
-    sock = _listen_socket(host, port)  # our own bind: a taken port is one clear line, not uvicorn's exit(3)
-    app = create_app(station)
-    guard = HttpGuard(header_timeout_s=header_timeout_s, max_connections=max_connections, accept_batch=ACCEPT_BATCH)
-    # Slow clients (issue 37, web/http_guard.py): a request head within header_timeout_s, idle
-    # keep-alive closed after keep_alive_s, at most max_connections open (the oldest waiting for a
-    # head is evicted), and at most ACCEPT_BATCH sockets accepted per loop tick (the listen backlog).
-    config = uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on",
-                            http=guard.protocol_class(), timeout_keep_alive=keep_alive_s, backlog=ACCEPT_BATCH)
-    server = _Server(config)
-    task = asyncio.get_running_loop().create_task(server.serve(sockets=[sock]), name="http")
-    for _ in range(200):
-        if server.started or task.done():
-            break
-        await asyncio.sleep(0.02)
-    if task.done():
-        exc = task.exception() if not task.cancelled() else None
-        raise StationError(f"cannot serve HTTP on {host}:{port}: {exc or 'server exited'}")
-    from station.daemon.heap import freeze_startup_heap
-
-    freeze_startup_heap()  # full GC passes walk only what runs make, not the imports (150-200 ms each)
-    server.http_guard = guard  # its counters, for tests and diagnostics
-    return server, task
-
-
-def _listen_socket(host: str, port: int):
-    import socket
-
-    try:
-        family, kind, proto, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
-        sock = socket.socket(family, kind, proto)
-    except (OSError, UnicodeError) as exc:
-        raise StationError(f"cannot serve HTTP on {host}:{port}: {exc}") from None
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(addr)
-        sock.listen(128)
-    except OSError as exc:
-        sock.close()
-        raise StationError(f"cannot serve HTTP on {host}:{port}: {exc.strerror or exc} (is another station "
-                           "or program using this port? choose another with --port)") from None
-    sock.setblocking(False)
-    return sock
-
-
-async def stop_web(server, task) -> None:
-    if server is None:
-        return
-    server.should_exit = True
-    try:
-        await asyncio.wait_for(task, 5.0)
-    except (asyncio.TimeoutError, Exception):
-        task.cancel()
-
-
-def install_stop_signals(stop: asyncio.Event) -> None:
-    import signal
-
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            loop.add_signal_handler(sig, stop.set)
-        except (NotImplementedError, RuntimeError):
-            pass
-
-
-def setup_logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    if not verbose:  # errors reach the user as one StationError line, not library chatter
-        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-
-
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
     if args.serial < 0 or args.can < 0 or args.serial + args.can == 0:
@@ -308,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
 async def _main(args: argparse.Namespace) -> int:
     from drivers.sim.station_sim import SimStation
     from station.config import parse_config
+    from station.daemon.heap import freeze_startup_heap
     from station.daemon.storage import open_database
     from station.daemon.supervisor import Station
 
@@ -352,6 +164,7 @@ async def _main(args: argparse.Namespace) -> int:
                 print(f"station demo: slot {s['slot']}: {s['fault_reason']}", file=sys.stderr)
             if not args.once and not args.no_web:
                 server, task = await serve_web(station, args.host, args.port)
+                freeze_startup_heap()  # full GC passes walk only what runs make, not the imports (150-200 ms each)
                 if server is not None:
                     print(f"station demo: operator page on http://{args.host}:{args.port}/ "
                           f"({args.serial} serial + {args.can} CAN boards, speed x{args.speed:g}, db {db_url})",

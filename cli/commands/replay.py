@@ -64,7 +64,7 @@ def load_recording(args: argparse.Namespace):
     if (args.batch is None) == (args.logs is None):
         raise StationError("give exactly one source: --batch ID or --logs CSV...")
     if args.batch is not None:
-        from station.commands.db_source import choose, require_existing
+        from cli.commands.db_source import choose, require_existing
 
         flag, given = ("--source-db", args.source_db) if args.source_db else ("--db", args.db)
         if not given:
@@ -132,13 +132,13 @@ def _v(x) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from station.commands.demo import setup_logging
+    from cli.runtime import setup_logging
     from station.replay.runner import ReplayOptions, run_replay
 
     setup_logging(args.verbose)
     if args.speed <= 0:
         raise StationError("--speed must be > 0")
-    from station.commands.db_source import to_url
+    from cli.commands.db_source import to_url
 
     recording = load_recording(args)
     # a SQLite file path is taken as well as a URL; the replay's own --db (beside --source-db) is
