@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from contracts.json_safe import JsonDict
+from contracts.run_records import ProgramRecord, ThermalReport
+from contracts.sfem_result import SfemResult
 from contracts.types import SampleBlock, Segment
 
 if TYPE_CHECKING:
@@ -110,13 +112,14 @@ class SegmentLogged(Event):
 
 @dataclass(frozen=True)
 class DutResult(Event):
-    """Results of one DUT run's analysis: thermal (streaming and offline) and/or SFEM, as JSON dicts.
+    """Results of one DUT run's analysis: thermal (streaming and offline) and/or SFEM, typed
+    (contracts/run_records.py, contracts/sfem_result.py); their JSON is made at the edges.
     No verdict: the run is judged once, at its end (DutVerdict)."""
 
     slot: str
     serial: str
-    thermal: JsonDict | None = None
-    sfem: JsonDict | None = None
+    thermal: ThermalReport | None = None
+    sfem: SfemResult | None = None
 
 
 @dataclass(frozen=True)
@@ -133,11 +136,11 @@ class DutVerdict(Event):
 @dataclass(frozen=True)
 class DutProgrammed(Event):
     """Program and verify, part 1: the coefficients written to a DUT, read back and compensation
-    switched on (program["programmed"]), or why not (program["error_kind"], program["error"])."""
+    switched on (program.programmed), or why not (program.error_kind, program.error)."""
 
     slot: str
     serial: str
-    program: JsonDict
+    program: ProgramRecord
 
 
 @dataclass(frozen=True)

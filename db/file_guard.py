@@ -1,4 +1,4 @@
-"""Guards for the station's SQLite file (issue 37): noticing that it was deleted, replaced or moved
+"""Guards for the station's SQLite file: noticing that it was deleted, replaced or moved
 while the daemon uses it, saving what the still-open file holds, and refusing to start silently on
 a new empty database after the old one was lost.
 

@@ -39,6 +39,8 @@ import numpy as np
 
 from contracts import events as ev_mod
 from contracts.events import Event
+from contracts.run_records import ProgramRecord, ThermalReport
+from contracts.sfem_result import SfemResult
 from contracts.types import SampleBlock, Segment
 
 log = logging.getLogger(__name__)
@@ -48,9 +50,14 @@ _EVENT_TYPES: dict[str, type] = {
     if isinstance(cls, type) and issubclass(cls, Event) and cls is not Event
 }
 _NESTED: dict[str, type] = {"SampleBlock": SampleBlock, "Segment": Segment}
+# typed run records travel as their own JSON (their one codec, contracts/run_records.py)
+_RECORDS: dict[str, type[ThermalReport] | type[SfemResult] | type[ProgramRecord]] = {
+    "ThermalReport": ThermalReport, "SfemResult": SfemResult, "ProgramRecord": ProgramRecord}
 
 
 def _encode(value: Any) -> Any:
+    if isinstance(value, (ThermalReport, SfemResult, ProgramRecord)):
+        return {"__record__": type(value).__name__, "json": _encode(value.to_json())}
     if isinstance(value, np.ndarray):
         arr = np.ascontiguousarray(value, dtype=np.float64)
         return {"__nd__": base64.b64encode(arr.tobytes()).decode("ascii"), "shape": list(arr.shape)}
@@ -78,6 +85,11 @@ def _decode(value: Any) -> Any:
         return np.frombuffer(base64.b64decode(value["__nd__"]), dtype=np.float64).reshape(value["shape"]).copy()
     if "__tuple__" in value:
         return tuple(_decode(v) for v in value["__tuple__"])
+    if "__record__" in value:
+        record = _RECORDS.get(value["__record__"])
+        if record is None:
+            raise ValueError(f"journal: unknown record {value['__record__']!r}")
+        return record.from_json(_decode(value["json"]))
     kind = value.get("__type__")
     if kind is not None:
         cls = _EVENT_TYPES.get(kind) or _NESTED.get(kind)

@@ -139,7 +139,7 @@ class Batch(Base):
     # Its runs get no result_seq (never sent to the MES) and are no attempts, yields or SPC points.
     replay_of: Mapped[str | None] = mapped_column(String(256), index=True)
     replay_diff: Mapped[dict[str, Any] | None] = mapped_column(JSON)
-    # traceability (issue 24): what the batch was started for; '' when not given
+    # traceability: what the batch was started for; '' when not given
     work_order: Mapped[str] = mapped_column(String(64), default="", server_default="", index=True)
     part_number: Mapped[str] = mapped_column(String(64), default="", server_default="", index=True)
     part_revision: Mapped[str] = mapped_column(String(32), default="", server_default="")
@@ -350,7 +350,7 @@ class AuditRow(Base):
 
 class WriterCommit(Base):
     """One row per writer transaction (migration 0010): a commit whose answer was lost is found by
-    its token before its events are stored again (db/writer.py)."""
+    its token before its events are stored again (db/writer_outage.py)."""
 
     __tablename__ = "writer_commit"
 

@@ -95,7 +95,10 @@ def segment(index: int, t_start_s: float = 0.0, position: int | None = 0) -> Seg
 
 THERMAL_JSON = {
     "serial": "SIM0001",
-    "axes": {"x": {"tdb_mg_per_c": 0.42, "tdsf_ppm_per_c": -120.0}},
+    "axes_method": "offline",  # the reported axes are the offline fit's, as `station calibrate --json` gives them
+    "axes": {"x": {"tdb_mg_per_c": 0.42, "tdsf_ppm_per_c": -120.0, "tdb_sigma_mg_per_c": 0.01, "tdsf_sigma_ppm_per_c": 3.0},
+             "y": {"tdb_mg_per_c": -0.79, "tdsf_ppm_per_c": -10.0, "tdb_sigma_mg_per_c": 0.01, "tdsf_sigma_ppm_per_c": 3.0},
+             "z": {"tdb_mg_per_c": 1.09, "tdsf_ppm_per_c": -299.0, "tdb_sigma_mg_per_c": 0.02, "tdsf_sigma_ppm_per_c": 4.0}},
     "streaming": {
         "method": "streaming",
         "n_segments": 4,

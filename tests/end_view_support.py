@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from contracts.events import DutResult, DutVerdict, SegmentLogged, SlotStateChanged
+from contracts.run_records import ThermalReport
 from contracts.trace import Trace, label_mismatch
 from db import Database, DbWriter
 from db.models import DutRun
@@ -91,7 +92,7 @@ def write_ended_batch(db: Database, slots: list[Slot], *, trace: Trace = TRACE, 
                     w.submit(SegmentLogged(batch, s.slot, serial, 0, sg))
                 stored = {"offline": {"method": "offline", "n_segments": 8, "axes": result["axes"]},
                           "streaming": {"method": "streaming", "n_segments": 8, "axes": result["axes"]}}
-                w.submit(DutResult(batch, s.slot, serial, thermal=stored))
+                w.submit(DutResult(batch, s.slot, serial, thermal=ThermalReport.from_json(stored)))
             w.submit(SlotStateChanged(batch, s.slot, serial, end_state, fault_reason=why))
             # the verdict's reason as the daemon gives it (station/decisions/moment.py end_of): "faulted: <why>"
             end_reason = f"faulted: {why}" if end_state == "faulted" else why

@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from db import Database, DbWriter  # noqa: E402
 from db_helpers import THERMAL_JSON  # noqa: E402
 from contracts.events import DutResult, DutVerdict, SlotStateChanged  # noqa: E402
+from contracts.run_records import ThermalReport
 
 
 def main() -> None:
@@ -38,7 +39,7 @@ def main() -> None:
     for batch, slot, serial in runs:
         verdict = {"verdict": rng.choice(["pass", "pass", "marginal", "fail"]), "grade": "A", "tray": "T1",
                    "attempt": 1, "limits_name": "LIS3DSH", "limits_version": "1"}
-        writer.submit(DutResult(batch, slot, serial, thermal=THERMAL_JSON))  # data: no MES record
+        writer.submit(DutResult(batch, slot, serial, thermal=ThermalReport.from_json(THERMAL_JSON)))  # data: no MES record
         writer.submit(SlotStateChanged(batch, slot, serial, "done"))
         writer.submit(DutVerdict(batch, slot, serial, verdict=verdict))  # the final verdict: the MES record
         time.sleep(rng.uniform(0.005, 0.04))

@@ -151,6 +151,7 @@ def store_records(db) -> dict:
     its comparison (station/replay/compare.py)."""
     from db.writer import DbWriter
     from contracts.events import DutProgrammed, DutVerified
+    from contracts.run_records import ProgramRecord
     from records_support import write_batches
 
     truth = seed_results(db, 3, serial_prefix="TRU", seed=11)
@@ -159,15 +160,15 @@ def store_records(db) -> dict:
     try:
         for tt in (t, t2):
             w.bind_run(tt["batch_id"], tt["slot"], tt["run_id"])
-        w.submit(DutProgrammed(t["batch_id"], slot=t["slot"], serial=ok, program={
+        w.submit(DutProgrammed(t["batch_id"], slot=t["slot"], serial=ok, program=ProgramRecord.from_json({
             "programmed": True, "crc": "1A2B3C4D", "readback_crc": "1A2B3C4D", "comp": True, "attempts": 2,
             "tdb_mg_per_c": [0.1, 0.2, 0.3], "tdsf_ppm_per_c": [-100.0, -110.0, -120.0],
-            "retries": ["attempt 1: crc_mismatch: read back 1A2B3C4E"]}))
+            "retries": ["attempt 1: crc_mismatch: read back 1A2B3C4E"]})))
         w.submit(DutVerified(t["batch_id"], slot=t["slot"], serial=ok, verification={
             "passed": True, "flags": [], "e_before_mg": {"x": 40.0, "y": 12.5, "z": 70.0},
             "e_after_mg": {"x": 0.8, "y": 1.1, "z": 2.4}}))
-        w.submit(DutProgrammed(t2["batch_id"], slot=t2["slot"], serial=refused, program={
-            "programmed": False, "error_kind": "refused", "error": "CALW refused after 3 attempts", "comp": False}))
+        w.submit(DutProgrammed(t2["batch_id"], slot=t2["slot"], serial=refused, program=ProgramRecord.from_json({
+            "programmed": False, "error_kind": "refused", "error": "CALW refused after 3 attempts", "comp": False})))
         assert w.flush(30)
     finally:
         w.close()
@@ -259,10 +260,13 @@ def collect(tmp_path, mes: MesCapture) -> tuple[Answers, dict, LiveStation]:
     t0 = time.monotonic()
     main = run_batch_to_end(a, "fast-thermal-verified")
     t_batch = time.monotonic() - t0
+    # the daemon's own status of the ended batch, before the next one ends: from then on the daemon
+    # holds only its last ended batch, and the API reads older ones from the database
+    main_status = a.station_status(main)
     aborted = abort_a_batch(a)
     ls.flush_db()
     stored = store_records(ls.station.db)
     wait_for(lambda: any(n >= 2 for n in mes.tries.values()), 30, what="a webhook retried and accepted")
     diagnosed = sweep(a, a.client.get("/openapi.json").json(), [main, aborted], stored)
-    a.raw += [a.station_status(main), a.station_status(aborted)]
+    a.raw += [main_status, a.station_status(aborted)]
     return a, {"batch_s": t_batch, "main": main, "aborted": aborted, "diagnosed": diagnosed, **stored}, ls

@@ -14,6 +14,7 @@ from sqlalchemy import update
 from db import Database, DbWriter
 from db.models import DutRun
 from contracts.events import DutResult, DutVerdict, SegmentLogged, SlotStateChanged
+from contracts.run_records import ThermalReport
 from contracts.trace import Trace
 from contracts.types import Segment
 
@@ -81,7 +82,7 @@ def write_batches(db: Database, n_batches: int = 3, per_batch: int = 6, seed: in
             for sg in segments_for(tdb, tdsf):
                 w.submit(SegmentLogged(batch, slot, serial, 0, sg))
             v = verdict_of(tdb, tdsf)
-            w.submit(DutResult(batch, slot, serial, thermal=thermal_result(tdb, tdsf)))
+            w.submit(DutResult(batch, slot, serial, thermal=ThermalReport.from_json(thermal_result(tdb, tdsf))))
             w.submit(SlotStateChanged(batch, slot, serial, "done"))
             w.submit(DutVerdict(batch, slot, serial, verdict=v))  # the final verdict: the MES record (design 8)
             written.append({"batch": batch, "run": run, "serial": serial, "slot": slot, "tdb": tdb, "tdsf": tdsf,

@@ -168,6 +168,7 @@ def test_slot_card_flags_a_clamped_tdsf(tmp_path):
 
     from db import Database, DbWriter
     from contracts.events import DutResult, DutVerdict, SlotStateChanged
+    from contracts.run_records import ThermalReport
     from web.app import create_app
     from web.auth import TokenStore
     from web.db_repo import DbRepository
@@ -186,7 +187,7 @@ def test_slot_card_flags_a_clamped_tdsf(tmp_path):
     w = DbWriter(db, interval_s=0.02)
     try:
         w.bind_run(batch, "s01", run)
-        w.submit(DutResult(batch, "s01", "CLAMP1", thermal={"offline": {"method": "offline", "axes": axes}}))
+        w.submit(DutResult(batch, "s01", "CLAMP1", thermal=ThermalReport.from_json({"offline": {"method": "offline", "axes": axes}})))
         w.submit(SlotStateChanged(batch, "s01", "CLAMP1", "done"))
         w.submit(DutVerdict(batch, "s01", "CLAMP1", verdict={"verdict": "pass", "grade": "A", "tray": "A", "attempt": 1,
                                                              "run_id": run}))

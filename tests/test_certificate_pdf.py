@@ -28,6 +28,7 @@ from station.records.certificate_layout import layout
 from station.records.certificate_pdf import render_pdf
 from station.config import parse_config
 from contracts.events import DutProgrammed, DutResult, DutVerdict, DutVerified, SegmentLogged, SlotStateChanged
+from contracts.run_records import ProgramRecord, ThermalReport
 from station.decisions.verdicts import RunRecord, final_verdict
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -104,8 +105,8 @@ def stored(tmp_path_factory):
         w.bind_run(batch, "s01", run)
         for sg in segments_for(TDB, TDSF, temps=(24.5, 31.0, 38.0, 45.5)):
             w.submit(SegmentLogged(batch, "s01", SERIAL, 0, sg))
-        w.submit(DutResult(batch, "s01", SERIAL, thermal=thermal_result()))
-        w.submit(DutProgrammed(batch, slot="s01", serial=SERIAL, program=PROGRAM))
+        w.submit(DutResult(batch, "s01", SERIAL, thermal=ThermalReport.from_json(thermal_result())))
+        w.submit(DutProgrammed(batch, slot="s01", serial=SERIAL, program=ProgramRecord.from_json(PROGRAM)))
         w.submit(DutVerified(batch, slot="s01", serial=SERIAL, verification=VERIFICATION))
         w.submit(SlotStateChanged(batch, "s01", SERIAL, "done"))
         w.submit(DutVerdict(batch, "s01", SERIAL, verdict={**verdict.to_json(), "attempt": 1, "run_id": run}))
@@ -220,7 +221,7 @@ def test_cli_config_supplies_the_issuer_and_missing_issuer_says_not_configured(s
     toml.write_text('[[slots]]\nname = "s01"\nserial = "/dev/ttyACM0"\n[lamp]\ntcp = { host = "127.0.0.1" }\n'
                     'unit = 1\n[certificate]\nissuer = "Other Lab Ltd"\n')
     out = tmp_path / "c.pdf"
-    r = subprocess.run([sys.executable, "-m", "station.cli", "certificate", SERIAL, "--db", str(path),
+    r = subprocess.run([sys.executable, "-m", "cli", "certificate", SERIAL, "--db", str(path),
                         "--config", str(toml), "--out", str(out)],
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 0, r.stderr

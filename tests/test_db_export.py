@@ -16,6 +16,7 @@ from db import repository as repo
 from db.export import export_run_csv, prune, run_log
 from db.models import SampleChunk, SegmentRow, ThermalResultRow, utcnow
 from contracts.events import DutResult, SamplesReceived, SegmentLogged, SlotStateChanged
+from contracts.run_records import ThermalReport
 from contracts.logfile import ACC_DECIMALS, TEMP_DECIMALS, DutLog, format_log, read_log
 from contracts.types import SampleBlock, StationError
 from db_helpers import THERMAL_JSON, adxl355_stream, lis3dsh_stream, segment, sqlite_db
@@ -42,7 +43,7 @@ def _stream_run(db, time_s, acc_g, temp_c, seed=0, seal_samples=1024, slot="s1",
                                  lamp_on=lamp_on, position=position))
         i += k
     w.submit(SegmentLogged(batch, slot, serial, 1, segment(0, 100.0)))
-    w.submit(DutResult(batch, slot, serial, thermal=THERMAL_JSON))
+    w.submit(DutResult(batch, slot, serial, thermal=ThermalReport.from_json(THERMAL_JSON)))
     w.submit(SlotStateChanged(batch, slot, serial, "done"))
     w.close()
     return batch, run, lamp, pos
@@ -89,7 +90,7 @@ def test_export_gives_back_the_samples_bit_for_bit(tmp_path, stream):
 
 
 def test_station_db_export_and_prune_commands(tmp_path, capsys):
-    from station.cli import main
+    from cli.main import main
 
     db = sqlite_db(tmp_path)
     time_s, acc, temp = lis3dsh_stream(2000)
@@ -121,7 +122,7 @@ def test_station_db_export_and_prune_commands(tmp_path, capsys):
     with pytest.raises(StationError, match="pruned"):
         run_log(db, run)
     # a user's mistake from the real command line: one line on stderr, no traceback
-    r = subprocess.run([sys.executable, "-m", "station.cli", "db", "--url", url, "export", str(run), "--out",
+    r = subprocess.run([sys.executable, "-m", "cli", "db", "--url", url, "export", str(run), "--out",
                         str(tmp_path / "z.csv")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "pruned" in r.stderr
 

@@ -17,6 +17,8 @@ from db import repository as repo
 from db.export import run_log
 from db.models import SCHEMA_REVISION, Base
 from contracts.events import DutResult, DutVerdict, SamplesReceived, SegmentLogged, SlotStateChanged
+from contracts.run_records import ThermalReport
+from contracts.sfem_result import SfemResult
 from contracts.logfile import ACC_DECIMALS, TEMP_DECIMALS
 from contracts.types import SampleBlock, StationError
 from db_helpers import SFEM_JSON, THERMAL_JSON, lis3dsh_stream, pg_database, pg_reachable, segment
@@ -71,7 +73,7 @@ def test_newer_database_is_refused(tmp_path):
     # the schema was not touched
     with db.engine.connect() as conn:
         assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar() == "9999_from_the_future"
-    r = subprocess.run([sys.executable, "-m", "station.cli", "db", "--url", str(db.engine.url), "upgrade"],
+    r = subprocess.run([sys.executable, "-m", "cli", "db", "--url", str(db.engine.url), "upgrade"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "newer than" in r.stderr
@@ -93,7 +95,7 @@ def _round_trip(db: Database) -> None:
     for i in range(0, 3000, 37):
         w.submit(SamplesReceived(batch, "s1", "PG0001", 0, SampleBlock(time_s[i:i + 37], acc[i:i + 37], temp[i:i + 37]), position=0))
     w.submit(SegmentLogged(batch, "s1", "PG0001", 0, segment(0)))
-    w.submit(DutResult(batch, "s1", "PG0001", thermal=THERMAL_JSON, sfem=SFEM_JSON))
+    w.submit(DutResult(batch, "s1", "PG0001", thermal=ThermalReport.from_json(THERMAL_JSON), sfem=SfemResult.from_json(SFEM_JSON)))
     w.submit(SlotStateChanged(batch, "s1", "PG0001", "done"))
     w.submit(DutVerdict(batch, "s1", "PG0001", verdict={"verdict": "pass", "grade": "A", "tray": "T1"}))  # the MES record
     w.close()

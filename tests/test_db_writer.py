@@ -19,6 +19,8 @@ from contracts.events import (
     BatchStateChanged, DutResult, DutVerdict, LampChanged, SamplesReceived, SegmentLogged, SlotStateChanged,
     StepStarted,
 )
+from contracts.run_records import ThermalReport
+from contracts.sfem_result import SfemResult
 from contracts.logfile import ACC_DECIMALS
 from contracts.types import SampleBlock
 from db_helpers import SFEM_JSON, THERMAL_JSON, lis3dsh_stream, segment, sqlite_db
@@ -94,8 +96,8 @@ def test_state_events_results_and_results_since_paging(tmp_path):
         w.bind_run(batch, f"s{i}", run)
     w.submit(BatchStateChanged(batch, "running"))
     for i in range(5):
-        w.submit(DutResult(batch, f"s{i}", f"SIM{i:04d}", thermal=THERMAL_JSON))
-    w.submit(DutResult(batch, "s3", "SIM0003", sfem=SFEM_JSON))  # a newer result for run 3: still data only
+        w.submit(DutResult(batch, f"s{i}", f"SIM{i:04d}", thermal=ThermalReport.from_json(THERMAL_JSON)))
+    w.submit(DutResult(batch, "s3", "SIM0003", sfem=SfemResult.from_json(SFEM_JSON)))  # a newer result for run 3: still data only
     w.flush()
     assert repo.results_since(db, 0) == []  # no verdict yet: nothing reaches the MES
     order = [3, 1, 4, 0, 2]
@@ -118,10 +120,13 @@ def test_state_events_results_and_results_since_paging(tmp_path):
     assert (again["revision"], again["supersedes"], again["verdict"]) == (2, first["idempotency_key"], "pass")
     assert [r["revision"] for r in page1 + page2][1:5] == [1, 1, 1, 1]
     assert again["sfem"]["steps"][0]["rmse_after_mg"] == 0.9 and again["thermal"]["x"]["tdb_mg_per_c"] == 0.42
-    assert page1[0]["idempotency_key"] == f"run-{runs[3]}-result-{ids[0]}" and page1[0]["created_at"]
+    assert page1[0]["idempotency_key"] == f"result:{runs[3]}:{ids[0]}" and page1[0]["created_at"]
     assert repo.run_detail(db, runs[3])["result_seq"] == ids[-1]  # the run carries its latest record
     audit = [a for a in repo.audit_list(db) if a["action"] == "verdict superseded"]
     assert len(audit) == 1 and audit[0]["detail"]["old"]["result_seq"] == ids[0]
+    # one key per record wherever it is named (db/mes_record.py mes_key): the feed, the audit entry
+    assert audit[0]["detail"]["old"]["idempotency_key"] == first["idempotency_key"]
+    assert audit[0]["detail"]["new"]["idempotency_key"] == again["idempotency_key"]
     assert audit[0]["detail"]["new"]["result_seq"] == ids[-1] and audit[0]["detail"]["new"]["verdict"] == "pass"
     d = repo.batch_detail(db, batch)
     assert d["state"] == "finished" and d["ended_at"] is not None
@@ -201,7 +206,7 @@ def test_outbox_enqueue_pending_delivered_failed(tmp_path):
     # a result alone is data, no MES message
     w = DbWriter(db, outbox=True)
     w.bind_run(batch, "s0", runs[0])
-    w.submit(DutResult(batch, "s0", "SIM0000", thermal=THERMAL_JSON))
+    w.submit(DutResult(batch, "s0", "SIM0000", thermal=ThermalReport.from_json(THERMAL_JSON)))
     assert w.flush(30)
     with db.session() as s:
         assert s.scalar(select(func.count(Outbox.id))) == 2

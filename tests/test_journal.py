@@ -24,6 +24,7 @@ from sqlalchemy.exc import OperationalError
 
 from contracts.events import (BatchStateChanged, DutProgrammed, DutResult, DutVerdict, DutVerified, SamplesReceived,
                               SegmentLogged, SlotStateChanged, StepCompleted, StepStarted)
+from contracts.run_records import ProgramRecord, ThermalReport
 from contracts.types import SampleBlock
 from db import DbWriter
 from db.export import run_samples
@@ -56,8 +57,8 @@ def _events() -> list:
         SlotStateChanged(7, "s01", "SER1", "running"),
         SamplesReceived(7, "s01", "SER1", 1, SampleBlock(t, acc, temp, lost_samples=2), lamp_on=True, position=3),
         SegmentLogged(7, "s01", "SER1", 1, segment(4)),
-        DutResult(7, "s01", "SER1", thermal=THERMAL_JSON),
-        DutProgrammed(7, "s01", "SER1", program={"programmed": True, "crc": 12}),
+        DutResult(7, "s01", "SER1", thermal=ThermalReport.from_json(THERMAL_JSON)),
+        DutProgrammed(7, "s01", "SER1", program=ProgramRecord.from_json({"programmed": True, "crc": 12})),
         DutVerified(7, "s01", "SER1", verification={"passed": True, "e_after_mg": {"x": 0.1}}),
         DutVerdict(7, "s01", "SER1", verdict={"verdict": "pass", "grade": "A", "attempt": 1}),
     ]

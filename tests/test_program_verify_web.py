@@ -23,20 +23,21 @@ def live(tmp_path_factory):
 def _store_program_verify(db, truth):
     from db.writer import DbWriter
     from contracts.events import DutProgrammed, DutVerified
+    from contracts.run_records import ProgramRecord
 
     (serial, t), (serial2, t2) = list(truth.items())[:2]
     w = DbWriter(db, interval_s=0.05)
     try:
         for ser, tt in ((serial, t), (serial2, t2)):
             w.bind_run(tt["batch_id"], tt["slot"], tt["run_id"])
-        w.submit(DutProgrammed(t["batch_id"], slot=t["slot"], serial=serial, program={
+        w.submit(DutProgrammed(t["batch_id"], slot=t["slot"], serial=serial, program=ProgramRecord.from_json({
             "programmed": True, "crc": "1A2B3C4D", "readback_crc": "1A2B3C4D", "comp": True, "attempts": 2,
-            "retries": ["attempt 1: crc_mismatch: ..."]}))
+            "retries": ["attempt 1: crc_mismatch: ..."]})))
         w.submit(DutVerified(t["batch_id"], slot=t["slot"], serial=serial, verification={
             "passed": True, "flags": [], "e_before_mg": {"x": 40.0, "y": 12.5, "z": 70.0},
             "e_after_mg": {"x": 0.8, "y": 1.1, "z": 2.4}}))
-        w.submit(DutProgrammed(t2["batch_id"], slot=t2["slot"], serial=serial2, program={
-            "programmed": False, "error_kind": "refused", "error": "CALW refused after 3 attempts", "comp": False}))
+        w.submit(DutProgrammed(t2["batch_id"], slot=t2["slot"], serial=serial2, program=ProgramRecord.from_json({
+            "programmed": False, "error_kind": "refused", "error": "CALW refused after 3 attempts", "comp": False})))
         assert w.flush(30)
     finally:
         w.close()
@@ -80,6 +81,7 @@ def test_writer_outbox_carries_program_verify(tmp_path):
     from db.repository import results_since
     from db.writer import DbWriter
     from contracts.events import DutProgrammed, DutVerdict, DutVerified
+    from contracts.run_records import ProgramRecord
     from station.daemon.storage import open_database
 
     db = open_database(f"sqlite:///{tmp_path / 'o.db'}")
@@ -89,8 +91,8 @@ def test_writer_outbox_carries_program_verify(tmp_path):
         w = DbWriter(db, interval_s=0.05, outbox=True)
         try:
             w.bind_run(bid, "s01", run)
-            w.submit(DutProgrammed(bid, slot="s01", serial="OBX1", program={"programmed": True, "crc": "00000001",
-                                                                         "readback_crc": "00000001", "comp": True, "attempts": 1}))
+            w.submit(DutProgrammed(bid, slot="s01", serial="OBX1", program=ProgramRecord.from_json({"programmed": True, "crc": "00000001",
+                                                                         "readback_crc": "00000001", "comp": True, "attempts": 1})))
             w.submit(DutVerified(bid, slot="s01", serial="OBX1", verification={
                 "passed": False, "flags": ["x: curved residual drift: 9.0 mg"], "e_before_mg": {"x": 30.0, "y": 1.0, "z": 2.0},
                 "e_after_mg": {"x": 9.5, "y": float("nan"), "z": 0.4}}))

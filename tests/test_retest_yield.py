@@ -15,6 +15,7 @@ import httpx
 import pytest
 
 from contracts.events import DutResult, DutVerdict, SlotStateChanged
+from contracts.run_records import ThermalReport
 from station.decisions.limits import Limit, ProductSpec
 from station.decisions.verdicts import Measurement, decide
 from web_support import LiveStation, auth
@@ -53,7 +54,7 @@ def seed(db) -> dict[str, list[int]]:
                     writer.submit(DutVerdict(batch, slot=slot, serial=serial, verdict=v))
                 else:
                     axes = {ax: {"tdb_mg_per_c": 0.1, "tdsf_ppm_per_c": TDSF[kinds[attempt]]} for ax in "xyz"}
-                    writer.submit(DutResult(batch, slot=slot, serial=serial, thermal={"axes": axes}))
+                    writer.submit(DutResult(batch, slot=slot, serial=serial, thermal=ThermalReport.from_json({"axes": axes})))
                     writer.submit(SlotStateChanged(batch, slot=slot, serial=serial, state="done"))
                     writer.submit(DutVerdict(batch, slot=slot, serial=serial, verdict=v))  # final: the MES record
                 runs[serial].append(run_id)

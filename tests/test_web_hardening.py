@@ -28,6 +28,7 @@ NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
 def _write_evil_runs(db) -> list[str]:
     from db import DbWriter
     from contracts.events import DutResult, DutVerdict, SegmentLogged, SlotStateChanged
+    from contracts.run_records import ThermalReport
 
     w = DbWriter(db, interval_s=0.02)
     batch = db.create_batch("fast-thermal", "mallory", {"name": db.station}, state="running")
@@ -42,7 +43,7 @@ def _write_evil_runs(db) -> list[str]:
         v = verdict_of(tdb, tdsf)
         if i % 2:  # an error whose reason is a formula: a Pareto cause
             v = {**v, "verdict": "error", "reason": f"=cmd|' /C calc'!A{i}", "reasons": [f"=cmd|' /C calc'!A{i}"]}
-        w.submit(DutResult(batch, slot, serial, thermal=thermal_result(tdb, tdsf)))
+        w.submit(DutResult(batch, slot, serial, thermal=ThermalReport.from_json(thermal_result(tdb, tdsf))))
         w.submit(SlotStateChanged(batch, slot, serial, "done"))
         w.submit(DutVerdict(batch, slot, serial, verdict=v))
     w.flush()

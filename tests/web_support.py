@@ -138,7 +138,8 @@ class LiveStation:
         from drivers.sim.station_sim import SimStation
         from station.daemon.storage import open_database
         from station.daemon.supervisor import Station
-        from web.app import create_app, make_server
+        from web.app import create_app
+        from web.server import serve_web, stop_web
 
         self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
@@ -156,19 +157,13 @@ class LiveStation:
             self.station = station
             hands = asyncio.create_task(self._hands(station.bus, sim)) if self.operator_hands else None
             self.app = create_app(station, outbox=self.outbox, sse_interval_s=self.sse_interval_s)
-            self.server = make_server(self.app, "127.0.0.1", self.port, access_log=self.access_log)
-            serve = asyncio.create_task(self.server.serve(sockets=[self._sock]))
-            while not self.server.started:
-                if serve.done():
-                    serve.result()
-                await asyncio.sleep(0.02)
+            # the daemon's own start-up (station serve/demo), slow-client limits included
+            self.server, serve = await serve_web(station, "127.0.0.1", self.port, app=self.app, sock=self._sock,
+                                                 access_log=self.access_log)
+            await _started(self.server, serve)
             self._ready.set_result(True)
             await self._stop.wait()
-            self.server.should_exit = True
-            try:
-                await asyncio.wait_for(serve, 10)
-            except asyncio.TimeoutError:
-                serve.cancel()
+            await stop_web(self.server, serve, timeout_s=10)
             if hands is not None:
                 hands.cancel()
             await station.close()
@@ -266,6 +261,7 @@ def seed_results(db, n_duts: int = 5, *, batch_profile: str = "fast-thermal", se
     Returns {serial: {"run_id", "tdb", "tdsf"}} (the truth the API must give back)."""
     from db.writer import DbWriter
     from contracts.events import DutResult, DutVerdict, SamplesReceived, SegmentLogged, SlotStateChanged
+    from contracts.run_records import ThermalReport
     from contracts.types import SampleBlock, Segment
 
     rng = np.random.default_rng(seed)
@@ -299,7 +295,7 @@ def seed_results(db, n_duts: int = 5, *, batch_profile: str = "fast-thermal", se
             thermal = {"serial": serial, "axes": thermal_json(tdb, tdsf, "offline")["axes"],
                        "streaming": thermal_json(tdb * 1.01, tdsf * 1.01, "streaming"),
                        "offline": thermal_json(tdb, tdsf, "offline")}
-            writer.submit(DutResult(batch_id, slot=slot, serial=serial, thermal=thermal, sfem=None))
+            writer.submit(DutResult(batch_id, slot=slot, serial=serial, thermal=ThermalReport.from_json(thermal), sfem=None))
             writer.submit(SlotStateChanged(batch_id, slot=slot, serial=serial, state="done"))
             # the run's final verdict: the MES record (design 8; results alone are data)
             writer.submit(DutVerdict(batch_id, slot=slot, serial=serial, verdict={
@@ -323,23 +319,45 @@ if __name__ == "__main__":  # `python tests/web_support.py sim N_SERIAL N_CAN SE
         raise SystemExit("usage: web_support.py sim N_SERIAL N_CAN SEED SPEED")
 
 
+async def _started(server, task, timeout_s: float = 30.0) -> None:
+    """Wait until serve_web's server accepts (it returns after at most 4 s, started or not)."""
+    t0 = time.monotonic()
+    while not server.started:
+        if task.done():
+            task.result()
+            raise RuntimeError("test web server exited before it started")
+        assert time.monotonic() - t0 < timeout_s, "test web server did not start"
+        await asyncio.sleep(0.02)
+
+
 def serve_in_thread(app, timeout_s: float = 30.0):
-    """Run a FastAPI app on a real uvicorn server on 127.0.0.1 in a daemon thread; returns (url,
-    stop). For tests that need the HTTP stack but not a daemon (records, audit, certificates)."""
-    from web.app import make_server
+    """Run a FastAPI app on a real uvicorn server on 127.0.0.1 in a daemon thread, started as the
+    daemon starts its own (web/server.py serve_web); returns (url, stop). For tests that need the
+    HTTP stack but not a daemon (records, audit, certificates, exports, the MES feed)."""
+    from web.server import serve_web, stop_web
 
     sock = bound_socket()
     port = sock.getsockname()[1]
-    server = make_server(app, "127.0.0.1", port, access_log=False)
-    th = threading.Thread(target=lambda: asyncio.run(server.serve(sockets=[sock])), daemon=True)
+    ready: Future = Future()
+
+    async def main() -> None:
+        stop_event = asyncio.Event()
+        try:
+            server, task = await serve_web(app.state.station, "127.0.0.1", port, app=app, sock=sock)
+            await _started(server, task, timeout_s)
+        except BaseException as exc:  # noqa: BLE001 - the test thread raises it
+            ready.set_exception(exc)
+            raise
+        ready.set_result((asyncio.get_running_loop(), stop_event))
+        await stop_event.wait()
+        await stop_web(server, task, timeout_s=10)
+
+    th = threading.Thread(target=lambda: asyncio.run(main()), name="test-web", daemon=True)
     th.start()
-    t0 = time.monotonic()
-    while not server.started:
-        assert time.monotonic() - t0 < timeout_s, "test web server did not start"
-        time.sleep(0.02)
+    loop, stop_event = ready.result(timeout_s + 10)
 
     def stop() -> None:
-        server.should_exit = True
+        loop.call_soon_threadsafe(stop_event.set)
         th.join(10)
 
     return f"http://127.0.0.1:{port}", stop
@@ -363,6 +381,9 @@ class IdleStation:
 
     def batch_ids(self):
         return []
+
+    def running_batch(self):
+        return None
 
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)

@@ -1,7 +1,7 @@
 """WebRepository on the station database (db.repository and db.export).
 
 The MES record is a run's final verdict (design 8). Its key is `result:<run_id>:<result_seq>`
-(db.writer.record_key), the same key db.writer uses when it queues the message in the verdict's own
+(db/mes_record.py mes_key, the one key), the same key db.writer uses when it queues the message in the verdict's own
 transaction (DbWriter(outbox=True)). The webhook worker also enqueues every record under that key
 (enqueue is insert-or-get on the key), so whichever path queued it, one record is one outbox row
 and one MES record; the results feed carries the same key, and a superseding record names the key
@@ -16,16 +16,10 @@ from sqlalchemy import func, select, text
 
 from db import repository as R
 from db.database import Database
-from db.writer import record_key
 from db.models import Dut, DutRun, Outbox
 from contracts.logfile import DutLog
 from contracts.types import StationError
 from web.repo import WebRepository
-
-
-def result_key(run_id: int, result_seq: int) -> str:
-    """Same key as db.writer puts on the outbox row of this record."""
-    return record_key(run_id, result_seq)
 
 
 def _with_methods(d: dict) -> dict:
@@ -132,10 +126,8 @@ class DbRepository(WebRepository):
                       station: str | None = None) -> list[dict]:
         t = None if since_time is None else datetime.fromtimestamp(since_time, tz=timezone.utc)
         rows = R.results_since(self.db, after_id, limit, since_time=t, station=station)
-        for r in rows:
-            r["idempotency_key"] = result_key(r["run_id"], r["id"])
-            seq = r.pop("supersedes_seq", None)
-            r["supersedes"] = None if seq is None else result_key(r["run_id"], seq)
+        for r in rows:  # idempotency_key and supersedes: db/mes_record.py mes_key, the one key
+            r.pop("supersedes_seq", None)
             if not r.get("created_at"):
                 r["created_at"] = r.get("ended_at")
             _with_methods(r)
@@ -206,15 +198,15 @@ class DbRepository(WebRepository):
         return None if cert is None else render_pdf(cert)
 
     def export_file(self, fmt: str, batch_id: int | None = None, run_id: int | None = None) -> bytes | None:
+        from station.records.export_formats import export_format
         from station.records.export_model import ExportNotFound, load_report
-        from station.records.export_ocptv import write_ocptv
-        from station.records.export_stdf import write_stdf
 
+        writer = export_format(fmt).write  # an unknown format is a KeyError before the database is read
         try:
             report = load_report(self.db, batch_id=batch_id, run_id=run_id)
         except ExportNotFound:
             return None
-        return write_stdf(report) if fmt == "stdf" else write_ocptv(report)
+        return writer(report)
 
     def health(self) -> str:
         try:

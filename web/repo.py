@@ -121,19 +121,15 @@ class WebRepository(abc.ABC):
         raise HTTPException(status_code=503, detail="this station runs without a database: no certificates")
 
     def export_file(self, fmt: str, batch_id: int | None = None, run_id: int | None = None) -> bytes | None:
-        """A batch or run as STDF ('stdf') or OCPTV JSON lines ('ocptv'): station/records/export_*.py;
-        None for an unknown id; station.records.export_model.ExportNotReady while it is still running."""
+        """A batch or run in the registered export format `fmt` ('stdf', 'ocptv', ...:
+        station/records/export_formats.py); None for an unknown id;
+        station.records.export_model.ExportNotReady while it is still running."""
         from fastapi import HTTPException
 
         raise HTTPException(status_code=503, detail="this station runs without a database: no exports")
 
     def health(self) -> str:
         return "ok"
-
-
-def result_key(run_id: Any, serial: str) -> str:
-    """Idempotency key of one DUT result: stable across retries and restarts, one per run."""
-    return f"run-{run_id}-{serial}"
 
 
 class NoRepository(WebRepository):

@@ -1,4 +1,4 @@
-"""Replays (issue 16): a batch that re-ran recorded data through the station names its source
+"""Replays: a batch that re-ran recorded data through the station names its source
 (`replay_of`, e.g. "batch 12 of line-A" or "3 CSV logs") and keeps the comparison with the
 recorded outcome (`replay_diff`). Runs of a replay batch never get a result_seq (never reach the
 MES) and never count as attempts, yields or SPC points.

@@ -1,4 +1,4 @@
-"""The line's traceability (issue 24): every batch carries the work order, the part number and
+"""The line's traceability: every batch carries the work order, the part number and
 revision and the lot it was started for, and the label serials scanned per slot; every run the
 label serial scanned for its slot (NULL when none was scanned). Existing rows get '' (not known).
 

@@ -1,4 +1,4 @@
-"""What measured each run (issue 35): the station software's version, the board firmware's version
+"""What measured each run: the station software's version, the board firmware's version
 (as the board reported it in its identity; NULL when it reports none, e.g. the CAN identity frames)
 and what held the part while it was turned: 'fixture' (a motorized fixture moved the plate) or
 'operator' (a person turned it). A certificate states them; runs stored before this revision keep

@@ -1,4 +1,4 @@
-"""Every writer transaction leaves its token (issue 37): a commit whose answer was lost (the
+"""Every writer transaction leaves its token: a commit whose answer was lost (the
 connection cut while COMMIT was on its way: a PostgreSQL restart, a network blink) may or may not
 have happened. The writer asks for its token before it stores the same events again, so a record
 is stored once, not twice (a second chunk of the same samples, a second MES record of one verdict).
