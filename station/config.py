@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from contracts.positions import POSITION_INDEX, POSITION_NAMES
 from station.decisions.limits import ProductSpec, product_for, resolve_products
+from station.steps import kind_names
 from contracts.types import StationError
 
 
@@ -136,16 +137,28 @@ class Http(_Model):
 
 
 class StepConfig(_Model):
-    """One profile step (see station/profiles.py for the meaning)."""
+    """One profile step (see station/profiles.py for the meaning; its kind's own rules are checked
+    when the profile is built: parse_config)."""
 
     name: str
     position: int | str
     lamp: bool = False
     chamber_setpoint_c: float | None = None
-    require: Literal["segment", "static", "none"] = "segment"
+    require: str = Field(default="segment", description="the step's kind (station/steps), one a site profile may name")
     dwell_s: float = Field(default=0.0, ge=0, description="sample seconds to log for 'static'/'none'")
     settle_s: float = Field(default=0.0, ge=0, description="sample seconds ignored after the move")
     timeout_s: float = Field(gt=0, description="in sample time")
+
+    @field_validator("require")
+    @classmethod
+    def _known_kind(cls, v: str) -> str:
+        allowed = kind_names(configurable=True)
+        if v in allowed:
+            return v
+        if v in kind_names():
+            raise ValueError(f"step kind {v!r} cannot be named in a profile's steps (they take: {', '.join(allowed)}; "
+                             "program and verify come from [profiles.NAME.program_verify])")
+        raise ValueError(f"unknown step kind {v!r} (known: {', '.join(allowed)})")
 
     @field_validator("position")
     @classmethod

@@ -5,18 +5,10 @@ what every DUT must log before the step ends, and a timeout in SAMPLE time (the 
 a compressed-time replay behaves like the real station. A site adds its own profiles under
 `[profiles.NAME]` in the config; a site profile with a built-in's name replaces it.
 
-require:
-  segment  the DUT's streaming calibrator completes a segment after the step started, at this
-           step's position (martinez2022: stable temperature, 500 discarded + 1000 averaged samples)
-  static   the DUT logs `dwell_s` of sample time at this position after `settle_s` (SFEM, six-position)
-  none     the step just lasts `dwell_s` of sample time (a soak, a lamp-off cool-down)
-  program  program and verify, part 1 (design 4): the thermal analysis runs, then every live DUT
-           with a thermal result gets its coefficients written, read back (CRC and values) and its
-           on-board compensation switched on; a DUT whose write fails is faulted alone
-  heat     program and verify, part 2: the lamp heats the plate again until every DUT's own
-           temperature has risen `heat_c` (>= 15 C) above where the step started, while the station
-           logs the boards' COMPENSATED output; `settle_s` at the start is not judged. The verified
-           drift error E (station.science.verify) is computed when the batch is analysed.
+Each step's `require` names its kind, one registered object (station/steps: segment, static,
+none, program, heat, and any kind a site registers): what every DUT must log before the step ends,
+the kind's rules (checked here, so an unknown kind or a bad parameter is an error at load, never at
+run time), its time estimate and the page's words for it.
 A profile ends with program and verify by `with_program_verify(profile)`; `fast-thermal-verified`
 is the built-in one.
 """
@@ -24,43 +16,13 @@ is the built-in one.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from contracts.positions import POSITION_INDEX, POSITION_NAMES, SFEM24, SIX_POSITION
 from station.science.verify import VerifyCriteria
+from station.steps import Step as Step, kind_names
 
-REQUIREMENTS = ("segment", "static", "none", "program", "heat")
 ANALYSES = ("thermal", "sfem", "none")
-
-
-@dataclass(frozen=True)
-class Step:
-    name: str
-    position: int
-    lamp: bool = False
-    chamber_setpoint_c: float | None = None
-    require: str = "segment"
-    dwell_s: float = 0.0
-    settle_s: float = 0.0
-    timeout_s: float = 3600.0
-    heat_c: float = 0.0  # require="heat": the rise of every DUT's temperature that ends the step
-
-    @property
-    def position_name(self) -> str:
-        return POSITION_NAMES[self.position]
-
-    def to_json(self) -> dict:
-        return {
-            "name": self.name,
-            "position": self.position,
-            "position_name": self.position_name,
-            "lamp": self.lamp,
-            "chamber_setpoint_c": self.chamber_setpoint_c,
-            "require": self.require,
-            "dwell_s": self.dwell_s,
-            "settle_s": self.settle_s,
-            "timeout_s": self.timeout_s,
-            "heat_c": self.heat_c,
-        }
 
 
 @dataclass(frozen=True)
@@ -84,33 +46,22 @@ class Profile:
             raise ValueError(f"analysis must be one of {ANALYSES}, not {self.analysis!r}")
         if self.sfem_ref_sigma_deg is not None and not self.sfem_ref_sigma_deg > 0:
             raise ValueError("sfem_ref_sigma_deg must be > 0")
+        known = kind_names()
         for i, s in enumerate(self.steps):
-            if s.require not in REQUIREMENTS:
-                raise ValueError(f"steps[{i}].require must be one of {REQUIREMENTS}, not {s.require!r}")
+            if s.require not in known:
+                raise ValueError(f"steps[{i}].require must be one of {known}, not {s.require!r}")
             if not 0 <= s.position < len(POSITION_NAMES):
                 raise ValueError(f"steps[{i}].position {s.position} out of range")
             if s.timeout_s <= 0:
                 raise ValueError(f"steps[{i}].timeout_s must be > 0")
-            if s.require in ("static", "none") and s.dwell_s <= 0:
-                raise ValueError(f"steps[{i}]: require={s.require!r} needs dwell_s > 0")
-            if s.require == "static" and s.settle_s + s.dwell_s >= s.timeout_s:
-                raise ValueError(f"steps[{i}]: settle_s + dwell_s must be shorter than timeout_s")
-            if s.require == "program" and self.analysis != "thermal":
-                raise ValueError(f"steps[{i}]: a program step needs analysis='thermal' (coefficients to write)")
-            if s.require == "heat":
-                if s.heat_c < 15.0:
-                    raise ValueError(f"steps[{i}]: a verification must heat at least 15 C (heat_c), got {s.heat_c:g}")
-                if not s.lamp and s.chamber_setpoint_c is None:
-                    raise ValueError(f"steps[{i}]: a heat step needs the lamp on or a chamber set point")
-                if not any(p.require == "program" for p in self.steps[:i]):
-                    raise ValueError(f"steps[{i}]: a verification (heat) step must follow a program step")
+            s.kind.check(self.steps, i, self.analysis)  # the kind's own rules (station/steps)
 
     @property
     def program_step(self) -> int | None:
         """Index of the program step, None if the profile does not end with program and verify."""
         return next((i for i, s in enumerate(self.steps) if s.require == "program"), None)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {
             "name": self.name,
             "description": self.description,
@@ -142,7 +93,7 @@ def _fast_thermal() -> Profile:
     )
 
 
-def _six_position(temps_c=(25.0, 45.0, 65.0)) -> Profile:
+def _six_position(temps_c: tuple[float, ...] = (25.0, 45.0, 65.0)) -> Profile:
     steps = []
     for t in temps_c:
         for k, name in enumerate(SIX_POSITION):
@@ -165,7 +116,7 @@ def _six_position(temps_c=(25.0, 45.0, 65.0)) -> Profile:
     )
 
 
-def _sfem24(temps_c=(25.0, 45.0, 65.0)) -> Profile:
+def _sfem24(temps_c: tuple[float, ...] = (25.0, 45.0, 65.0)) -> Profile:
     steps = []
     for t in temps_c:
         for k, name in enumerate(SFEM24):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pydantic import ConfigDict, Field
 
+from station.steps import kind_names, row_kinds
 from web.schemas_common import (
     DecisionFields, DecisionOut, PerAxis, ProgramVerifyOut, TraceFields, _Out, free_form, one_of, passed_through,
 )
@@ -40,8 +41,8 @@ class StepInfo(_Out):
     position_name: str | None = Field(default=None, description="plate position name, e.g. P, N, +z")
     lamp: bool | None = Field(default=None, description="the lamp is on during the step")
     chamber_setpoint_c: float | None = Field(default=None, description="chamber set point, C (null: no chamber)")
-    require: str | None = one_of(("segment", "static", "none", "program", "heat"), "what every DUT must log before "
-                                 "the step ends (station/profiles.py)", default=None)
+    require: str | None = one_of(kind_names(), "the step's kind: what every DUT must log before the step ends "
+                                 "(station/steps)", default=None)
     dwell_s: float | None = Field(default=None, description="sample seconds to log (static/none)")
     settle_s: float | None = Field(default=None, description="sample seconds not judged at the start")
     timeout_s: float | None = Field(default=None, description="step timeout, sample seconds")
@@ -68,7 +69,7 @@ class StepRow(_Out):
 
     index: int = Field(description="step index; the last row is the end-of-batch analysis")
     name: str = Field(description="the step's name ('analysis' for the last row)")
-    kind: str = one_of(("step", "program", "verify", "analysis"), "what the row is", nullable=False)
+    kind: str = one_of(row_kinds() + ("analysis",), "what the row is", nullable=False)
     position_name: str | None = Field(default=None, description="plate position of the step (null: analysis)")
     state: str = one_of(("pending", "running", "done", "skipped", "failed"), "where the step is", nullable=False)
     duration_s: float | None = Field(default=None, description="wall seconds it took (so far, when running); "

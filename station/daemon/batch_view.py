@@ -1,21 +1,69 @@
 """What the page and the REST API see of a running batch (GET /api/batches/{id}): its state, the
 step, the plate, the lamp, each slot, and what it waits for in the operator's words.
 
-Pure reading of a Sequencer (no side effects), so the status can be asked for at any moment.
+Pure reading of a Sequencer (no side effects), so the status can be asked for at any moment. What
+a logging step waits for is its kind's words (station/steps StepKind.waits_for).
 """
 
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, Protocol
 
 from contracts.positions import POSITION_NAMES
+from contracts.trace import Trace
 from station.daemon.dut_run import DutRun, iso_utc
+from station.daemon.safety import LampGuard
 from station.daemon.states import BATCH_STATE, TERMINAL
 from station.profiles import Profile
+from station.steps import Step
 
-# What a logging step waits for, by its `require` (profiles.Step), as the page shows it.
-WAITING_FOR_REQUIRE = {"heat": "temperature rise", "static": "static dwell", "segment": "segment", "none": "dwell"}
+
+class _WithLamp(Protocol):
+    @property
+    def lamp(self) -> LampGuard: ...
+
+
+class BatchView(Protocol):
+    """What the status reads of a batch: the Sequencer (sequencer.py) is one. A Protocol, not the
+    class: the sequencer imports this module for its status()."""
+
+    @property
+    def batch_id(self) -> int: ...
+    @property
+    def profile(self) -> Profile: ...
+    @property
+    def operator(self) -> str: ...
+    @property
+    def trace(self) -> Trace: ...
+    @property
+    def hw(self) -> _WithLamp: ...
+    @property
+    def duts(self) -> list[DutRun]: ...
+    @property
+    def state(self) -> str: ...
+    @property
+    def step_index(self) -> int: ...
+    @property
+    def step(self) -> Step | None: ...
+    @property
+    def position(self) -> int | None: ...
+    @property
+    def step_clock_start(self) -> float: ...
+    @property
+    def prompt(self) -> dict[str, Any] | None: ...
+    @property
+    def error(self) -> str: ...
+    @property
+    def started_wall(self) -> float: ...
+    @property
+    def ended_wall(self) -> float | None: ...
+    @property
+    def ended_by(self) -> str | None: ...
+    @property
+    def history(self) -> list[tuple[float, str, str]]: ...
+
+    def clock_s(self) -> float: ...
 
 
 def result_note(profile: Profile) -> str | None:
@@ -27,9 +75,9 @@ def result_note(profile: Profile) -> str | None:
             "(no TDB/TDSF, no SFEM); review the runs' logs and plots")
 
 
-def waiting_for(seq: Any) -> str | None:
+def waiting_for(seq: BatchView) -> str | None:
     """What the batch is waiting for right now, in the operator's words (None once it ended):
-    a newcomer must see why nothing seems to happen (issue 9)."""
+    a newcomer must see why nothing seems to happen."""
     if seq.state in TERMINAL:
         return None
     step = seq.step
@@ -42,22 +90,22 @@ def waiting_for(seq: Any) -> str | None:
     if seq.state == "step_setup":
         return "chamber" if step is not None and step.chamber_setpoint_c is not None else "step"
     if seq.state == "logging" and step is not None:
-        return WAITING_FOR_REQUIRE.get(step.require, step.require)
+        return step.kind.waits_for or step.require
     return {"programming": "programming", "analysing": "analysis", "step_done": "next step"}.get(seq.state)
 
-def dut_waiting_for(seq: Any, d: DutRun) -> str | None:
+def dut_waiting_for(seq: BatchView, d: DutRun) -> str | None:
     """The batch's waiting_for for one DUT: 'other DUTs' once it has what the step needs."""
     if not d.live or seq.state in TERMINAL:
         return None
     step = seq.step
     if seq.state == "logging" and step is not None:
-        if seq.dut_step_done(d, step):
+        if step.kind.done(d, step, seq.step_index):
             return "other DUTs"
         if not d.at_step_position() and seq.position is not None:
             return f"plate at {step.position_name}"  # confirmed, but this DUT does not measure it yet
     return waiting_for(seq)
 
-def dut_counts(seq: Any) -> dict[str, int]:
+def dut_counts(seq: BatchView) -> dict[str, int]:
     """DUTs per end state, live ones as 'running': an aborted batch has none running."""
     counts = {"running": 0, "done": 0, "faulted": 0, "interrupted": 0}
     for d in seq.duts:
@@ -65,7 +113,7 @@ def dut_counts(seq: Any) -> dict[str, int]:
         counts[key] = counts.get(key, 0) + 1
     return counts
 
-def status(seq: Any) -> dict:
+def status(seq: BatchView) -> dict[str, Any]:
     step = seq.step
     now = time.time()
     slots = [d.status() for d in seq.duts]

@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections import defaultdict
 
 from station.daemon.dut_run import DutRun
-from station.profiles import Step
+from station.steps import Step
 from station.science.placement import direction_id, direction_name
 
 
@@ -87,3 +87,21 @@ def never_arrived_reason(step: Step, d: DutRun, elapsed_s: float, others_arrived
                 "(DUT not seated, mounted turned, or loose?)")
     return (f"step '{step.name}': plate never arrived at {step.position_name}: {elapsed_s:.0f} s sample time "
             f"after {after} it {facing_words(d)}")
+
+
+def timed_out_reason(step: Step, d: DutRun, elapsed_s: float, station_s: float, others_arrived: bool,
+                     after: str) -> str:
+    """The fault of a DUT past the step's timeout, with why: a plate that never arrived at the
+    position (its clock runs from `after`), a plate that left it, a board clock that slowed or
+    stopped (the station's clock ran station_s, its own elapsed_s), or the step's requirement not
+    met (the step's kind says what was missing)."""
+    need = step.kind.need_words(step)
+    if d.arrived_t is None:
+        return never_arrived_reason(step, d, elapsed_s, others_arrived, after)
+    if not d.at_step_position():
+        return (f"step '{step.name}' timed out after {elapsed_s:.0f} s sample time without {need}: the "
+                f"plate left {step.position_name} and it {facing_words(d)}")
+    if elapsed_s < step.timeout_s:
+        return (f"step '{step.name}' timed out without {need}: the station's clock ran {station_s:.0f} s "
+                f"since Done, this board's own clock {elapsed_s:.0f} s (a board clock that slowed or stopped?)")
+    return f"step '{step.name}' timed out after {elapsed_s:.0f} s sample time without {need}"

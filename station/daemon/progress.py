@@ -2,10 +2,11 @@
 sequencer's own status (decision summary, sorting list for the trays, the step list, progress and
 time left).
 
-Time left is an estimate from the plant's own behaviour in this batch: the calibrator's state and
-the temperature trend for segment steps, dwell for static ones, the heating rate the lamp showed in
-this batch for a verification (heat) step, the completed steps of the same kind for those to come,
-and the wall time programming and analysis take. It can never break the status.
+Time left is an estimate from the plant's own behaviour in this batch, made by each step's kind
+(station/steps: StepKind.expected_s, left_s): the calibrator's state and the temperature trend for
+segment steps, dwell for static ones, the heating rate the lamp showed in this batch for a
+verification (heat) step, the completed steps of the same kind for those to come, and the wall time
+programming and analysis take. It can never break the status.
 
 What the operator sees is a countdown, not the raw estimate: the raw figure jumps whenever a step
 ends early or a segment takes longer (0:24 -> 0:20 -> 0:11 -> 0:19 on the old page). `Countdown`
@@ -17,52 +18,36 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import Any, Protocol
 
+from station.daemon.dut_run import DutRun
+from station.daemon.sequencer import Sequencer
 from station.daemon.states import TERMINAL
 from station.decisions.verdicts import summarize
+from station.steps import Estimates
 
-PROGRAM_WALL_S = 8.0  # wall seconds to write, read back and restart a board (design 4; all DUTs in parallel)
 ANALYSIS_WALL_S = 3.0  # wall seconds of the end-of-batch analysis (thermal fit, verdicts, storage)
 COUNTDOWN_MAX_RATE = 4.0  # the countdown may run at most this many seconds per second
 
 
-def _segment_step_need_s(d: Any, odr_hz: float) -> float | None:
-    """Sample seconds this DUT still needs to log a segment, from its calibrator's state and the
-    temperature trend (the filtered gradient must fall under the limit first)."""
-    cal = d.calibrator
-    if cal is None:
-        return None
-    c = cal.config
-    st = getattr(cal, "state", "settling")
-    n_disc = int(getattr(cal, "_n_disc", 0))
-    n_avg = int(getattr(cal, "_n_avg", 0))
-    need = (max(0, c.discard_samples - n_disc) + max(0, c.average_samples - n_avg)) / odr_hz
-    if st == "settling":
-        g = abs(float(getattr(cal, "gradient_c_per_min", 0.0)))
-        lim = float(c.gradient_limit_c_per_min)
-        tau_s = _gradient_tau_s(d, g)
-        if g > lim:
-            need += tau_s * math.log(g / lim)
-    return need
+class _Timing(Protocol):
+    @property
+    def speed(self) -> float: ...
 
 
-def _gradient_tau_s(d: Any, g: float, default_s: float = 300.0) -> float:
-    """Time constant of the gradient's decay from two looks at least 30 sample seconds apart
-    (the plate approaches its temperature exponentially); a default until the trend is known."""
-    now = d.last_t or 0.0
-    hist = d.__dict__.setdefault("_grad_hist", [])
-    if not hist or now - hist[-1][0] >= 30.0:
-        hist.append((now, g))
-        del hist[:-2]
-    if len(hist) == 2:
-        (t1, g1), (t2, g2) = hist
-        if g2 > 0 and g1 > g2 and t2 > t1:
-            return min(3600.0, max(30.0, (t2 - t1) / math.log(g1 / g2)))
-    return default_s
+class _Config(Protocol):
+    @property
+    def timing(self) -> _Timing: ...
 
 
-def _temp_at(d: Any, t: float) -> float | None:
+class StationView(Protocol):
+    """What the estimate reads of the station (the supervisor's Station): its config's timing.speed."""
+
+    @property
+    def config(self) -> _Config: ...
+
+
+def _temp_at(d: DutRun, t: float) -> float | None:
     """The DUT's temperature at board time t (the nearest stored sample), None outside its data."""
     for b in reversed(d.blocks):
         if len(b) and b.time_s[0] <= t:
@@ -71,14 +56,14 @@ def _temp_at(d: Any, t: float) -> float | None:
     return None
 
 
-def heating_rate_c_per_s(seq: Any) -> float | None:
+def heating_rate_c_per_s(seq: Sequencer) -> float | None:
     """How fast the lamp heated the DUTs in this batch: the median over DUTs of the temperature
     rise per sample second across the completed lamp-on steps. None until one was seen.
 
     Computed once per step (it depends only on the completed steps' windows): looking the
     temperatures up walks the DUTs' stored blocks, which a status poll must not do each time."""
     key = max(0, seq.step_index)
-    cached = seq.__dict__.get("_heating_rate")
+    cached: tuple[int, float | None] | None = seq.__dict__.get("_heating_rate")
     if cached is not None and cached[0] == key:
         return cached[1]
     rate = _heating_rate(seq)
@@ -86,8 +71,8 @@ def heating_rate_c_per_s(seq: Any) -> float | None:
     return rate
 
 
-def _heating_rate(seq: Any) -> float | None:
-    rates = []
+def _heating_rate(seq: Sequencer) -> float | None:
+    rates: list[float] = []
     for i, s in enumerate(seq.profile.steps[:max(0, seq.step_index)]):
         if not s.lamp:
             continue
@@ -101,64 +86,39 @@ def _heating_rate(seq: Any) -> float | None:
     return float(sorted(rates)[len(rates) // 2]) if rates else None
 
 
-def _heats(steps: list, i: int) -> bool:
-    """The step changes the plate's temperature (lamp or set point) against the step before."""
-    prev_lamp, prev_sp = (steps[i - 1].lamp, steps[i - 1].chamber_setpoint_c) if i > 0 else (False, None)
-    return steps[i].lamp != prev_lamp or steps[i].chamber_setpoint_c != prev_sp
+def estimates(seq: Sequencer) -> Estimates:
+    """What the batch has shown so far, for the step kinds' estimates."""
+    return Estimates(seq.profile.steps, max(0, seq.step_index), seq.duts, heating_rate_c_per_s(seq))
 
 
-def expected_s(seq: Any) -> list[tuple[float, float]]:
+def expected_s(seq: Sequencer) -> list[tuple[float, float]]:
     """Per profile step its expected duration as (sample seconds, wall seconds): the wall part is
     what runs at wall speed whatever the plant's speed (programming)."""
-    steps = seq.profile.steps
-    done: dict[bool, list[float]] = {True: [], False: []}
-    for i in range(max(0, seq.step_index)):
-        if steps[i].require == "segment":
-            spans = [d.step_windows[i] for d in seq.duts if i in d.step_windows and math.isfinite(d.step_windows[i][0])]
-            done[_heats(steps, i)] += [b - a for a, b in spans]
-    rate = heating_rate_c_per_s(seq)
-    out = []
-    for i, s in enumerate(steps):
-        if s.require == "program":
-            out.append((0.0, PROGRAM_WALL_S))
-        elif s.require == "segment":
-            seen = done[_heats(steps, i)]
-            out.append((min(s.timeout_s, sum(seen) / len(seen) if seen else s.timeout_s / 2), 0.0))
-        elif s.require == "heat":
-            out.append((min(s.timeout_s, s.settle_s + s.heat_c / rate) if rate else s.timeout_s / 2, 0.0))
-        else:
-            out.append((min(s.timeout_s, s.settle_s + s.dwell_s), 0.0))
-    return out
+    est = estimates(seq)
+    return [s.kind.expected_s(s, i, est) for i, s in enumerate(seq.profile.steps)]
 
 
-def _current_step_left_s(seq: Any, expect: tuple[float, float]) -> tuple[float, float]:
+def _current_step_left_s(seq: Sequencer, expect: tuple[float, float]) -> tuple[float, float]:
     """(sample, wall) seconds left in the running step."""
     step = seq.step
     if seq.state == "programming":
         started = next((t for t, _, to in reversed(seq.history) if to == "programming"), time.time())
         return 0.0, max(0.0, expect[1] - (time.time() - started))
-    if seq.state != "logging":
+    if seq.state != "logging" or step is None:
         return expect  # not started yet: positioning, a prompt, the chamber
     elapsed = max(0.0, seq.clock_s() - seq.step_clock_start)
-    rate = heating_rate_c_per_s(seq) if step.require == "heat" else None
+    kind, est = step.kind, estimates(seq)
     needs = []
     for d in seq.live_duts:
-        if seq.dut_step_done(d, step):
+        if kind.done(d, step, seq.step_index):
             continue
-        odr = float(getattr(d.identity, "odr_hz", 0) or 3.125)
-        if step.require == "segment":
-            n = _segment_step_need_s(d, odr)
-        elif step.require == "heat":
-            rise = d.temp_rise_c(d.step_t_start) if math.isfinite(d.step_t_start) else 0.0
-            n = max(step.settle_s - elapsed, (step.heat_c - rise) / rate) if rate else expect[0] - elapsed
-        else:
-            n = step.dwell_s + (step.settle_s if step.require == "static" else 0.0) - elapsed
+        n = kind.left_s(step, d, elapsed, expect[0], est)
         if n is not None:
             needs.append(max(0.0, n))
     return min(max(needs, default=0.0), max(0.0, step.timeout_s - elapsed)), 0.0
 
 
-def time_left(station: Any, seq: Any) -> dict:
+def time_left(station: StationView, seq: Sequencer) -> dict[str, Any]:
     """Estimated sample and wall seconds left in the step and the batch (raw), with the batch's
     countdown (`batch_wall_s`, see Countdown) and the expected wall duration of every step."""
     speed = float(station.config.timing.speed) or 1.0
@@ -169,11 +129,12 @@ def time_left(station: Any, seq: Any) -> dict:
     walls = [a / speed + b for a, b in expect]
     if seq.step is None and seq.state != "analysing":  # connecting
         raw_wall = sum(walls) + ANALYSIS_WALL_S
-        step_s = step_wall = None
+        step_s: float | None = None
+        step_wall: float | None = None
         batch_s = sum(a for a, _ in expect)
     else:
         if seq.state == "analysing":
-            step_s, step_wall_extra, rest = 0.0, ANALYSIS_WALL_S, []
+            step_s, step_wall_extra, rest = 0.0, ANALYSIS_WALL_S, list[tuple[float, float]]()
         else:
             step_s, step_wall_extra = _current_step_left_s(seq, expect[seq.step_index])
             rest = expect[seq.step_index + 1:]
@@ -201,8 +162,8 @@ class Countdown:
         self.at: float = 0.0
 
     @classmethod
-    def of(cls, seq: Any) -> "Countdown":
-        c = seq.__dict__.get("_countdown")
+    def of(cls, seq: Sequencer) -> Countdown:
+        c: Countdown | None = seq.__dict__.get("_countdown")
         if c is None:
             c = seq.__dict__["_countdown"] = cls()
         return c
@@ -222,7 +183,7 @@ class Countdown:
         return self.shown_s
 
 
-def step_rows(seq: Any, expected_wall_s: list[float] | None = None) -> list[dict]:
+def step_rows(seq: Sequencer, expected_wall_s: list[float] | None = None) -> list[dict[str, Any]]:
     """The batch's step list as the page shows it: each profile step and the analysis, with its
     state (pending, running, done, skipped, failed) and wall duration (so far, when running),
     from the sequencer's own transitions."""
@@ -246,7 +207,6 @@ def step_rows(seq: Any, expected_wall_s: list[float] | None = None) -> list[dict
     ended = seq.state in TERMINAL
     now = time.time()
     rows = []
-    kinds = {"program": "program", "heat": "verify"}
     names = [s.name for s in steps] + ["analysis"]
     for i, name in enumerate(names):
         s = steps[i] if i < len(steps) else None
@@ -266,14 +226,14 @@ def step_rows(seq: Any, expected_wall_s: list[float] | None = None) -> list[dict
         exp = None
         if expected_wall_s is not None:
             exp = expected_wall_s[i] if i < len(expected_wall_s) else ANALYSIS_WALL_S
-        rows.append({"index": i, "name": name, "kind": kinds.get(s.require, "step") if s else "analysis",
+        rows.append({"index": i, "name": name, "kind": s.kind.row_kind if s else "analysis",
                      "position_name": s.position_name if s else None, "state": state,
                      "duration_s": None if dur is None else round(max(0.0, dur), 3),
                      "expected_s": None if exp is None else round(exp, 3)})
     return rows
 
 
-def batch_extras(station: Any, seq: Any) -> dict:
+def batch_extras(station: StationView, seq: Sequencer) -> dict[str, Any]:
     """Decision summary, sorting list, time left, step list and progress for GET /api/batches/{id}."""
     verdicts = [getattr(d, "verdict", None) for d in seq.duts]
     sorting = [

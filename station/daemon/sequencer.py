@@ -2,8 +2,8 @@
 
 Written like labgrid's GraphStrategy: a plain table of states, each state a small coroutine method
 `_state_<name>` returning the next state; every transition is checked against the table, logged and
-published. The sequencer knows steps, positions and events, never bytes: the supervisor feeds the
-DUT runs (samples, segments, faults) and calls `notify()`.
+published. The sequencer knows steps, positions and events, never bytes: the pumps (intake.py) feed
+the DUT runs (samples, segments, faults) and call `notify()`.
 
     created -> connecting -> step_setup -> positioning -+-> moving ----------+-> logging -> step_done
                                   ^                      +-> waiting_operator +      |          |
@@ -13,9 +13,10 @@ DUT runs (samples, segments, faults) and calls `notify()`.
     any state -> aborted (operator) | interrupted (daemon shutdown) | failed (no live DUT, fixture,
                  safety trip)
 
-A step ends when every live DUT has logged what the step requires, or when the step's timeout
-(in SAMPLE time: the boards' clock) has passed; then the DUTs that are late are faulted, the others
-go on. The lamp is switched off by the LampGuard whenever the batch ends, whatever the end state.
+A step ends when every live DUT has logged what the step requires (its kind says: station/steps),
+or when the step's timeout (in SAMPLE time: the boards' clock) has passed; then the DUTs that are
+late are faulted, the others go on. The plate's moves and prompts are positioning.py's. The lamp is
+switched off by the LampGuard whenever the batch ends, whatever the end state.
 """
 
 from __future__ import annotations
@@ -24,28 +25,23 @@ import asyncio
 import logging
 import math
 import time
-from typing import Callable, Protocol
+from typing import Any, Protocol
 
-from drivers.base import Chamber, DriverError, Fixture
-from contracts.events import (
-    BatchStateChanged,
-    EventBus,
-    PromptAnswered,
-    PromptRaised,
-    StepCompleted,
-    StepStarted,
-)
-from contracts.positions import direction
+from drivers.base import Chamber, Fixture
+from contracts.events import BatchStateChanged, EventBus, PromptAnswered, StepCompleted, StepStarted
 from contracts.trace import Trace
 from station.daemon import batch_view, plate_watch
 from station.daemon.dut_run import DutRun, wall_text
+from station.daemon.positioning import BatchFailed, Plate, device_call
 from station.daemon.states import BATCH_STATE, TERMINAL, TRANSITIONS
-from station.profiles import Profile, Step
+from station.profiles import Profile
+from station.steps import Step
 from station.daemon.safety import LampGuard, LampTripped
+
+__all__ = ["BatchFailed", "Hardware", "STATION_CLOCK_FACTOR", "Sequencer"]
 
 log = logging.getLogger(__name__)
 
-LINK_LAG_S = 0.5  # wall seconds a board's samples may lag what it measures (buffers, read period)
 # A step's timeout runs on each DUT's own board clock (a link that delivers late is not judged by
 # the fastest board's clock), but never beyond this multiple of it on the station's clock (the
 # batch's sample clock since Done): a board clock that slowed or stopped while its seq ran on cannot
@@ -55,33 +51,13 @@ LINK_LAG_S = 0.5  # wall seconds a board's samples may lag what it measures (buf
 STATION_CLOCK_FACTOR = 3.0
 
 
-class BatchFailed(Exception):
-    """The batch cannot go on (no live DUT, fixture fault, lamp trip)."""
-
-
 class _StopRequested(Exception):
     """stop() was called but its task cancellation was swallowed (asyncio.wait_for inside a
     Modbus client can eat a cancel on Python 3.11): the machine checks for it at every turn."""
 
 
-class _device:
-    """A device call whose failure ends the batch with the device named and what to check, instead
-    of an 'internal error' with a traceback."""
-
-    def __init__(self, name: str, check: str) -> None:
-        self.name, self.check = name, check
-
-    async def __aenter__(self) -> None:
-        return None
-
-    async def __aexit__(self, kind, exc, tb) -> bool:
-        if exc is not None and isinstance(exc, (DriverError, OSError, asyncio.TimeoutError)):
-            raise BatchFailed(f"{self.name} failed: {exc or type(exc).__name__} (check {self.check})") from None
-        return False
-
-
 class Hardware(Protocol):
-    """What the sequencer needs from the supervisor (the Station implements it)."""
+    """What the sequencer needs of the station's hardware and slots (rig.Rig implements it)."""
 
     lamp: LampGuard
     fixture: Fixture | None
@@ -134,18 +110,14 @@ class Sequencer:
             raise ValueError(f"profile {profile.name!r} has no step {start_step}")
         self.start_step = start_step
         self.step_index = start_step - 1
-        self.position: int | None = None  # where the plate is (confirmed), None = unknown
+        self.plate = Plate(batch_id, bus, hw)  # where the plate is, the operator's prompt
         self.step_clock_start = 0.0  # batch sample clock when the step began logging
         self.error = ""
         self.started_wall = time.time()
         self.ended_wall: float | None = None
-        self.prompt: dict | None = None
-        self._prompt_future: asyncio.Future | None = None
-        self._prompt_counter = 0
-        self._plate_check_wall = 0.0  # monotonic time of the Done the plate is watched from
         self._wake = asyncio.Event()
         self._stop: tuple[str, str] | None = None
-        self.task: asyncio.Task | None = None
+        self.task: asyncio.Task[str] | None = None
         self.done = asyncio.Event()
         self.ending: str | None = None  # the terminal state being entered (set before cleanup)
         # Who ended the batch (a token's name for an operator's abort, "station" for an end it
@@ -171,6 +143,16 @@ class Sequencer:
         nxt = steps[index + 1].position if index + 1 < len(steps) else None
         for d in self.duts:
             d.begin_step(steps[index].position, prev, nxt)
+
+    @property
+    def position(self) -> int | None:
+        """Where the plate is (confirmed); None: unknown (moving, being turned, before the first move)."""
+        return self.plate.position
+
+    @property
+    def prompt(self) -> dict[str, Any] | None:
+        """The operator's open prompt (positioning.Plate)."""
+        return self.plate.prompt
 
     @property
     def step(self) -> Step | None:
@@ -213,7 +195,7 @@ class Sequencer:
             raise BatchFailed("no DUT left: every slot is faulted")
 
     # ------------------------------------------------------------ public control
-    def start(self) -> asyncio.Task:
+    def start(self) -> asyncio.Task[str]:
         self.task = asyncio.get_running_loop().create_task(self.run(), name=f"batch-{self.batch_id}")
         return self.task
 
@@ -241,7 +223,8 @@ class Sequencer:
             self.task.cancel()
 
     def answer_prompt(self, prompt_id: int, answer: str = "done", by: str | None = None, note: str = "") -> None:
-        if self.prompt is None or self._prompt_future is None:
+        future = self.plate.future
+        if self.prompt is None or future is None:
             raise ValueError("no prompt is open for this batch")
         if int(prompt_id) != self.prompt["id"]:
             raise ValueError(f"prompt {prompt_id} is not the open prompt ({self.prompt['id']})")
@@ -262,8 +245,8 @@ class Sequencer:
                 self.hw.fault_dut(self, d, reason)
             self.stop("failed", reason, by=who)
             return
-        if not self._prompt_future.done():
-            self._prompt_future.set_result(answer)
+        if not future.done():
+            future.set_result(answer)
         self.notify()
 
     # ------------------------------------------------------------ the machine
@@ -321,7 +304,7 @@ class Sequencer:
         own end is published, so a client that sees the batch ended sees its DUTs ended too.
         Returns the end state: a batch whose lamp the relay cannot confirm off has not finished."""
         self.ending = final_state
-        self.prompt = None
+        self.plate.prompt = None
         # The lamp goes off on ANY batch end (design 3.3), before anything else can fail.
         off = await asyncio.shield(self.hw.lamp.off(f"batch {self.batch_id} {final_state}"))
         if off is False and final_state == "finished":
@@ -358,10 +341,10 @@ class Sequencer:
             )
         )
         self._set_up_placement(self.step_index)
-        if step.require == "program":
+        if step.kind.machine_state == "programming":
             return "programming"
         if step.chamber_setpoint_c is not None and self.hw.chamber is not None:
-            async with _device("thermal chamber", "its power, Modbus address (unit 4) and cable/network"):
+            async with device_call("thermal chamber", "its power, Modbus address (unit 4) and cable/network"):
                 await self.hw.chamber.set_setpoint_c(step.chamber_setpoint_c)
         return "positioning"
 
@@ -370,7 +353,7 @@ class Sequencer:
         await self.hw.lamp.off(f"step {self.step_index} program")
         await self.hw.program_duts(self)
         self._ensure_live()
-        self._complete_step(lambda d: d.last_t)  # a program step spans no samples
+        self._complete_step()
         return "step_done"
 
     async def _state_positioning(self) -> str:
@@ -384,140 +367,50 @@ class Sequencer:
 
     async def _state_moving(self) -> str:
         step = self.step
-        assert step is not None and self.hw.fixture is not None
-        fx = self.hw.fixture
-        what = "its power, emergency stop, Modbus address (unit 3) and cable/network"
-        # The plate leaves its position: samples read during the move are stored with position -1
-        # (unknown) and the status says null, never the position it left (docs/design.md).
-        self.position = None
-        async with _device("fixture", what):
-            await fx.move_to(step.position)
-        deadline = time.monotonic() + self.hw.fixture_timeout_s
-        while True:
-            async with _device("fixture", what):
-                reached = await fx.position() == step.position and not await fx.moving()
-            if reached:
-                break
-            if time.monotonic() > deadline:
-                raise BatchFailed(
-                    f"fixture did not reach position {step.position_name} within {self.hw.fixture_timeout_s:g} s"
-                )
-            await asyncio.sleep(0.05)
-        self.position = step.position
+        assert step is not None
+        await self.plate.move(step)
         return "logging"
-
-    def _raise_prompt(self, step: Step, reason: str = "") -> None:
-        """Open a "turn the plate" prompt; `reason` (a re-prompt while logging): what is wrong."""
-        self._prompt_counter += 1
-        pid = self.batch_id * 1000 + self._prompt_counter
-        text = f"turn the plate to {step.position_name}"
-        if reason:
-            text = f"{reason}: {text}"
-        self.prompt = {"id": pid, "kind": "turn_plate", "text": text, "position": step.position,
-                       "position_name": step.position_name, "step_index": self.step_index,
-                       "again": bool(reason), "reason": reason or None,
-                       # the board's static reading there (g, its own frame): the page draws it
-                       "direction": [round(float(v), 6) for v in direction(step.position)]}
-        self._prompt_future = asyncio.get_running_loop().create_future()
-        self.bus.publish(PromptRaised(self.batch_id, prompt_id=pid, text=text, position=step.position))
-
-    def _close_prompt(self, answer: str) -> None:
-        """Close an open re-prompt the station no longer needs (every DUT arrived): the page hides it."""
-        if self.prompt is None:
-            return
-        pid = self.prompt["id"]
-        self.prompt = None
-        self._prompt_future = None
-        if answer != "done":  # a Done was published by answer_prompt already
-            self.bus.publish(PromptAnswered(self.batch_id, prompt_id=pid, answer=answer))
 
     async def _state_waiting_operator(self) -> str:
         step = self.step
         assert step is not None
-        self.position = None  # the operator turns the plate: unknown until confirmed (as during a move)
-        for d in self.duts:  # where the plate is before the person touches it (a wrong turn is named)
-            d.faced_before = d.placement.settled_direction()
-        self._raise_prompt(step)
-        assert self._prompt_future is not None
-        try:
-            await self._prompt_future
-        finally:
-            self.prompt = None
-            self._prompt_future = None
-        # Confirmed by a person: samples are placed at this position only where each DUT measures
-        # it (station/science/placement.py); a plate not there yet is asked for again while logging.
-        self.position = step.position
+        await self.plate.ask(step, self.step_index, self.duts)
         return "logging"
 
     async def _state_logging(self) -> str:
         step = self.step
         assert step is not None
         # Lamp per step, once the plate is where the step wants it.
-        async with _device("lamp relay", "its power, Modbus address (unit 1) and cable/network"):
+        async with device_call("lamp relay", "its power, Modbus address (unit 1) and cable/network"):
             await self.hw.lamp.set_lamp(step.lamp, f"step {self.step_index} {step.name}")
         self.step_clock_start = self.clock_s()
-        self._plate_check_wall = time.monotonic()
+        self.plate.check_wall = time.monotonic()
         resumed_step = self.step_index == self.start_step and self.start_step > 0
         for d in self.duts:
             d.step_t_start = d.last_t if d.last_t is not None else -math.inf
             d.logging_block = len(d.blocks)
-            if resumed_step and step.require == "segment":
+            if resumed_step and step.kind.counts_before_crash:
                 # The step was interrupted: a segment it logged (at its position) before the crash counts.
                 d.step_t_start = -math.inf
             # A step's requirement counts from its samples (placed after the step's setup), except
             # where the station itself changes what they measure at this moment: the batch's
             # first step (the operator's Done says the plate is loaded), a lamp switched, a heat.
             prev = self.profile.steps[self.step_index - 1] if self.step_index > self.start_step else None
-            d.begin_logging(gated=step.require == "heat" or prev is None or prev.lamp != step.lamp)
+            d.begin_logging(gated=step.kind.gated or prev is None or prev.lamp != step.lamp)
         try:
             while True:
                 self._ensure_live()
                 pending = [d for d in self.live_duts if not self.dut_step_done(d, step)]
                 if not pending:
                     break
-                self._watch_plate(step, pending)
+                self.plate.watch(step, self.step_index, pending, self.duts)
                 if self._fault_late(step, pending):
                     continue
                 await self._wait()
         finally:
-            if self.prompt is not None:
-                self._close_prompt("step ended")
-        self._complete_step(lambda d: d.requirement_start_t() if step.require != "segment" and
-                            d.requirement_start_t() is not None else d.step_t_start)
+            self.plate.close_prompt("step ended")
+        self._complete_step()
         return "step_done"
-
-    def _after(self) -> str:
-        """What confirmed the position, for the words: a person's Done or the fixture."""
-        return "the fixture reported it reached" if self.hw.fixture is not None else "Done"
-
-    def _watch_plate(self, step: Step, pending: list[DutRun]) -> None:
-        """Without a fixture, ask the person again (with the mistake in words) for a plate that is
-        not where the step wants it: plate_again_after_s of sample time after Done, or at once when
-        a DUT settles at a wrong position. A re-prompt's Done restarts that time; it closes by
-        itself once every DUT is placed."""
-        if self.hw.fixture is not None:
-            return
-        if self.prompt is not None:
-            if not plate_watch.away(pending):
-                self._close_prompt("arrived")
-            elif self._prompt_future is not None and self._prompt_future.done():
-                self._close_prompt("done")
-                for d in self.duts:  # the person says it is done again: another while to get there
-                    d.plate_check_t = d.last_t if d.last_t is not None else d.plate_check_t
-                self._plate_check_wall = time.monotonic()
-            return
-        # The while runs on both clocks: each DUT's own samples (a held plant sends none) and the
-        # station's, wall x speed plus LINK_LAG_S of wall time: the samples read just after Done were
-        # measured before it (a link's buffers; in compressed time they span many sample seconds).
-        waited_s = time.monotonic() - self._plate_check_wall
-        if waited_s < LINK_LAG_S or waited_s * self.hw.speed < self.hw.plate_again_after_s:
-            overdue = [d for d in plate_watch.away(pending) if plate_watch.wrong_turn(d, step)]
-        else:
-            overdue = plate_watch.overdue(pending, step, self.hw.plate_again_after_s)
-        if overdue:
-            reason = plate_watch.not_there_words(step, overdue, "Done")
-            log.info("batch %d: %s", self.batch_id, reason)
-            self._raise_prompt(step, reason)
 
     def _fault_late(self, step: Step, pending: list[DutRun]) -> bool:
         """Fault the DUTs past the step's timeout, each with why: a plate that never arrived at
@@ -528,33 +421,25 @@ class Sequencer:
         # The station's clock bounds them all: a board whose own clock slowed or stopped while
         # its seq ran on would otherwise hold the step (and the plate's lamp) for ever.
         station_s = self._station_step_s()
-        late = [(d, e) for d in pending if (e := self._step_elapsed_s(d)) >= step.timeout_s
+        late = [(d, e) for d in pending if (e := d.step_elapsed_s(station_s)) >= step.timeout_s
                 or station_s >= step.timeout_s * STATION_CLOCK_FACTOR]
         if not late:
             return False
-        need = {"segment": "a segment", "static": f"{step.dwell_s:g} s static", "none": "its dwell",
-                "heat": f"a +{step.heat_c:g} C rise"}[step.require]
         others_arrived = any(d.arrived_t is not None for d in self.live_duts if all(d is not x for x, _ in late))
         for d, elapsed in late:
-            if d.arrived_t is None:
-                why = plate_watch.never_arrived_reason(step, d, elapsed, others_arrived, self._after())
-            elif not d.at_step_position():
-                why = (f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {need}: the "
-                       f"plate left {step.position_name} and it {plate_watch.facing_words(d)}")
-            elif elapsed < step.timeout_s:
-                why = (f"step '{step.name}' timed out without {need}: the station's clock ran {station_s:.0f} s "
-                       f"since Done, this board's own clock {elapsed:.0f} s (a board clock that slowed or stopped?)")
-            else:
-                why = f"step '{step.name}' timed out after {elapsed:.0f} s sample time without {need}"
-            self.hw.fault_dut(self, d, why)
+            self.hw.fault_dut(self, d, plate_watch.timed_out_reason(step, d, elapsed, station_s, others_arrived,
+                                                                     self.plate.after()))
         return True
 
-    def _complete_step(self, window_start: Callable[[DutRun], float]) -> None:
-        """Record each DUT's sample-time window of this step (from window_start(d) to its latest
-        sample), count the step for the live DUTs and publish StepCompleted with their windows."""
+    def _complete_step(self) -> None:
+        """Record each DUT's sample-time window of this step (from where the step's kind says it
+        starts to its latest sample), count the step for the live DUTs and publish StepCompleted
+        with their windows."""
+        step = self.step
+        assert step is not None
         for d in self.duts:
             if d.last_t is not None:
-                d.step_windows[self.step_index] = (window_start(d), d.last_t)
+                d.step_windows[self.step_index] = (step.kind.window_start(d), d.last_t)
         for d in self.live_duts:
             d.steps_done += 1
         self.bus.publish(StepCompleted(
@@ -567,30 +452,9 @@ class Sequencer:
         """The station's clock in the current step: the batch's sample clock since Done."""
         return self.clock_s() - self.step_clock_start
 
-    def _step_elapsed_s(self, d: DutRun) -> float:
-        """Sample time this DUT has spent in the current step (its own board clock): since it
-        arrived at the step's position, or, until it does, since the step began logging (Done).
-        A board whose first sample of the step came after Done counts from that sample
-        (DutRun.step_clock_start_t): judged on the fastest board's clock, a link that lagged at
-        the batch's start would be faulted 'without a segment' while it was still averaging at the
-        position. Its first samples may have been measured before Done (a backlog), so its own
-        figure is an upper bound, as is the batch's clock since Done: the smaller one counts, and
-        such a board is never timed out sooner than on the batch's clock. Only a board that has
-        delivered nothing since is timed on the batch's clock alone (the stall watchdog faults a
-        silent one long before)."""
-        batch_s = self._station_step_s()
-        start = d.step_clock_start_t()
-        if d.last_t is None or start is None:
-            return batch_s
-        if d.arrived_t is not None:
-            start = max(d.arrived_t, start)
-        if not math.isfinite(d.step_t_start):  # its board time at Done is unknown
-            return min(d.last_t - start, batch_s)
-        return d.last_t - start
-
     def dut_step_done(self, d: DutRun, step: Step) -> bool:
-        """Has this DUT logged what the step requires (dut_run.DutRun.step_done)?"""
-        return d.step_done(step, self.step_index)
+        """Has this DUT logged what the step requires (the step's kind: station/steps)?"""
+        return step.kind.done(d, step, self.step_index)
 
     async def _state_step_done(self) -> str:
         if self.step_index + 1 < len(self.profile.steps):
@@ -618,5 +482,5 @@ class Sequencer:
     def dut_counts(self) -> dict[str, int]:
         return batch_view.dut_counts(self)
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         return batch_view.status(self)
