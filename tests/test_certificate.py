@@ -142,7 +142,7 @@ def test_cli_writes_certificate_pdf_with_serial_verdict_coefficients(store, tmp_
     db, path, written = store
     w = written[0]
     out = tmp_path / "cert.pdf"
-    r = subprocess.run([sys.executable, "-m", "station.cli", "certificate", w["serial"], "--db", str(path), "--out", str(out)],
+    r = subprocess.run([sys.executable, "-m", "cli", "certificate", w["serial"], "--db", str(path), "--out", str(out)],
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     assert out.read_bytes().startswith(b"%PDF")
@@ -159,7 +159,7 @@ def test_cli_writes_certificate_pdf_with_serial_verdict_coefficients(store, tmp_
     png = ARTIFACTS / "certificate.png"
     assert png.stat().st_size > 20_000  # a page with a table and three plots, not a blank page
     # unknown serial: one line, exit 2
-    r = subprocess.run([sys.executable, "-m", "station.cli", "certificate", "NOPE", "--db", str(path)],
+    r = subprocess.run([sys.executable, "-m", "cli", "certificate", "NOPE", "--db", str(path)],
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 2 and "no DUT with serial 'NOPE'" in r.stderr and "Traceback" not in r.stderr
 

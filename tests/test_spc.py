@@ -314,8 +314,8 @@ def test_every_measurement_the_verdicts_use_has_words_and_a_unit():
     names = {m.name for m in made}
     names |= {lim.measurement for spec in L.default_products().values() for lim in spec.limits}
     names |= {g.measurement for spec in L.default_products().values() for gr in spec.grades for g in gr.limits}
-    names |= {r if isinstance(r, str) else r.measurement for r in V.PROGRAM_VERIFY_REQUIREMENTS}
-    names |= {n for req in V.ANALYSIS_REQUIREMENTS.values() for n in req}
+    names |= {r if isinstance(r, str) else r.measurement for a in ("thermal", "sfem", "none")
+              for r in V.profile_requirements(a, program_verify=True)}
     assert len(names) >= 17
     missing = sorted(names - set(parameter_names.WORDS))
     assert missing == [], f"no words for {missing}"

@@ -11,6 +11,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, WithJsonSchema
 
+from station.decisions.measurements import declared
+from station.decisions.verdicts import VERDICTS
+
 FREE_FORM = "x-free-form"  # marks a documented free-form map in the document (its keys are data)
 
 
@@ -52,7 +55,7 @@ def one_of(values: tuple[str, ...], description: str, *, nullable: bool = True, 
     return Field(description=description, json_schema_extra={"enum": enum}, **kw)
 
 
-VerdictName = Literal["pass", "marginal", "fail", "error"]
+VerdictName = Literal["pass", "marginal", "fail", "error"]  # station/decisions/verdicts.py VERDICTS (tested)
 
 
 class PerAxis(_Out):
@@ -136,24 +139,26 @@ class ProgramVerifyOut(_Out):
 
 
 class CheckOut(_Out):
-    """One measurement against one limit (station/decisions/verdicts.py Check)."""
+    """One measurement against one limit (station/decisions/verdicts.py Check; its fields: CHECK_FIELDS)."""
 
-    measurement: str = Field(description="what was judged, e.g. tdb_mg_per_c, drift_error_fs_pct")
+    measurement: str = Field(description="what was judged: one of the station's measurements (station/decisions/"
+                             "measurements.py: " + ", ".join(d.name for d in declared()) + ") or a site limit's own")
     axis: str | None = Field(default=None, description="x, y, z, or null for a whole-DUT measurement")
     value: float | None = Field(default=None, description="the measured value, in `unit`")
     sigma: float | None = Field(default=None, description="its combined 1-sigma uncertainty, in `unit`")
     unit: str = Field(default="", description="unit of value, sigma, low and high (e.g. mg/C, ppm/C, %FS)")
     low: float | None = Field(default=None, description="lower limit, in `unit` (null: none)")
     high: float | None = Field(default=None, description="upper limit, in `unit` (null: none)")
-    outcome: str = one_of(("pass", "marginal", "fail", "error"), "this check's outcome", nullable=False)
+    outcome: str = one_of(VERDICTS, "this check's outcome", nullable=False)
     reason: str = Field(default="", description="plain words when it did not pass")
 
 
 class DecisionOut(_Out):
     """The station's decision on one run as the daemon and the MES record carry it
-    (station/decisions/verdicts.py Verdict.to_json + attempt and run_id, station/decisions/moment.py)."""
+    (station/decisions/verdicts.py Verdict.to_json: VERDICT_FIELDS; + attempt and run_id,
+    station/decisions/moment.py)."""
 
-    verdict: str | None = one_of(("pass", "marginal", "fail", "error"), "the verdict", default=None)
+    verdict: str | None = one_of(VERDICTS, "the verdict", default=None)
     grade: str | None = Field(default=None, description="bin from the product's config; hold, reject, retest")
     tray: str | None = Field(default=None, description="where the operator puts the board")
     reason: str | None = Field(default=None, description="one line: the worst reasons (at most 3) or 'all limits met'")
@@ -170,7 +175,8 @@ class DecisionOut(_Out):
 
 
 class DecisionFields(_Out):
-    """The station's decision on a DUT run (station/decisions/verdicts.py); null while it is not judged."""
+    """The station's decision on a DUT run (station/decisions/verdicts.py DECISION_FIELDS); null while it is not
+    judged."""
 
     verdict: VerdictName | None = Field(
         default=None, description="pass | marginal (an uncertainty interval crosses a limit, or a value is in a "

@@ -6,20 +6,10 @@ run, so a verdict can always be traced to the numbers it was judged against. A s
 adds products under `[products.NAME]` in the station TOML; a site product with a built-in's name
 replaces it (bump `version` when you change a number).
 
-Measurement names (units in the names, per axis x/y/z unless said otherwise), see station/decisions/verdicts.py:
-    tdb_mg_per_c, tdsf_ppm_per_c            thermal coefficients (offline fit, with 1-sigma)
-    drift_error_fs_pct, drift_error_mg      residual drift after compensation over the operating
-                                            range, eqs. 10-12, predicted from the fit (with 1-sigma)
-    bow_mg                                  curvature the linear model cannot compensate (model failure)
-    ramp_residual_rms_mg                    the DUT's own ramp data about the compensated model
-    fit_agreement_tdb_mg_per_c, fit_agreement_tdsf_ppm_per_c   |streaming - offline|
-    noise_ug_per_sqrt_hz                    noise density
-    lost_samples_pct, link_errors           per DUT (no axis)
-    sfem_bias_mg, sfem_scale_error_pct      SFEM (sensors2023) bias and |scale - 1|
-    verified_drift_error_fs_pct             E of the compensated output measured by program-and-verify
-    verify_failed_axes                      axes whose compensated output fails the verification rules
-    program_crc_match, compensation_on      1/0: readback CRC equal to the written one; compensation on
-                                            (fixed contract checks of a verified profile, station/decisions/verdicts.py)
+Measurement names, units, axes and words are declared once in station/decisions/measurements.py
+(tdb_mg_per_c, tdsf_ppm_per_c, drift_error_fs_pct, bow_mg, ..., docs/verdicts.md "Limits as data");
+a built-in limit takes its unit, its label (the operator's words) and the analysis it applies to
+from there. A site's limit names its own (or any other measurement a run reports).
 
 Version 2 of the built-in sets (this change): grades are judged with the spec's systematic term and
 a part meeting no grade is its own outcome (no_grade_tray), not the last grade.
@@ -30,6 +20,10 @@ from __future__ import annotations
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from station.decisions.measurements import (BOW, DRIFT_ERROR_FS, FIT_AGREEMENT_TDB, FIT_AGREEMENT_TDSF, LINK_ERRORS,
+                                            LOST_SAMPLES, NOISE, RAMP_RESIDUAL, SFEM_BIAS, SFEM_SCALE_ERROR, TDB, TDSF,
+                                            VERIFIED_DRIFT_ERROR_FS, VERIFY_FAILED_AXES, MeasurementDef)
 
 AxisName = Literal["x", "y", "z"]
 
@@ -101,10 +95,11 @@ class ProductSpec(_Model):
                                description="a part inside the limits that meets no grade (verdict fail, grade 'none')")
 
 
-def _lim(measurement: str, unit: str, label: str, low=None, high=None, marginal=0.0, required=False,
-         analysis="thermal", axes=None, u_sys=0.0, evidence_sigma=0.0) -> Limit:
-    return Limit(measurement=measurement, unit=unit, label=label, low=low, high=high, marginal=marginal,
-                 required=required, analysis=analysis, axes=axes, u_sys=u_sys, evidence_sigma=evidence_sigma)
+def _lim(m: MeasurementDef, low: float | None = None, high: float | None = None, marginal: float = 0.0,
+         required: bool = False, u_sys: float = 0.0, evidence_sigma: float = 0.0) -> Limit:
+    """A built-in limit on a declared measurement: its unit, label and analysis are the declaration's."""
+    return Limit(measurement=m.name, unit=m.unit, label=m.label, low=low, high=high, marginal=marginal,
+                 required=required, analysis=m.analysis, axes=None, u_sys=u_sys, evidence_sigma=evidence_sigma)
 
 
 # The curvature hold needs the data to reject the linear model: |bow| >= 4 of its sigmas (the
@@ -132,14 +127,14 @@ U_SYS_TDSF_PPM_PER_C = 0.5
 
 def _common(noise_high: float, lost_pct: float = 1.0, link_errors: float = 50) -> list[Limit]:
     return [
-        _lim("fit_agreement_tdb_mg_per_c", "mg/C", "streaming vs offline TDB", high=0.15),
-        _lim("fit_agreement_tdsf_ppm_per_c", "ppm/C", "streaming vs offline TDSF", high=150.0),
-        _lim("noise_ug_per_sqrt_hz", "ug/sqrt(Hz)", "noise", high=noise_high, analysis="any"),
-        _lim("lost_samples_pct", "%", "lost samples", high=lost_pct, analysis="any"),
-        _lim("link_errors", "frames", "link errors", high=link_errors, analysis="any"),
-        _lim("verified_drift_error_fs_pct", "%FS", "verified drift E_FS", high=1.0, analysis="any"),
+        _lim(FIT_AGREEMENT_TDB, high=0.15),
+        _lim(FIT_AGREEMENT_TDSF, high=150.0),
+        _lim(NOISE, high=noise_high),
+        _lim(LOST_SAMPLES, high=lost_pct),
+        _lim(LINK_ERRORS, high=link_errors),
+        _lim(VERIFIED_DRIFT_ERROR_FS, high=1.0),
         # program and verify: axes whose compensated output still drifts (ratio or curvature rule)
-        _lim("verify_failed_axes", "axes", "axes failing the verification", high=0.0, analysis="any"),
+        _lim(VERIFY_FAILED_AXES, high=0.0),
     ]
 
 
@@ -149,28 +144,28 @@ def default_products() -> dict[str, ProductSpec]:
         name="LIS3DSH-default", version="2", sensor="LIS3DSH",
         limits=[
             # martinez2022 Table 6 (LIS3DSH population): TDB -1.2..1.4 mg/C -> +-1.5 mg/C
-            _lim("tdb_mg_per_c", "mg/C", "TDB", low=-1.5, high=1.5, marginal=0.05, required=True,
+            _lim(TDB, low=-1.5, high=1.5, marginal=0.05, required=True,
                  u_sys=U_SYS_TDB_MG_PER_C),
             # Table 6: TDSF 0..-500 ppm/C (positive values are clamped to 0 by the method)
-            _lim("tdsf_ppm_per_c", "ppm/C", "TDSF", low=-500.0, marginal=10.0, required=True,
+            _lim(TDSF, low=-500.0, marginal=10.0, required=True,
                  u_sys=U_SYS_TDSF_PPM_PER_C),
             # Table 7: after the fast compensation every axis but one is under 1 % FS (eq. 12)
-            _lim("drift_error_fs_pct", "%FS", "drift E_FS", high=1.0, marginal=0.05, required=True),
+            _lim(DRIFT_ERROR_FS, high=1.0, marginal=0.05, required=True),
             # a bow over 3 mg over 70 C is a model the data reject (linear parts here bow < ~1 mg);
             # held only on evidence of curvature (docs/verdicts.md "Curvature")
-            _lim("bow_mg", "mg", "curvature bow", high=3.0, required=True, evidence_sigma=CURVATURE_EVIDENCE_SIGMA),
-            _lim("ramp_residual_rms_mg", "mg", "ramp residual", high=1.5),
+            _lim(BOW, high=3.0, required=True, evidence_sigma=CURVATURE_EVIDENCE_SIGMA),
+            _lim(RAMP_RESIDUAL, high=1.5),
             # LIS3DSH datasheet zero-g offset +-60 mg typ. (sensors2023 Table 6 spreads to ~80 mg)
-            _lim("sfem_bias_mg", "mg", "bias", low=-100.0, high=100.0, analysis="sfem"),
-            _lim("sfem_scale_error_pct", "%", "scale error", high=5.0, analysis="sfem"),
+            _lim(SFEM_BIAS, low=-100.0, high=100.0),
+            _lim(SFEM_SCALE_ERROR, high=5.0),
             # datasheet 150 ug/sqrt(Hz) typ.; the station's estimate at 3.125 Hz ODR includes the
             # 60 ug quantization (~400 on the simulated boards): 600 catches a noisy part
             *_common(noise_high=600.0),
         ],
         grades=[
             Grade(name="A", limits=[
-                _lim("drift_error_fs_pct", "%FS", "drift E_FS", high=0.5),  # Table 7 mean 0.61 %
-                _lim("tdb_mg_per_c", "mg/C", "TDB", low=-1.0, high=1.0),
+                _lim(DRIFT_ERROR_FS, high=0.5),  # Table 7 mean 0.61 %
+                _lim(TDB, low=-1.0, high=1.0),
             ]),
             Grade(name="B"),
         ],
@@ -179,21 +174,21 @@ def default_products() -> dict[str, ProductSpec]:
         name="ADXL355-default", version="2", sensor="ADXL355",
         limits=[
             # ADXL355 datasheet: offset vs temperature +-0.15 mg/C max
-            _lim("tdb_mg_per_c", "mg/C", "TDB", low=-0.15, high=0.15, marginal=0.01, required=True,
+            _lim(TDB, low=-0.15, high=0.15, marginal=0.01, required=True,
                  u_sys=U_SYS_TDB_MG_PER_C),
             # datasheet: sensitivity change +-0.01 %/C = +-100 ppm/C
-            _lim("tdsf_ppm_per_c", "ppm/C", "TDSF", low=-100.0, high=100.0, marginal=5.0, required=True,
+            _lim(TDSF, low=-100.0, high=100.0, marginal=5.0, required=True,
                  u_sys=U_SYS_TDSF_PPM_PER_C),
-            _lim("drift_error_fs_pct", "%FS", "drift E_FS", high=0.25, marginal=0.02, required=True),
-            _lim("bow_mg", "mg", "curvature bow", high=1.0, required=True, evidence_sigma=CURVATURE_EVIDENCE_SIGMA),
-            _lim("ramp_residual_rms_mg", "mg", "ramp residual", high=0.5),
-            _lim("sfem_bias_mg", "mg", "bias", low=-75.0, high=75.0, analysis="sfem"),  # datasheet +-75 mg
-            _lim("sfem_scale_error_pct", "%", "scale error", high=2.0, analysis="sfem"),
+            _lim(DRIFT_ERROR_FS, high=0.25, marginal=0.02, required=True),
+            _lim(BOW, high=1.0, required=True, evidence_sigma=CURVATURE_EVIDENCE_SIGMA),
+            _lim(RAMP_RESIDUAL, high=0.5),
+            _lim(SFEM_BIAS, low=-75.0, high=75.0),  # datasheet +-75 mg
+            _lim(SFEM_SCALE_ERROR, high=2.0),
             # datasheet 25 ug/sqrt(Hz)
             *_common(noise_high=40.0),
         ],
         grades=[
-            Grade(name="A", limits=[_lim("drift_error_fs_pct", "%FS", "drift E_FS", high=0.1)]),
+            Grade(name="A", limits=[_lim(DRIFT_ERROR_FS, high=0.1)]),
             Grade(name="B"),
         ],
     )

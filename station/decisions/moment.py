@@ -1,20 +1,22 @@
 """Hooks between the daemon and the decision (station/decisions/verdicts.py, which stays pure).
 
 The verdict's moment (design 8): a run is judged ONCE, when it ends, from everything it stored
-(`verdicts.final_verdict` of a `RunRecord`), never earlier. The supervisor calls:
-- `judge_final(ctx, seq)` when the batch releases its DUTs, after every DUT's end state is set
-  (done, faulted, interrupted by an abort, a failure, a daemon stop): each run gets its verdict, on
-  the DUT for the batch status and as one DutVerdict event: the one record the database numbers for
-  the MES (result_seq) and the webhook sends. The analysis before it publishes results WITHOUT a
-  verdict, so a later fault, abort or failed verification can never leave a pass behind;
-- `judge_interrupted_runs(ctx, batch_ids)` at daemon start, for the runs a killed daemon left
-  running (marked interrupted by the database): error, "interrupted: station restarted". A batch
-  resumed later judges its runs again at its end: a new record that supersedes the error;
+(`verdicts.final_verdict` of a `RunRecord`), never earlier. The daemon calls:
+- `judge_final(ctx, seq)` when the batch releases its DUTs (station/daemon/run_end.py
+  `RunEnd.release_duts`, its last line), after every DUT's end state is set (done, faulted,
+  interrupted by an abort, a failure, a daemon stop): each run gets its verdict, on the DUT for
+  the batch status and as one DutVerdict event: the one record the database numbers for the MES
+  (result_seq) and the webhook sends. The analysis before it publishes results WITHOUT a verdict,
+  so a later fault, abort or failed verification can never leave a pass behind;
+- `judge_interrupted_runs(ctx, batch_ids)` at daemon start (`Station.judge_interrupted`), for the
+  runs a killed daemon left running (marked interrupted by the database): error, "interrupted:
+  station restarted". A batch resumed later judges its runs again at its end: a new record that
+  supersedes the error;
 (The batch status's verdict counts, sorting list and time left are station/daemon/progress.py.)
 Profiles without analysis (validation) are not judged, at the end or at a restart: nothing was
 measured for a verdict. A batch whose profile is known neither to the station nor to the config
 stored with the batch is not judged at a restart either (logged): guessing "thermal" sent
-validation runs to the MES as errors (issue 35).
+validation runs to the MES as errors (verdict_context.py says how).
 
 `ctx` is a VerdictContext (verdict_context.py): every part of the station read here, typed, so a
 renamed station attribute fails where the Station is built, not at a restart.
@@ -23,9 +25,11 @@ renamed station attribute fails where the Station is built, not at a restart.
 from __future__ import annotations
 
 import logging
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from contracts.events import DutVerdict
+from contracts.types import Identity
 from station.config import ProfileConfig
 from station.decisions.limits import ProductSpec
 from station.decisions.verdict_context import EndedBatch, VerdictContext, VerdictStore
@@ -33,20 +37,32 @@ from station.decisions.verdicts import RunRecord, final_verdict
 from station.profiles import Profile, profile_from_config
 from station.science.residual import DEFAULT_OPERATING_RANGE_C
 
+if TYPE_CHECKING:  # the records the moment reads, never builds
+    from station.daemon.dut_run import DutRun
+
 log = logging.getLogger("station.decisions.moment")
 
+# A DUT's identity as the moment meets it: the board's reply on a live run, the dict stored with a
+# run the database hands back at a restart, or nothing (a board that never answered).
+IdentityLike = Identity | Mapping[str, object] | None
 
-def _sensor(identity: Any) -> str | None:
+
+def _sensor(identity: IdentityLike) -> str | None:
     """The sensor of an identity (contracts.types.Identity, or the dict stored with a run)."""
-    return identity.get("sensor") if isinstance(identity, dict) else getattr(identity, "sensor", None)
+    if identity is None:
+        return None
+    if isinstance(identity, Identity):
+        return identity.sensor
+    sensor = identity.get("sensor")
+    return sensor if isinstance(sensor, str) else None
 
 
-def spec_of(ctx: VerdictContext, identity: Any, part_number: str = "") -> ProductSpec | None:
+def spec_of(ctx: VerdictContext, identity: IdentityLike, part_number: str = "") -> ProductSpec | None:
     """The product whose limits judge this DUT: its batch's part number first, else its sensor."""
     return ctx.product_for(_sensor(identity), part_number or None)
 
 
-def operating_range_c(ctx: VerdictContext, identity: Any, part_number: str = "") -> float:
+def operating_range_c(ctx: VerdictContext, identity: IdentityLike, part_number: str = "") -> float:
     """Full Range of eq. 10 for this DUT's product (default 70 C, martinez2022's -10..60 C)."""
     spec = spec_of(ctx, identity, part_number)
     return float(spec.operating_range_c) if spec is not None else DEFAULT_OPERATING_RANGE_C
@@ -67,18 +83,18 @@ def attempt_of(db: VerdictStore, run_id: int | None) -> int | None:
         return None
 
 
-def _link_stats(ctx: VerdictContext, d: Any) -> dict:
+def _link_stats(ctx: VerdictContext, d: DutRun) -> dict[str, Any]:
     live = ctx.live_link_stats(d.slot)
     return dict(live) if live is not None else dict(d.link_stats or {})
 
 
-def slim(v: dict) -> dict:
+def slim(v: Mapping[str, object]) -> dict[str, object]:
     """The verdict without the list of every passing check: what the batch status carries for each
     slot (polled by every page; the full list is stored with the run, verdict_detail)."""
     return {k: x for k, x in v.items() if k != "checks"}
 
 
-def end_of(seq: Any, d: Any) -> tuple[str, str]:
+def end_of(seq: EndedBatch, d: DutRun) -> tuple[str, str]:
     """(end state, reason) of a DUT run once its batch has released it. Only a DUT that ended
     `done` in a batch that finished can pass; every other end names why it is error."""
     ending = seq.ending or seq.state
@@ -92,15 +108,19 @@ def end_of(seq: Any, d: Any) -> tuple[str, str]:
     return (d.state if d.state != "done" else ending), f"{why}, DUT incomplete"
 
 
-def run_record(ctx: VerdictContext, seq: EndedBatch, d: Any) -> RunRecord:
+def run_record(ctx: VerdictContext, seq: EndedBatch, d: DutRun) -> RunRecord:
+    """The run as the verdict reads it: its records in the JSON form they are stored in, so a run
+    judged live and one judged again from the database read the very same figures (readings.py
+    reads them by each measurement's declaration)."""
     state, why = end_of(seq, d)
     return RunRecord(analysis=seq.profile.analysis, program_verify=seq.profile.program_step is not None,
-                     end_state=state, end_reason=why, result=d.result, link_stats=_link_stats(ctx, d),
-                     n_samples=int(d.n_samples), program=d.program, verification=d.verification)
+                     end_state=state, end_reason=why, result=None if d.result is None else d.result.to_json(),
+                     link_stats=_link_stats(ctx, d), n_samples=int(d.n_samples),
+                     program=None if d.program is None else d.program.to_json(), verification=d.verification)
 
 
 def _judge(ctx: VerdictContext, batch_id: int, slot: str, serial: str | None, run_id: int | None, run: RunRecord,
-           spec: ProductSpec | None, attempt: int | None) -> dict:
+           spec: ProductSpec | None, attempt: int | None) -> dict[str, Any]:
     """The final verdict of one run as the MES record carries it; published when the run exists.
     No database call: the verdict must go out (to the journal) while the database is down."""
     v = final_verdict(run, spec).to_json()
@@ -123,13 +143,14 @@ def judge_final(ctx: VerdictContext, seq: EndedBatch) -> None:
                                 spec_of(ctx, d.identity, part), d.attempt))
 
 
-def profile_of_batch(ctx: VerdictContext, name: str, snapshot: dict | None) -> Profile | None:
+def profile_of_batch(ctx: VerdictContext, name: str, snapshot: Mapping[str, object] | None) -> Profile | None:
     """The profile a stored batch ran: the station's by name, else the one in the config stored
     with the batch (a site profile removed from the config since); None when neither knows it."""
     prof = ctx.profiles.get(name)
     if prof is not None:
         return prof
-    stored = ((snapshot or {}).get("profiles") or {}).get(name)
+    profiles = (snapshot or {}).get("profiles")
+    stored = profiles.get(name) if isinstance(profiles, dict) else None
     if not isinstance(stored, dict):
         return None
     try:

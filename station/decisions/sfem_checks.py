@@ -1,8 +1,8 @@
 """What the verdict reads from an SFEM result (pure: the stored record in, plain figures out).
 
 Why a module of its own: the SFEM record has its own typed shape (contracts/sfem_result.py), its
-own choice of step and its own model check; station/decisions/verdicts.py turns these figures into
-Measurements and Checks without knowing the record's layout (and stays short).
+own choice of step and its own model check; the verdict (readings.py, checks.py) takes its
+Measurements (declared in measurements.py) and its mark without knowing the record's layout.
 
 Which step is judged: the step nearest the record's t_ref_c (25 C, or the profile's
 sfem_reference_temp_c): the temperature the product's SFEM limits are written for, whichever
@@ -22,15 +22,19 @@ its own limit judges it instead of the mark.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from contracts.json_safe import finite_or_none
 from contracts.sfem_result import SfemResult
 from contracts.types import AXES
+from station.decisions.measurements import (SFEM_BIAS, SFEM_HELDOUT_RMSE, SFEM_RESIDUAL_RATIO, SFEM_SCALE_ERROR,
+                                            Measurement)
 
-RESIDUAL_RATIO = "sfem_residual_ratio"
-RESIDUAL_RATIO_UNIT = "x noise"
+RESIDUAL_RATIO = SFEM_RESIDUAL_RATIO.name
+RESIDUAL_RATIO_UNIT = SFEM_RESIDUAL_RATIO.unit
 
 
-def parsed(result: dict | None) -> SfemResult | None:
+def parsed(result: Mapping[str, object] | None) -> SfemResult | None:
     """The record, or None when there is none or it has another shape (module doc)."""
     if not result:
         return None
@@ -40,33 +44,32 @@ def parsed(result: dict | None) -> SfemResult | None:
         return None
 
 
-def sfem_figures(result: dict | None) -> list[tuple[str, float | None, str, str | None, float | None, str]]:
-    """(name, value, unit, axis, sigma, source) of the judged step (nearest t_ref_c): bias (mg) and
-    |scale - 1| (%) per axis with their 1-sigma, the step's held-out |a| - 1 g RMSE (mg), and the
-    worst step's residual ratio (the model check's number)."""
+def sfem_figures(result: Mapping[str, object] | None) -> list[Measurement]:
+    """The judged step's figures (nearest t_ref_c): bias (mg) and |scale - 1| (%) per axis with
+    their 1-sigma, the step's held-out |a| - 1 g RMSE (mg), and the worst step's residual ratio
+    (the model check's number); declared in station/decisions/measurements.py."""
     rec = parsed(result)
     if rec is None:
         return []
     st = rec.reference
     src = f"sfem step {st.temp_c:.1f} C (nearest {rec.t_ref_c:g} C)"
-    out: list[tuple[str, float | None, str, str | None, float | None, str]] = []
+    out: list[Measurement] = []
     for k, ax in enumerate(AXES):
         b, sb = st.bias_g[k], st.bias_sigma_g[k]
         if b is not None:
-            out.append(("sfem_bias_mg", b * 1e3, "mg", ax, None if sb is None else sb * 1e3, src))
+            out.append(SFEM_BIAS.measured(b * 1e3, ax, None if sb is None else sb * 1e3, src))
         sc, ss = st.scale[k], st.scale_sigma[k]
         if sc is not None:
-            out.append(("sfem_scale_error_pct", abs(sc - 1.0) * 100.0, "%", ax, None if ss is None else ss * 100.0, src))
+            out.append(SFEM_SCALE_ERROR.measured(abs(sc - 1.0) * 100.0, ax, None if ss is None else ss * 100.0, src))
     if st.rmse_heldout_mg is not None:
-        out.append(("sfem_heldout_rmse_mg", st.rmse_heldout_mg, "mg", None, None, src))
+        out.append(SFEM_HELDOUT_RMSE.measured(st.rmse_heldout_mg, None, None, src))
     worst = rec.worst
     if worst.residual_ratio is not None:
-        out.append((RESIDUAL_RATIO, worst.residual_ratio, RESIDUAL_RATIO_UNIT, None, None,
-                    f"sfem step {worst.temp_c:.1f} C"))
+        out.append(SFEM_RESIDUAL_RATIO.measured(worst.residual_ratio, None, None, f"sfem step {worst.temp_c:.1f} C"))
     return out
 
 
-def sfem_fit_mark(result: dict | None) -> tuple[float | None, str] | None:
+def sfem_fit_mark(result: Mapping[str, object] | None) -> tuple[float | None, str] | None:
     """(worst residual ratio, its words) for the verdict's mark (module doc); None without a record."""
     rec = parsed(result)
     if rec is None:

@@ -1,6 +1,6 @@
 """What the verdict's moment (moment.py) reads of the station and of a batch, as typed values.
 
-Issue 35: the moment read the station by attribute name (`getattr(station, "_profiles", {})`), an
+Why typed: the moment once read the station by attribute name (`getattr(station, "_profiles", {})`), an
 attribute the Station never had. The silent default judged every run a killed daemon left behind as
 a thermal profile's, so after each restart a validation run (a profile with no analysis, never to be
 judged) went to the MES as `error` and first-pass yield dropped. Nothing failed; no test noticed.
@@ -18,8 +18,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
+from contracts.events import Event
 from contracts.trace import Trace
 from station.decisions.limits import ProductSpec
 from station.profiles import Profile
@@ -54,16 +55,16 @@ class VerdictStore(Protocol):
 class Publisher(Protocol):
     """Where a verdict goes: the event bus (its DutVerdict is the one record the MES gets)."""
 
-    def publish(self, event: Any) -> None: ...
+    def publish(self, event: Event) -> None: ...
 
 
 # (sensor, part number) -> the product whose limits judge the DUT (StationConfig.product_for)
 ProductLookup = Callable[[str | None, str | None], ProductSpec | None]
 # slot -> its live link's counters now (None: no driver; the run's stored counters are used)
-LinkStatsLookup = Callable[[str], "dict | None"]
+LinkStatsLookup = Callable[[str], "Mapping[str, int] | None"]
 
 
-def no_live_links(slot: str) -> dict | None:
+def no_live_links(slot: str) -> Mapping[str, int] | None:
     """A station without live links (a test, a records-only tool): the runs' own counters count."""
     return None
 
@@ -120,16 +121,36 @@ class EndedBatch(Protocol):
     def trace(self) -> Trace: ...
 
 
-def slot_link_stats(slots: Mapping[str, Any]) -> LinkStatsLookup:
+class LinkCounters(Protocol):
+    """A link's counters (drivers.base.LinkStats)."""
+
+    def as_dict(self) -> dict[str, int]: ...
+
+
+class CountingDriver(Protocol):
+    """A board driver, for its link's counters (drivers.base.BoardDriver)."""
+
+    @property
+    def stats(self) -> LinkCounters: ...
+
+
+class LinkedSlot(Protocol):
+    """A station slot, for its driver (station/daemon/slots.py SlotRuntime; None: not connected)."""
+
+    @property
+    def driver(self) -> CountingDriver | None: ...
+
+
+def slot_link_stats(slots: Mapping[str, LinkedSlot]) -> LinkStatsLookup:
     """The live counters of each slot's link (its driver's `stats`), for a station's slots."""
 
-    def stats(slot: str) -> dict | None:
-        drv = getattr(slots.get(slot), "driver", None)
-        counters = getattr(drv, "stats", None)
-        return counters.as_dict() if counters is not None else None
+    def stats(slot: str) -> Mapping[str, int] | None:
+        rt = slots.get(slot)
+        drv = rt.driver if rt is not None else None
+        return drv.stats.as_dict() if drv is not None else None
 
     return stats
 
 
 __all__ = ["VerdictContext", "VerdictStore", "Publisher", "EndedBatch", "ProductLookup", "LinkStatsLookup",
-           "no_live_links", "slot_link_stats"]
+           "LinkCounters", "CountingDriver", "LinkedSlot", "no_live_links", "slot_link_stats"]

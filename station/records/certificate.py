@@ -1,4 +1,4 @@
-"""Calibration certificate of one DUT (issues 13 and 22): what was measured on which station, by
+"""Calibration certificate of one DUT: what was measured on which station, by
 whom, with which firmware, profile and limits version; the coefficients with their expanded
 uncertainty; EVERY check the verdict used (failing first); program-and-verify when done; and the
 statements ISO/IEC 17025:2017 clause 7.8 asks of a calibration certificate: unique id and "page x
@@ -29,12 +29,14 @@ from typing import Any, Iterable
 
 from contracts.json_safe import finite_or_none as _f
 from contracts.types import AXES
+from station.decisions.judging import RANK
+from station.decisions.measurements import TDB, TDSF
 from station.records.certificate_sfem import sfem_coefficients, sfem_lines
 
 COVERAGE_K = 2.0  # coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law)
 DEFAULT_GUARD_SIGMA = 2.0  # spec_limits.ProductSpec.guard_sigma's default, when the stored config lacks the set
 # worst first: a reader of page 1 sees what failed (the rank of station/decisions/verdicts.py)
-OUTCOME_ORDER = ("error", "fail", "marginal", "pass")
+OUTCOME_ORDER = tuple(sorted(RANK, key=RANK.__getitem__, reverse=True))  # error, fail, marginal, pass
 
 
 @dataclass(frozen=True)
@@ -178,11 +180,11 @@ def _coefficients(thermal_by_method: dict, preferred: str | None, sfem: dict | N
         a = res.get(ax) or {}
         if not a:
             continue
-        out.append(Coefficient("TDB", ax, _f(a.get("tdb_mg_per_c")), _f(a.get("tdb_sigma_mg_per_c")), "mg/°C",
-                               preferred or "", u_combined=_check_sigma(checks, "tdb_mg_per_c", ax)))
-        out.append(Coefficient("TDSF", ax, _f(a.get("tdsf_ppm_per_c")), _f(a.get("tdsf_sigma_ppm_per_c")), "ppm/°C",
+        out.append(Coefficient(TDB.label, ax, _f(a.get(TDB.name)), _f(a.get(TDB.sigma_key)), TDB.shown_unit,
+                               preferred or "", u_combined=_check_sigma(checks, TDB.name, ax)))
+        out.append(Coefficient(TDSF.label, ax, _f(a.get(TDSF.name)), _f(a.get(TDSF.sigma_key)), TDSF.shown_unit,
                                preferred or "", "clamped to 0 (not observable)" if a.get("tdsf_clamped") else "",
-                               u_combined=_check_sigma(checks, "tdsf_ppm_per_c", ax)))
+                               u_combined=_check_sigma(checks, TDSF.name, ax)))
     # SFEM: the step nearest Tref and the thermal model's drift (station/records/certificate_sfem.py)
     for name, ax, value, sigma, unit, note, check, k in sfem_coefficients(sfem):
         u = None if check is None else _check_sigma(checks, check, ax)

@@ -20,13 +20,13 @@ from typing import Any, Iterable
 
 from contracts.positions import FACING_MAX_ANGLE_DEG
 from contracts.types import AXES, T_REF_C
+from station.decisions.measurements import FLAG_UNIT_WORDS, TDB, TDSF, VERIFIED_DRIFT_ERROR_FS, is_flag
 from station.records.certificate import COVERAGE_K, OUTCOME_ORDER, Certificate, _f
 from station.science.thermal_model import FULL_SCALE_MG
 
 NOT_CONFIGURED = "not configured"
 # martinez2022 eq. 1 as the station implements it (station/science/thermal_model.py: apply_drift)
 MODEL_EQUATION = "Acc(T) = Acc0 · (1 + TDSF · (T - Tref)) + TDB · (T - Tref)"
-FLAG_CHECKS = frozenset({"program_crc_match", "compensation_on"})  # 1 = yes, 0 = no
 
 
 # ---- text of the certificate (pure) ------------------------------------------------------------
@@ -73,7 +73,7 @@ def check_cells(c: dict, guard_sigma: float) -> tuple[str, ...]:
     value = _f(c.get("value"))
     sigma = _f(c.get("sigma"))
     name = str(c.get("measurement") or "")
-    unit = str(c.get("unit") or "") or ("1 = yes" if name in FLAG_CHECKS else "")
+    unit = str(c.get("unit") or "") or (FLAG_UNIT_WORDS if is_flag(name) else "")  # a flag: 1 = yes, 0 = no
     return (str(c.get("outcome") or "-").upper(), name, str(c.get("axis") or "-"),
             "not measured" if value is None else f"{value:.4g}", unit or "-", limits_text(c.get("low"), c.get("high")),
             "-" if sigma is None else f"{sigma:.2g}", "-" if sigma is None else f"{guard_sigma * sigma:.2g}")
@@ -280,7 +280,7 @@ def _pv_rows(cert: Certificate) -> list[Row]:
            if isinstance(ver.get("range_c"), (list, tuple)) and len(ver["range_c"]) == 2 else "") + ".",
     ])
     written = pv.get("written") if isinstance(pv.get("written"), dict) else {}
-    units = {"tdb_mg_per_c": ("TDB", "mg/°C"), "tdsf_ppm_per_c": ("TDSF", "ppm/°C")}
+    units = {d.name: (d.label, d.shown_unit) for d in (TDB, TDSF)}
     parts = [f"{units[k][0]} " + ", ".join(f"{ax} {_num(v.get(ax), '+.4g')}" for ax in AXES) + f" {units[k][1]}"
              for k, v in written.items() if k in units and isinstance(v, dict)]
     if parts:  # what the board holds, when the program record names it
@@ -298,7 +298,7 @@ def _pv_rows(cert: Certificate) -> list[Row]:
         for ax in AXES:
             b, a = _f(before.get(ax)), _f(after.get(ax))
             s_mg = _f(sig_mg.get(ax))
-            check = next((c for c in cert.checks if c.get("measurement") == "verified_drift_error_fs_pct"
+            check = next((c for c in cert.checks if c.get("measurement") == VERIFIED_DRIFT_ERROR_FS.name
                           and c.get("axis") == ax), {})
             a_fs = _f(fs.get(ax))
             if a_fs is None:

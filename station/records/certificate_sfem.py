@@ -15,6 +15,7 @@ from typing import Any
 
 from contracts.sfem_result import SfemResult, SfemStepResult
 from contracts.types import AXES
+from station.decisions.measurements import SFEM_BIAS, SFEM_SCALE_ERROR
 
 MODEL_LINE = ("Model: U_SF = M C S (U - b) (sensors2023 eq. 1). A = M C S maps the raw output, after the bias b "
               "(the raw reading at zero g, in g), to g: S is g per raw unit, so a part whose output per g falls as it "
@@ -128,11 +129,11 @@ def sfem_coefficients(sfem: Any) -> list[tuple[str, str, float | None, float | N
     for k, ax in enumerate(AXES):
         b, sb = st.bias_g[k], st.bias_sigma_g[k]
         out.append(("SFEM bias", ax, None if b is None else b * 1e3, None if sb is None else sb * 1e3, "mg", note,
-                    "sfem_bias_mg", 1.0))
+                    SFEM_BIAS.name, 1.0))
     for k, ax in enumerate(AXES):
         s, ss = st.scale[k], st.scale_sigma[k]
         out.append(("SFEM scale - 1", ax, None if s is None else (s - 1.0) * 100.0, None if ss is None else ss * 100.0,
-                    "%", note + "; S in g per raw unit", "sfem_scale_error_pct", 1.0))
+                    "%", note + "; S in g per raw unit", SFEM_SCALE_ERROR.name, 1.0))
     drift = rec.drift
     if drift is not None:
         for k, ax in enumerate(AXES):

@@ -1,4 +1,4 @@
-"""Yield and statistical process control over judged DUT runs (issues 13, 24). Pure: plain dicts in
+"""Yield and statistical process control over judged DUT runs. Pure: plain dicts in
 (the runs as db.repository.judged_runs gives them), typed dataclasses out; numpy only.
 
 A parameter is one judged measurement, `measurement` or `measurement:axis` (e.g.

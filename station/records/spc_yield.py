@@ -1,4 +1,4 @@
-"""Yield of judged DUT runs per batch, day, product, limits set and station (issue 13). Pure.
+"""Yield of judged DUT runs per batch, day, product, limits set and station. Pure.
 
 Pass / judged runs: every judged attempt counts (a retest is a second run), as the station tested
 it. A run stopped for a label mismatch (attempt 0: the board in the slot was not the labelled part,
@@ -16,9 +16,10 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any, Iterable
 
-VERDICTS = ("pass", "marginal", "fail", "error")
+from station.decisions.verdicts import VERDICTS  # re-exported
+
 NO_ATTEMPT = 0  # a run's attempt when it never tested its part (db/models.py NO_ATTEMPT)
-UNSPECIFIED = "unspecified product"  # runs whose batch carried no part number (before issue 24)
+UNSPECIFIED = "unspecified product"  # runs whose batch carried no part number (a demo, or stored before batches carried a trace)
 
 
 @dataclass
