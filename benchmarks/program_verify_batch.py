@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 
 from drivers.sim.physics import draw_population  # noqa: E402
 from drivers.sim.station_sim import SimStation  # noqa: E402
-from station.commands.demo import sim_config  # noqa: E402
+from cli.commands.demo import sim_config  # noqa: E402
 from station.config import parse_config  # noqa: E402
 from station.daemon.storage import open_database  # noqa: E402
 from station.daemon.supervisor import Station
@@ -58,7 +58,7 @@ async def run(n_serial: int, n_can: int, n_curved: int, speed: float, seed: int)
                 bid = st.start_batch("fast-thermal-verified", None, "benchmark")
                 status = await st.wait_batch(bid, timeout_s=3600)
                 wall = time.monotonic() - t0
-                seq = st.batches[bid].seq
+                seq = st.batches[bid]
             finally:
                 await st.close()
                 db.dispose()

@@ -225,7 +225,7 @@ class Ctx:
         await wait_for(pred, timeout_s, f"{self.plan.name}: {what}")
 
     def _seq(self) -> Any:
-        return self.st.batches[self.bid].seq
+        return self.st.batches[self.bid]
 
     def lead_pace(self) -> bool:
         """Default SimStation.pace of a plan: hold the plant while a streaming serial board has sent
@@ -759,7 +759,7 @@ async def _run_kill_plan(plan: Plan, tmp: Path) -> None:
     """`station serve --start-batch` in a subprocess against this process's SimStation (which
     outlives it, like real hardware), SIGKILL at plan.kill's moment, then a daemon in this process
     does what `station serve --resume` does (mark interrupted, judge the killed runs, resume)."""
-    from station.commands.demo import sim_config
+    from cli.commands.demo import sim_config
     from station.config import parse_config
     from station.daemon.storage import open_database
     from station.daemon.supervisor import Station
@@ -775,7 +775,7 @@ async def _run_kill_plan(plan: Plan, tmp: Path) -> None:
         toml.write_text(_to_toml(cfg_dict))
         env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "station.cli", "serve", "--config", str(toml), "--no-web", "--start-batch", plan.profile,
+            sys.executable, "-m", "cli", "serve", "--config", str(toml), "--no-web", "--start-batch", plan.profile,
             stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=env, cwd=str(ROOT))
         extra: list[str] = []
         try:

@@ -28,6 +28,9 @@ class _FakeStation:
     def batch_ids(self):
         return []
 
+    def running_batch(self):
+        return None
+
     def start_batch(self, profile, slots, operator, trace=None, by=""):
         self.calls.append(("start", profile, slots, operator, by))
         return 41

@@ -16,7 +16,7 @@ import pytest
 
 from drivers.modbus_devices import ModbusLampRelay, ModbusLink
 from drivers.sim.station_sim import SimStation
-from station.commands.demo import sim_config, truth_by_slot
+from cli.commands.demo import sim_config, truth_by_slot
 from station.config import parse_config
 from station.daemon.storage import open_database
 from station.daemon.supervisor import Station
@@ -210,7 +210,7 @@ async def test_sigterm_of_daemon_process_switches_lamp_off(tmp_path):
         toml.write_text(_to_toml(cfg))
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "station.cli", "serve", "--config", str(toml), "--no-web", "--start-batch", "lamp-test",
+            sys.executable, "-m", "cli", "serve", "--config", str(toml), "--no-web", "--start-batch", "lamp-test",
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=env,
         )
         try:
@@ -240,7 +240,7 @@ async def test_clear_errors_for_wrong_port_and_unreachable_modbus(tmp_path):
         toml = tmp_path / "station.toml"
         toml.write_text(_to_toml(cfg))
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "station.cli", "serve", "--config", str(toml), "--check",
+            sys.executable, "-m", "cli", "serve", "--config", str(toml), "--check",
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         )
         out, err = await asyncio.wait_for(proc.communicate(), 60)
@@ -252,7 +252,7 @@ async def test_clear_errors_for_wrong_port_and_unreachable_modbus(tmp_path):
         cfg["lamp"]["tcp"]["port"] = 1  # nothing listens there
         toml.write_text(_to_toml(cfg))
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "station.cli", "serve", "--config", str(toml), "--check",
+            sys.executable, "-m", "cli", "serve", "--config", str(toml), "--check",
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         )
         out, err = await asyncio.wait_for(proc.communicate(), 60)

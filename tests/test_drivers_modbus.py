@@ -109,7 +109,7 @@ async def test_station_tries_a_slow_relay_again_at_start_and_fails_clearly_when_
 
     links = Links()
     started = asyncio.create_task(late_server())
-    relay = await links.modbus_device("lamp", dev)
+    relay = await links.relay(dev)
     srv = await started
     try:
         await relay.set_lamp(True)
@@ -123,5 +123,5 @@ async def test_station_tries_a_slow_relay_again_at_start_and_fails_clearly_when_
                                          "timeout_s": 0.3})
     t0 = time.monotonic()
     with pytest.raises(StationError, match=r"^lamp: Modbus device unreachable at tcp://127\.0\.0\.1:\d+"):
-        await Links().modbus_device("lamp", never)
+        await Links().relay(never)
     assert time.monotonic() - t0 >= 1.5

@@ -197,7 +197,7 @@ def _refused_before_heat(slots):
     """The refused slots were stopped before the lamp first switched on (and stay stopped)."""
     async def inject(ctx: Ctx) -> None:
         await ctx.wait(lambda: ctx.sim.world.lamp_on, "the lamp switches on for P hot")
-        live = [d.slot for d in ctx.st.batches[ctx.bid].seq.duts if d.slot in slots and d.live]
+        live = [d.slot for d in ctx.st.batches[ctx.bid].duts if d.slot in slots and d.live]
         assert not live, f"{live} still live when the lamp switched on"
     return inject
 

@@ -47,7 +47,7 @@ async def _serve(sim, tmp_path, *extra, limits=None, web_port=None):
     import os
     import sys
 
-    from station.commands.demo import sim_config
+    from cli.commands.demo import sim_config
     from tests.test_daemon_e2e import _to_toml
 
     cfg = sim_config(sim, speed=sim.speed, db_url=f"sqlite:///{tmp_path / 'd.db'}", profiles=LAMP_TEST_PROFILE,
@@ -56,7 +56,7 @@ async def _serve(sim, tmp_path, *extra, limits=None, web_port=None):
     toml.write_text(_to_toml(cfg))
     args = ["--no-web"] if web_port is None else []
     return await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "station.cli", "serve", "--config", str(toml), *args, "--start-batch", "lamp-test",
+        sys.executable, "-m", "cli", "serve", "--config", str(toml), *args, "--start-batch", "lamp-test",
         *extra, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         env=dict(os.environ, PYTHONUNBUFFERED="1"))
 
@@ -261,7 +261,7 @@ def _cli(*args, timeout_s=60):
     import subprocess
     import sys
 
-    return subprocess.run([sys.executable, "-m", "station.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True,
                           timeout=timeout_s)
 
 

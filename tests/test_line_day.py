@@ -143,7 +143,10 @@ def test_retest_refuses_a_batch_without_error_fail_or_marginal_slots_and_a_runni
 
     from contracts.trace import Trace
     from db.database import Database
-    from station.daemon.batches import retest_batch
+    from station.daemon.batches import BatchDesk
+    from test_retest_labels import _desk
+
+    retest_batch = BatchDesk.retest_batch
 
     db = Database(f"sqlite:///{tmp_path / 'empty.db'}")  # holds no batch: 8 is unknown there too
     db.upgrade()
@@ -152,7 +155,7 @@ def test_retest_refuses_a_batch_without_error_fail_or_marginal_slots_and_a_runni
         duts = [NS(slot=k, verdict={"verdict": v} if v else None, label_serial=None, identity=None)
                 for k, v in verdicts.items()]
         seq = NS(state=state, duts=duts, trace=Trace(), profile=NS(name="fast-thermal"))
-        return NS(batches={7: NS(seq=seq)}, slots={k: None for k in verdicts}, db=db)
+        return _desk({7: seq}, list(verdicts), db)
 
     with pytest.raises(ValueError, match="no slot that ended error, fail or marginal"):
         retest_batch(station("finished", {"a": "pass", "b": None}), 7, "Bo")
@@ -201,7 +204,7 @@ def test_cannot_do_it_ends_the_duts_as_error_with_the_operators_words(tmp_path):
 
 def test_every_start_is_audited_naming_the_person_demo_and_replay_included(tmp_path):
     """station demo and station replay start through Station.start_batch with by='station demo'
-    / 'station replay' (station/commands/demo.py, station/replay/runner.py): the same code path."""
+    / 'station replay' (cli/commands/demo.py, station/replay/runner.py): the same code path."""
     with LiveStation(tmp_path, n_serial=1, n_can=0, speed=400.0, fixture=True) as live:
         with pytest.raises(ValueError, match="operator's name is required"):
             live.call(live.station.start_batch, "validation", None, "  ", by="station demo")

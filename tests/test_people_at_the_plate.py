@@ -24,7 +24,7 @@ from contracts.events import PromptRaised
 from contracts.positions import POSITION_INDEX
 from contracts.types import AXES
 from drivers.sim.station_sim import SimStation
-from station.commands.demo import truth_by_slot
+from cli.commands.demo import truth_by_slot
 from tests.test_daemon_e2e import TDB_TOL_MG_PER_C, TDSF_TOL_PPM_PER_C, daemon
 
 ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"

@@ -177,7 +177,7 @@ class TruthAnalysisStation:
 
 
 async def _short_daemon(sim, tmp_path):
-    from station.commands.demo import sim_config, truth_by_slot
+    from cli.commands.demo import sim_config, truth_by_slot
     from station.config import parse_config
     from station.daemon.storage import open_database
     from station.daemon.supervisor import Station

@@ -34,7 +34,7 @@ from contracts.trace import Trace
 from db.database import Database
 from db.models import Batch, DutRun, VerdictHistoryRow
 from drivers.sim.station_sim import SimStation
-from station.commands.demo import sim_config
+from cli.commands.demo import sim_config
 from station.config import parse_config
 from station.daemon.storage import open_database
 from station.daemon.supervisor import Station
@@ -74,7 +74,7 @@ async def _serve_then_kill(toml: Path, db_url: str, profile: str, batch_id: int)
     SIGKILL once the new batch's runs stream."""
     env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "station.cli", "serve", "--config", str(toml), "--no-web", "--start-batch", profile,
+        sys.executable, "-m", "cli", "serve", "--config", str(toml), "--no-web", "--start-batch", profile,
         stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=env, cwd=str(ROOT))
     db = Database(db_url)
     try:
@@ -102,7 +102,7 @@ async def _kill_three_batches_then_restart(tmp_path: Path) -> tuple[str, dict, i
         toml.write_text(_to_toml(cfg_dict))
         for batch_id, profile in enumerate(("validation", "fast-thermal", "fast-thermal-verified"), start=1):
             await _serve_then_kill(toml, db_url, profile, batch_id)
-        # the last restart, as `station serve` does it (station/commands/serve.py)
+        # the last restart, as `station serve` does it (cli/commands/serve.py)
         cfg = parse_config(cfg_dict, "<restart>")
         db = open_database(cfg.database_url, station=cfg.name)
         interrupted = db.mark_interrupted("station restarted")

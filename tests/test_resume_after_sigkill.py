@@ -58,7 +58,7 @@ def test_sigkill_mid_batch_then_resume_finishes_with_correct_results(tmp_path):
         cfg["database_url"] = db_url
         toml = tmp_path / "station.toml"
         toml.write_text(_to_toml(cfg))
-        serve = [sys.executable, "-m", "station.cli", "serve", "--config", str(toml), "--no-web"]
+        serve = [sys.executable, "-m", "cli", "serve", "--config", str(toml), "--no-web"]
 
         daemon = subprocess.Popen(serve + ["--start-batch", "fast-thermal"], stdout=subprocess.PIPE,
                                   stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)

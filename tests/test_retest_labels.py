@@ -213,7 +213,18 @@ def _station(verdicts: dict, labels: dict | None = None, boards: dict | None = N
                serial=boards.get(k, f"SN-{k}"), identity=object()) for k, v in verdicts.items()]
     seq = NS(state=state, duts=duts, trace=Trace(work_order="WO-1", lot="L1", labels=dict(labels or {})),
              profile=NS(name="fast-thermal"))
-    return NS(batches={7: NS(seq=seq)}, slots={k: None for k in verdicts}, db=db)
+    return _desk({7: seq}, list(verdicts), db)
+
+
+def _desk(batches: dict, slots: list, db):
+    """A real BatchDesk on stand-in parts: the retest reads only its batches, slots and database."""
+    from contracts.events import EventBus
+    from station.daemon.batches import BatchDesk
+
+    desk = BatchDesk(db=db, bus=EventBus(), slots=NS(slots={k: None for k in slots}), storage=None, profiles={},
+                     config=None, calibrator_factory=lambda: None, running=lambda: True)
+    desk.batches.update(batches)
+    return desk
 
 
 @pytest.fixture
@@ -221,13 +232,15 @@ def started(monkeypatch):
     import station.daemon.batches as batches
 
     calls = []
-    monkeypatch.setattr(batches, "start_batch", lambda st, profile, slots, operator, trace, by="": (
+    monkeypatch.setattr(batches.BatchDesk, "start_batch", lambda st, profile, slots, operator, trace, by="": (
         calls.append(NS(profile=profile, slots=slots, operator=operator, trace=trace, by=by)) or 8))
     return calls
 
 
 def test_retest_takes_error_fail_and_marginal_never_pass(started, tmp_path):
-    from station.daemon.batches import retest_batch
+    from station.daemon.batches import BatchDesk
+
+    retest_batch = BatchDesk.retest_batch
 
     st = _station({"a": "pass", "b": "marginal", "c": "fail", "d": "error", "e": None})
     assert retest_batch(st, 7, "Bo") == 8
@@ -246,7 +259,9 @@ def test_retest_takes_error_fail_and_marginal_never_pass(started, tmp_path):
 
 
 def test_retest_labels_are_scanned_again_and_a_contradicted_label_is_never_reused(started):
-    from station.daemon.batches import retest_batch
+    from station.daemon.batches import BatchDesk
+
+    retest_batch = BatchDesk.retest_batch
 
     labels = {"a": "SN-a", "b": "SIM9999", "c": "SN-c"}  # b's label is not its board's serial
     st = _station({"a": "fail", "b": "error", "c": "pass"}, labels)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import pytest
 
 from drivers.sim.station_sim import SimStation
-from station.commands.demo import sim_config
+from cli.commands.demo import sim_config
 from station.config import parse_config
 from station.daemon.storage import open_database
 from station.daemon.supervisor import Station

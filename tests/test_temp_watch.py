@@ -323,7 +323,7 @@ async def _run_fast_thermal(tmp_path, stuck: int | None, speed: float = 150.0):
             assert await coil(sim) is False
             # sample time from the world's lamp-on to the finding (a serial board's clock is the world's)
             found_after = {d.slot: d.temp_watch.finding.time_s - seen["lamp_on_s"]
-                           for d in st.batches[bid].seq.duts if d.temp_watch.finding is not None}
+                           for d in st.batches[bid].duts if d.temp_watch.finding is not None}
             return status, windows, feed, found_after, [t.serial for t in sim.truths]
 
 

@@ -55,7 +55,7 @@ def long_ttl(monkeypatch):
 
 
 def seq_of(live, bid):
-    return live.station.batches[bid].seq
+    return live.station.batches[bid]
 
 
 def daemon_state(live, bid) -> str:

@@ -1,5 +1,6 @@
-"""One DUT in one batch (DutRun): what the daemon has received from its board, and whether it has
-logged what the current step requires.
+"""One DUT in one batch (DutRun): what the daemon has received from its board, and the step-time
+records (placement, requirement window, step clock) a step's kind reads to judge whether it has
+logged what the current step requires (station/steps).
 
 The sequencer judges steps by these records and the run's end judges the DUT from them; the pump
 (intake.py) fills them. Kept apart from the state machine so the per-DUT bookkeeping (samples,
@@ -11,19 +12,35 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from contracts.types import Identity, SampleBlock, Segment
+from contracts.run_records import ProgramRecord, ThermalReport
+from contracts.sfem_result import SfemResult
+from contracts.types import Identity, SampleBlock, Segment, ThermalResult
 from station.daemon.temp_watch import TempFinding, TempWatch
-from station.profiles import Step
 from station.science.placement import Placement, same_direction
+
+
+class Calibrator(Protocol):
+    """What the daemon asks of a DUT's live calibrator (station/science/streaming.StreamingCalibrator
+    is one): feed it placed samples, restart its averaging window after a gap, read its state and
+    its result."""
+
+    @property
+    def state(self) -> str: ...
+
+    def restart_window(self) -> None: ...
+
+    def update_batch(self, time_s: np.ndarray, acc_g: np.ndarray, temp_c: np.ndarray) -> list[Segment]: ...
+
+    def result(self) -> ThermalResult: ...
 
 
 @dataclass
 class DutRun:
-    """One DUT in one batch: what the supervisor has received and the sequencer judges."""
+    """One DUT in one batch: what its pump (intake.py) has received and the sequencer judges."""
 
     slot: str
     link: str = ""
@@ -35,7 +52,7 @@ class DutRun:
     # then must not stop a verdict)
     attempt: int | None = None
     fault_reason: str = ""
-    calibrator: Any = None
+    calibrator: Calibrator | None = None
     blocks: list[SampleBlock] = field(default_factory=list)
     block_steps: list[int] = field(default_factory=list)
     # Per block, the position its samples were placed at (-1: not placed): blocks are cut where
@@ -74,8 +91,8 @@ class DutRun:
     first_settled: int | None = None
     plate_check_t: float = -math.inf
     step_windows: dict[int, tuple[float, float]] = field(default_factory=dict)  # step -> board time span
-    result: dict | None = None
-    link_stats: dict = field(default_factory=dict)
+    result: ThermalReport | SfemResult | None = None  # the analysis (run_end.py): typed until the edges
+    link_stats: dict[str, Any] = field(default_factory=dict)
     # Resume of an interrupted batch: the serial the stored run belongs to, the board time its
     # stored stream ended at (the live stream is joined on after it) and the offset applied.
     expected_serial: str | None = None
@@ -84,11 +101,11 @@ class DutRun:
     time_offset_s: float = 0.0
     hold_calibrator: bool = False  # resumed: samples are stored but not calibrated until logging
     unstored_segments: list[tuple[Segment, int]] = field(default_factory=list)
-    verdict: dict | None = None  # the station's decision (station/decisions/moment.py)
-    extra_measurements: list = field(default_factory=list)  # more station.decisions.verdicts.Measurement to judge
-    program: dict | None = None  # program and verify: what was written and read back (CRC, comp)
-    verification: dict | None = None  # program and verify: verified drift error E (science.verify)
-    steps_done: int = 0  # steps this DUT completed while live (the page's progress dots, issue 9)
+    verdict: dict[str, Any] | None = None  # the station's decision (station/decisions/moment.py)
+    extra_measurements: list[Any] = field(default_factory=list)  # more station.decisions.verdicts.Measurement to judge
+    program: ProgramRecord | None = None  # program and verify: what was written and read back (CRC, comp)
+    verification: dict[str, Any] | None = None  # program and verify: verified drift error E (science.verify)
+    steps_done: int = 0  # steps this DUT completed while live (the page's progress dots)
     # Is its temperature sensor believable (stuck, implausible)? station/daemon/temp_watch.py
     temp_watch: TempWatch = field(default_factory=TempWatch)
 
@@ -106,7 +123,7 @@ class DutRun:
             return 0.0
         return self.last_t - self.t0
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         return {
             "slot": self.slot,
             "link": self.link,
@@ -121,9 +138,9 @@ class DutRun:
             "sample_time_s": self.elapsed_s,
             "calibrator_state": getattr(self.calibrator, "state", None),
             "link_stats": dict(self.link_stats),
-            "result": self.result,
+            "result": None if self.result is None else self.result.to_json(),
             "decision": self.verdict,
-            "program": self.program,
+            "program": None if self.program is None else self.program.to_json(),
             "verification": self.verification,
             "steps_done": self.steps_done,
         }
@@ -157,27 +174,18 @@ class DutRun:
             return 0.0
         return float(np.median(temps[-n_edge:]) - np.median(temps[:n_edge]))
 
-    def step_done(self, step: Step, step_index: int) -> bool:
-        """Has this DUT logged what step `step_index` requires: a segment at its position, the
-        temperature rise of a heat step, or the dwell (after settle) of a static/none step; the
-        dwell and the rise count from the first placed sample (station/science/placement.py)."""
-        d = self
-        if step.require == "segment":
-            return any(
-                st == step_index and seg.position == step.position and seg.t_end_s > d.segment_after_t()
-                for seg, st in zip(d.segments, d.segment_steps)
-            )
-        if d.last_t is not None and not math.isfinite(d.step_t_start) and d.t0 is not None:
+    def requirement_window(self) -> tuple[float, float] | None:
+        """(from, to) board time of what a static, heat or dwell requirement has counted so far:
+        from requirement_start_t to the newest sample; None while the DUT is not placed at the
+        step's position (what a step kind's `done` reads: station/steps/builtin.py)."""
+        if self.last_t is not None and not math.isfinite(self.step_t_start) and self.t0 is not None:
             # No sample had arrived when the step began logging (a step that needs no move, a slow
             # link): the DUT's first sample of the batch starts its dwell, instead of never.
-            d.step_t_start = d.t0
-        start = d.requirement_start_t()
-        if d.last_t is None or start is None:
-            return False
-        if step.require == "heat":
-            return d.last_t - start >= step.settle_s and d.temp_rise_c(start) >= step.heat_c
-        need = step.dwell_s + (step.settle_s if step.require == "static" else 0.0)
-        return d.last_t - start >= need
+            self.step_t_start = self.t0
+        start = self.requirement_start_t()
+        if self.last_t is None or start is None:
+            return None
+        return start, self.last_t
 
     def at_step_position(self) -> bool:
         """Is the DUT placed at its step's position now (settled there, by its own samples)?"""
@@ -230,6 +238,26 @@ class DutRun:
                 return float(self.blocks[k].time_s[0])
         return None
 
+    def step_elapsed_s(self, batch_s: float) -> float:
+        """Sample time this DUT has spent in the current step (its own board clock): since it
+        arrived at the step's position, or, until it does, since the step began logging (Done).
+        A board whose first sample of the step came after Done counts from that sample
+        (step_clock_start_t): judged on the fastest board's clock, a link that lagged at the
+        batch's start would be faulted 'without a segment' while it was still averaging at the
+        position. Its first samples may have been measured before Done (a backlog), so its own
+        figure is an upper bound, as is the batch's clock since Done (batch_s): the smaller one
+        counts, and such a board is never timed out sooner than on the batch's clock. Only a board
+        that has delivered nothing since is timed on the batch's clock alone (the stall watchdog
+        faults a silent one long before)."""
+        start = self.step_clock_start_t()
+        if self.last_t is None or start is None:
+            return batch_s
+        if self.arrived_t is not None:
+            start = max(self.arrived_t, start)
+        if not math.isfinite(self.step_t_start):  # its board time at Done is unknown
+            return min(self.last_t - start, batch_s)
+        return self.last_t - start
+
     def since_plate_check_s(self) -> float:
         """Board seconds of this DUT's own stream since the plate is watched (its own clock: in
         compressed time a slow link is behind the others, and its plate must not be judged on their
@@ -238,6 +266,14 @@ class DutRun:
             return 0.0
         ref = self.plate_check_t if math.isfinite(self.plate_check_t) else (self.t0 or self.last_t)
         return self.last_t - ref
+
+
+    def release_samples(self) -> None:
+        """The run has ended and its samples are stored: its raw blocks leave memory (its segments,
+        result, verdict and counters stay, what the page shows of an ended run)."""
+        self.blocks = []
+        self.block_steps = []
+        self.block_positions = []
 
 
 def annotate_segment(seg: Segment, position: int | None) -> Segment:

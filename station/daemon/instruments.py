@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any
+from collections.abc import Awaitable, Callable
+from typing import TypeVar
 
 from contracts.types import StationError
 from drivers import modbus_devices as md
-from drivers.base import BoardDriver, DriverError
+from drivers.base import BoardDriver, Chamber, DriverError, Fixture, LampRelay, Thermometer
 from drivers.can_board import CanBoard, CanBus
 from drivers.serial_board import SerialBoard
 from station.config import ModbusDevice, SlotConfig
@@ -26,12 +27,7 @@ log = logging.getLogger(__name__)
 # plus their timeouts, then the start fails with the last try's reason.
 CONNECT_RETRY_DELAYS_S = (0.5, 1.0)
 
-DEVICE_CLASSES = {
-    "lamp": md.ModbusLampRelay,
-    "fixture": md.ModbusFixture,
-    "thermometer": md.ModbusThermometer,
-    "chamber": md.ModbusChamber,
-}
+Device = TypeVar("Device")
 
 
 class Links:
@@ -39,23 +35,38 @@ class Links:
 
     def __init__(self, speed: float = 1.0) -> None:
         self.speed = speed  # plant time per wall second (timing.speed): serial boards time silences with it
-        self.modbus: dict[tuple, Any] = {}
-        self.can_buses: dict[tuple, Any] = {}
+        self.modbus: dict[tuple[object, ...], md.ModbusLink] = {}
+        self.can_buses: dict[tuple[str, str, int], CanBus] = {}
 
-    async def modbus_device(self, kind: str, dev: ModbusDevice) -> Any:
+    async def relay(self, dev: ModbusDevice) -> LampRelay:
+        """The lamp relay; reading its coil proves the unit answers."""
+        return await self._device("lamp", dev, md.ModbusLampRelay, lambda r: r.read_lamp())
+
+    async def fixture(self, dev: ModbusDevice) -> Fixture:
+        return await self._device("fixture", dev, md.ModbusFixture, lambda f: f.position())
+
+    async def thermometer(self, dev: ModbusDevice) -> Thermometer:
+        return await self._device("thermometer", dev, md.ModbusThermometer, lambda t: t.read_temp_c())
+
+    async def chamber(self, dev: ModbusDevice) -> Chamber:
+        return await self._device("chamber", dev, md.ModbusChamber, lambda c: c.read_temp_c())
+
+    async def _device(self, kind: str, dev: ModbusDevice, build: Callable[[md.ModbusLink, int], Device],
+                      probe: Callable[[Device], Awaitable[object]]) -> Device:
         """The instrument `kind` on its (shared) Modbus link; one read proves the unit answers.
         A unit that is slow to answer at start (a gateway still booting, a host busy for a
         second) is tried again after 0.5 s and 1 s; an unreachable link or a silent unit after
         that is a StationError (one line)."""
         for delay_s in CONNECT_RETRY_DELAYS_S:
             try:
-                return await self._modbus_device_once(kind, dev)
+                return await self._device_once(kind, dev, build, probe)
             except StationError as exc:
                 log.info("%s (trying again in %g s)", exc, delay_s)
                 await asyncio.sleep(delay_s)
-        return await self._modbus_device_once(kind, dev)
+        return await self._device_once(kind, dev, build, probe)
 
-    async def _modbus_device_once(self, kind: str, dev: ModbusDevice) -> Any:
+    async def _device_once(self, kind: str, dev: ModbusDevice, build: Callable[[md.ModbusLink, int], Device],
+                           probe: Callable[[Device], Awaitable[object]]) -> Device:
         key = dev.link_key
         link = self.modbus.get(key)
         if link is None:
@@ -63,19 +74,15 @@ class Links:
                 if dev.tcp is not None:
                     link = md.ModbusLink(host=dev.tcp.host, port=dev.tcp.port, timeout_s=dev.timeout_s)
                 else:
+                    assert dev.rtu is not None
                     link = md.ModbusLink(serial_port=dev.rtu.port, baudrate=dev.rtu.baudrate, timeout_s=dev.timeout_s)
                 await link.connect()
             except (DriverError, OSError) as exc:
                 raise StationError(f"{kind}: {exc}") from None
             self.modbus[key] = link
-        device = DEVICE_CLASSES[kind](link, unit=dev.unit)
+        device = build(link, dev.unit)
         try:
-            if kind == "lamp":
-                await device.read_lamp()
-            elif kind == "fixture":
-                await device.position()
-            else:
-                await device.read_temp_c()
+            await probe(device)
         except (DriverError, OSError, asyncio.TimeoutError) as exc:
             raise StationError(f"{kind}: no answer from {dev.link}: {exc}") from None
         return device
@@ -89,8 +96,8 @@ class Links:
         key = (c.interface, c.channel, c.bitrate)
         bus = self.can_buses.get(key)
         if bus is None:
-            kwargs: dict[str, Any] = {"sleep_after_open": 0} if c.interface == "slcan" else {}
-            bus = CanBus(c.interface, c.channel, c.bitrate, **kwargs)
+            bus = CanBus(c.interface, c.channel, c.bitrate,
+                         **({"sleep_after_open": 0} if c.interface == "slcan" else {}))
             # Registered before the first await: slots connect concurrently and must share one bus.
             self.can_buses[key] = bus
         try:
@@ -105,12 +112,10 @@ class Links:
         for bus in self.can_buses.values():
             try:
                 await bus.close()
-            except Exception:
+            except Exception:  # noqa: BLE001 - closing: a bus that will not close is gone anyway
                 pass
         for link in self.modbus.values():
             try:
-                res = link.close()
-                if asyncio.iscoroutine(res):
-                    await res
-            except Exception:
+                await link.close()
+            except Exception:  # noqa: BLE001 - same
                 pass

@@ -17,26 +17,48 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 
-from contracts.events import SamplesReceived, SegmentLogged
+from contracts.events import EventBus, SamplesReceived, SegmentLogged
 from contracts.types import SampleBlock
-from drivers.base import DriverError
+from drivers.base import BoardDriver, DriverError
+from station.config import Timing
 from station.daemon.dut_run import DutRun, annotate_segment
+from station.daemon.safety import LampGuard
 from station.daemon.sequencer import Sequencer
 from station.science.placement import direction_id, label_cuts, same_direction
 
 log = logging.getLogger(__name__)
 
 
-async def pump(st: Any, seq: Sequencer, d: DutRun) -> None:
+class IntakeHost(Protocol):
+    """What a DUT's pump needs of the station (slots.SlotBank is one): where its samples go, the
+    lamp that must hear of every sample's temperature, the read pace, and how to fault its DUT."""
+
+    bus: EventBus
+    timing: Timing
+    lamp: LampGuard | None
+
+    def fault_dut(self, seq: Sequencer, d: DutRun, reason: str) -> None: ...
+
+    def releasing(self, batch_id: int) -> bool: ...
+
+
+class Link(Protocol):
+    """A slot's link as its pump holds it (slots.SlotRuntime is one): the driver, closed on a fault."""
+
+    driver: BoardDriver | None
+
+    async def close_driver(self) -> None: ...
+
+
+async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
     """Read one DUT's link until the batch ends; fault only this DUT on a link problem."""
-    slot = st.slots[d.slot]
     drv = slot.driver
     assert drv is not None
-    timing = st.config.timing
+    timing = st.timing
     period = timing.read_period_s
     stats = drv.stats
     bad0 = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped
@@ -46,8 +68,7 @@ async def pump(st: Any, seq: Sequencer, d: DutRun) -> None:
     silent_s = 0.0  # wall seconds this board had the chance to send and sent nothing
     t_prev = time.monotonic()
     try:
-        rt = st.batches.get(seq.batch_id)
-        while d.live and not (rt is not None and rt.releasing):
+        while d.live and not st.releasing(seq.batch_id):
             t_read = time.monotonic()
             try:
                 block = await drv.read_block(timeout_s=read_timeout_s)
@@ -109,7 +130,7 @@ def listen_cap_s(read_period_s: float) -> float:
     return 2.0 * max(read_period_s, 0.25) + 0.5
 
 
-def ingest(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock) -> None:
+def ingest(st: IntakeHost, seq: Sequencer, d: DutRun, block: SampleBlock) -> None:
     if d.resume_t is not None:
         # First block after a resume: a board whose clock restarted (CAN time is sample index /
         # ODR from our own count) is joined on one sample period after the stored stream.
@@ -169,7 +190,7 @@ def place(d: DutRun, block: SampleBlock) -> np.ndarray:
     return labels
 
 
-def _take(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock, position: int | None) -> None:
+def _take(st: IntakeHost, seq: Sequencer, d: DutRun, block: SampleBlock, position: int | None) -> None:
     """One run of equally placed samples: keep it, publish it with its position (None: not placed,
     stored as -1), track the step's arrival and departures, and feed the calibrator placed samples
     only, its averaging window starting over after every gap or change of position."""
@@ -200,7 +221,7 @@ def _take(st: Any, seq: Sequencer, d: DutRun, block: SampleBlock, position: int 
         d.fed_last = False
     if d.calibrator is None or d.hold_calibrator:
         return
-    if not d.fed_last and hasattr(d.calibrator, "restart_window"):
+    if not d.fed_last:
         d.calibrator.restart_window()  # no average spans samples that were not placed here
     d.fed_last = True
     for seg in d.calibrator.update_batch(block.time_s, block.acc_g, block.temp_c):

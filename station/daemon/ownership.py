@@ -1,4 +1,4 @@
-"""One station owns its database, its ports and its relay (issue 36).
+"""One station owns its database, its ports and its relay.
 
 Why: nothing stopped a second process from using the hardware of a running station. A
 `station serve --check` on the config of a running daemon marked its batch interrupted (error

@@ -1,15 +1,16 @@
 """Program and verify (design 4): write the calibration into every board, prove it is stored, and
 measure that the compensation works on the part.
 
-The supervisor only calls the two entry points (it stays a facade):
-  program_duts(station, seq)  the `program` step: thermal analysis of the first pass, then per live
+The run's end (run_end.RunEnd) calls the two entry points, each with a `ProgramHost` (the slot
+bank: what these need of the slots, nothing more):
+  program_duts(host, seq)     the `program` step, after the first pass's thermal analysis: per live
                               DUT in parallel: stop its stream and let the link drain, write
                               TDB/TDSF, read back and compare CRC and values, switch on-board
                               compensation on and confirm it (BoardDriver.program_thermal, 3
                               tries), start the stream again (compensated). A DUT without a thermal result or whose
                               write fails (CRC mismatch, refused, no reply, read-back differs) is
                               faulted ALONE with the named reason; the others go on.
-  verify_duts(station, seq)   at the end of the batch: for every programmed DUT, the compensated
+  verify_duts(host, seq)      at the end of the batch: for every programmed DUT, the compensated
                               samples from its restart + the heat step's settle time until its own
                               temperature has risen heat_c (rise_window: sample-defined) ->
                               station.science.verify.verify_compensated, with the uncompensated E of
@@ -23,50 +24,53 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import Any
+from dataclasses import replace
+from typing import Any, Protocol
 
 import numpy as np
 
-from drivers.base import CalibrationError, DriverError
-from contracts.events import DutProgrammed, DutVerified
+from drivers.base import BoardDriver, CalibrationError, DriverError
+from contracts.events import DutProgrammed, DutVerified, EventBus
+from contracts.run_records import ProgramRecord, ThermalReport
 from station.science.bias_wander import BiasWander
 from station.science.part_noise import wander_of_budget
 from station.science.verify import drift_before_mg, verify_compensated
-from station.daemon.slots import board_changed
-from contracts.types import AXES, SampleBlock
+from contracts.types import AXES, SampleBlock, Segment
+from station.daemon.dut_run import DutRun
+from station.daemon.sequencer import Sequencer
+from station.profiles import Profile
 
 log = logging.getLogger(__name__)
 
 
-def uses_program_verify(profile: Any) -> bool:
-    return getattr(profile, "program_step", None) is not None
+class ProgramHost(Protocol):
+    """What program and verify need of the station (slots.SlotBank is one): the board of a slot, its
+    identity read again, a DUT faulted alone, and where the records go."""
+
+    bus: EventBus
+
+    def driver_of(self, slot: str) -> BoardDriver | None: ...
+
+    async def board_changed(self, d: DutRun, when: str) -> str | None: ...
+
+    def fault_dut(self, seq: Sequencer, d: DutRun, reason: str) -> None: ...
 
 
-def after_programming(seq: Any) -> bool:
+def uses_program_verify(profile: Profile) -> bool:
+    return profile.program_step is not None
+
+
+def after_programming(seq: Sequencer) -> bool:
     """True once the batch is past its program step (the end-of-batch analysis is the verification)."""
-    ps = getattr(seq.profile, "program_step", None)
+    ps = seq.profile.program_step
     return ps is not None and seq.step_index > ps
-
-
-def coefficients(result: dict | None) -> tuple[list[float], list[float]] | None:
-    """(tdb_mg_per_c[3], tdsf_ppm_per_c[3]) of a thermal result (the `axes` the station reports)."""
-    if not result or not isinstance(result.get("axes"), dict):
-        return None
-    try:
-        tdb = [float(result["axes"][a]["tdb_mg_per_c"]) for a in AXES]
-        tdsf = [float(result["axes"][a]["tdsf_ppm_per_c"]) for a in AXES]
-    except (KeyError, TypeError, ValueError):
-        return None
-    if not all(np.isfinite(tdb + tdsf)):
-        return None
-    return tdb, tdsf
 
 
 QUIET_S = 0.3  # the link is drained when nothing arrived for this long
 DRAIN_MAX_S = 20.0
 
 
-async def _quiesce(drv: Any) -> bool:
+async def _quiesce(drv: BoardDriver) -> bool:
     """Stop the board's stream and wait until its link is drained, so that the calibration replies
     do not queue behind a backlog of sample frames (a slow host, a busy CAN bus, compressed time):
     the reply timeouts then measure the board, not the backlog. Flash writes stall a board's
@@ -84,51 +88,50 @@ async def _quiesce(drv: Any) -> bool:
     return False
 
 
-async def program_duts(station: Any, seq: Any) -> None:
-    """The program step (see module doc)."""
-    await station.analyse(seq)  # the first pass's TDB/TDSF (faults the DUTs whose analysis fails)
+async def program_duts(station: ProgramHost, seq: Sequencer) -> None:
+    """The program step (see module doc): the first pass is analysed already (run_end.RunEnd)."""
     duts = [d for d in seq.duts if d.live]
 
-    async def one(d: Any) -> None:
+    async def one(d: DutRun) -> None:
         # Every DUT with a result is written and verified, whatever its first-pass verdict: the
         # verification is measured evidence (a part the fit already rejects for curvature shows
         # its residual drift), and the final verdict takes both (station/decisions/moment.py judge_final).
-        coeffs = coefficients(d.result)
-        if coeffs is None:
-            d.program = {"programmed": False, "error_kind": "no_result", "error": "no thermal result to write"}
+        report = d.result if isinstance(d.result, ThermalReport) else None
+        coeffs = report.coefficients() if report is not None else None
+        if report is None or coeffs is None:
+            d.program = ProgramRecord(False, error_kind="no_result", error="no thermal result to write")
             station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=d.program))
             station.fault_dut(seq, d, "program: no thermal result to write")
             return
         tdb, tdsf = coeffs
-        drv = station.slots[d.slot].driver
+        drv = station.driver_of(d.slot)
         if drv is not None:
             await _quiesce(drv)
             # the coefficients are this board's only if it is still the board the run measured
-            changed = await board_changed(station, d, "before programming")
+            changed = await station.board_changed(d, "before programming")
             if changed is not None:
-                d.program = {"programmed": False, "error_kind": "identity", "error": changed}
+                d.program = ProgramRecord(False, error_kind="identity", error=changed)
                 station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=d.program))
                 station.fault_dut(seq, d, f"program: not written: {changed}")
                 return
-        info: dict = {"tdb_mg_per_c": tdb, "tdsf_ppm_per_c": tdsf, "method": (d.result or {}).get("axes_method", "")}
+        written = ProgramRecord(False, tdb_mg_per_c=tuple(tdb), tdsf_ppm_per_c=tuple(tdsf), method=report.axes_method)
         try:
             if drv is None:
                 raise DriverError(f"{d.link}: link closed")
             rep = await drv.program_thermal(tdb, tdsf, compensation=True)
         except CalibrationError as exc:
-            info.update(programmed=False, error_kind=exc.kind, error=str(exc), attempts=exc.attempts, comp=False)
-            d.program = info
+            d.program = info = replace(written, error_kind=exc.kind, error=str(exc), attempts=exc.attempts, comp=False)
             station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=info))
             station.fault_dut(seq, d, f"program: {exc.kind}: {exc}")
             return
         except DriverError as exc:
-            info.update(programmed=False, error_kind="link", error=str(exc), comp=False)
-            d.program = info
+            d.program = info = replace(written, error_kind="link", error=str(exc), comp=False)
             station.bus.publish(DutProgrammed(seq.batch_id, slot=d.slot, serial=d.serial or "", program=info))
             station.fault_dut(seq, d, f"program: link: {exc}")
             return
-        info.update(programmed=True, **rep.to_json())
-        d.program = info
+        board = rep.to_json()
+        d.program = info = replace(written, programmed=True, attempts=rep.attempts, comp=rep.comp,
+                                   readback={k: v for k, v in board.items() if k not in ("attempts", "comp")})
         try:
             await drv.start()  # streaming again, now compensated
         except DriverError as exc:
@@ -142,8 +145,9 @@ async def program_duts(station: Any, seq: Any) -> None:
     await asyncio.gather(*(one(d) for d in duts))
 
 
-def _verify_one(blocks: list, segments: list, t_start: float, t_end: float | None, profile: Any, heat_index: int,
-                program_index: int, comp_from_t: float | None = None, wander: BiasWander | str = "auto") -> dict:
+def _verify_one(blocks: list[tuple[SampleBlock, int]], segments: list[tuple[Segment, int]], t_start: float,
+                t_end: float | None, profile: Profile, heat_index: int, program_index: int,
+                comp_from_t: float | None = None, wander: BiasWander | str = "auto") -> dict[str, Any]:
     """Pure part of the verification of one DUT (runs in a worker thread on snapshots):
     blocks = [(SampleBlock, step index)], segments = [(Segment, step index)]; wander: the part's own
     bias wander from its calibration (`wander_of_budget`), "auto" to measure it here."""
@@ -196,21 +200,23 @@ def rise_window(time_s: np.ndarray, temp_c: np.ndarray, t_from: float, heat_c: f
     return m
 
 
-async def verify_duts(station: Any, seq: Any) -> None:
+async def verify_duts(station: ProgramHost, seq: Sequencer) -> None:
     """Verified E for every programmed DUT (see module doc); a DUT the verification cannot judge
     gets passed=False with the reason, never a silent pass."""
     profile = seq.profile
     program_index = profile.program_step
+    if program_index is None:
+        return
     heat_index = next((i for i in range(program_index + 1, len(profile.steps)) if profile.steps[i].require == "heat"), None)
     if heat_index is None:
         return
     duts = [d for d in seq.duts if d.live]
 
-    async def one(d: Any) -> None:
-        if not (d.program and d.program.get("programmed")):
+    async def one(d: DutRun) -> None:
+        if d.program is None or not d.program.programmed:
             # e.g. a batch resumed after its program step: this session did not program the board,
             # so its output cannot be judged as compensated. Said so, never passed silently.
-            out = {"passed": False, "flags": ["no programming record for this run in this session (batch resumed "
+            out: dict[str, Any] = {"passed": False, "flags": ["no programming record for this run in this session (batch resumed "
                                               "after the program step?): not verified"],
                    "e_before_mg": None, "e_after_mg": None, "axes": {}}
             d.verification = out
@@ -222,9 +228,10 @@ async def verify_duts(station: Any, seq: Any) -> None:
             blocks = list(zip(d.blocks, d.block_steps))
             segments = list(zip(d.segments, d.segment_steps))
             t_start, t_end = d.step_windows.get(heat_index, (d.step_t_start, d.last_t))
-            comp_t = d.program.get("comp_from_t")
-            comp_t = None if comp_t is None else float(comp_t) + d.time_offset_s
-            wander = wander_of_budget((d.result or {}).get("uncertainty")) or "auto"  # the part's, measured raw
+            comp_t = d.program.comp_from_t
+            comp_t = None if comp_t is None else comp_t + d.time_offset_s
+            budget = d.result.uncertainty if isinstance(d.result, ThermalReport) else None
+            wander = wander_of_budget(budget) or "auto"  # the part's, measured raw
             out = await asyncio.to_thread(_verify_one, blocks, segments, t_start, t_end, profile, heat_index,
                                           program_index, comp_t, wander)
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -238,4 +245,4 @@ async def verify_duts(station: Any, seq: Any) -> None:
     await asyncio.gather(*(one(d) for d in duts))
 
 
-__all__ = ["program_duts", "verify_duts", "uses_program_verify", "after_programming", "coefficients"]
+__all__ = ["program_duts", "verify_duts", "uses_program_verify", "after_programming"]

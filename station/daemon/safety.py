@@ -71,8 +71,8 @@ class LampGuard:
         self._sample_now = 0.0
         self._sample_wall: float | None = None  # wall time the sample clock last moved
         self._lock = asyncio.Lock()
-        self._watch_task: asyncio.Task | None = None
-        self._retry_task: asyncio.Task | None = None
+        self._watch_task: asyncio.Task[None] | None = None
+        self._retry_task: asyncio.Task[None] | None = None
         self._trip_listeners: list[Callable[[str], None]] = []
         # Relay supervision: the host watchdog (design 3.3) and what the coil really is.
         self.watchdog_s = watchdog_s

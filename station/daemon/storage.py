@@ -31,7 +31,7 @@ from typing import Callable
 
 from sqlalchemy import text
 
-from contracts.events import Alarm, EventBus
+from contracts.events import Alarm, Event, EventBus
 from contracts.types import StationError
 from db.database import Database, plain_url
 from db.file_guard import StoreFile
@@ -58,7 +58,7 @@ def open_database(url: str | None, station: str = "", *, allow_new: bool = False
     `--new-database`), never silently replaced by a new one: an MES holding `since=N` would skip
     the first new results, histories and attempts would start again. forward=False (`serve --check`,
     which writes nothing) leaves the journal for the station's next real start."""
-    tmp: tempfile.TemporaryDirectory | None = None
+    tmp: tempfile.TemporaryDirectory[str] | None = None
     if url in EPHEMERAL_URLS:
         tmp = tempfile.TemporaryDirectory(prefix="station-db-")
         url = f"sqlite:///{Path(tmp.name) / 'station.db'}"
@@ -237,8 +237,8 @@ class Storage:
         self.journal: Journal | None = None
         self.probe: DbProbe | None = None
         self.writer: DbWriter | None = None
-        self._queue: asyncio.Queue | None = None
-        self._task: asyncio.Task | None = None
+        self._queue: asyncio.Queue[Event] | None = None
+        self._task: asyncio.Task[None] | None = None
 
     def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -247,8 +247,11 @@ class Storage:
         if self.journal is not None and self.journal.pending:
             log.warning("storage: %d events of an earlier run wait in the journal %s: forwarded to the database "
                         "now", self.journal.pending, self.journal.path)
-        self.writer = DbWriter(self.db, journal=self.journal,
-                               on_storage=lambda reason: loop.call_soon_threadsafe(self._alarm, reason))
+        def on_storage(reason: str | None) -> None:  # the writer's thread: the alarm is raised in the loop
+            loop.call_soon_threadsafe(self._alarm, reason)
+
+        self.writer = DbWriter(self.db, journal=self.journal, on_storage=on_storage)
+        writer = self.writer
         self.probe = DbProbe(self.db, on_file_problem=lambda why: self._file_problem(why, loop))
         self.probe.start()
         q = self.bus.subscribe(maxsize=100000, drop=False)
@@ -257,7 +260,7 @@ class Storage:
             while True:
                 ev = await q.get()
                 try:
-                    self.writer.submit(ev)  # type: ignore[union-attr]
+                    writer.submit(ev)
                 except Exception:
                     log.exception("db writer refused %s", type(ev).__name__)
 
@@ -269,7 +272,7 @@ class Storage:
         answer), else None. Running batches go on: their events are journaled."""
         return self.probe.problem() if self.probe is not None else None
 
-    def waiting(self) -> dict:
+    def waiting(self) -> dict[str, object]:
         """What waits to be forwarded: {"events": n, "batches": {batch_id: n}} (the page's banner)."""
         if self.journal is None or not self.journal.pending:
             return {"events": 0, "batches": {}}

@@ -16,16 +16,14 @@ from web.status_etag import Rendered, none_match
 from web.views import batch_view, call, prompt_view
 
 router = APIRouter(prefix="/api/batches", tags=["batches"], responses=error_responses(401, 403, 404, 409))
-FINAL_STATES = frozenset({"finished", "aborted", "failed", "interrupted"})
 BatchId = Path(ge=1, le=2**62, description="batch id")
 
 
 async def _no_batch_running(station) -> None:
-    """One plate, one lamp: 409 while a batch runs."""
-    for other in await call(station.batch_ids):
-        st = await call(station.batch_status, other)
-        if st.get("state") not in FINAL_STATES:
-            raise HTTPException(status_code=409, detail=f"batch {other} is already running on this station "
+    """One plate, one lamp: 409 while a batch runs (asked without rendering any batch's status)."""
+    other = await call(station.running_batch)
+    if other is not None:
+        raise HTTPException(status_code=409, detail=f"batch {other} is already running on this station "
                                 "(one plate, one lamp): wait for it to end or abort it")
 
 
@@ -157,8 +155,14 @@ async def abort_batch(request: Request, batch_id: int = BatchId, principal=Depen
 
 @router.get("/{batch_id}/prompt", response_model=Prompt | None, dependencies=[Depends(require_read)])
 async def get_prompt(request: Request, batch_id: int = BatchId):
-    """The open operator prompt of the batch, or null when none is waiting."""
-    return prompt_view(await call(request.app.state.station.prompt, batch_id))
+    """The open operator prompt of the batch, or null when none is waiting (an ended batch the
+    daemon no longer holds waits for nobody: null, as long as the database knows the batch)."""
+    try:
+        return prompt_view(await call(request.app.state.station.prompt, batch_id))
+    except HTTPException as exc:
+        if exc.status_code != 404 or await db_call(request, request.app.state.repo.batch, batch_id) is None:
+            raise
+        return None
 
 
 @router.post("/{batch_id}/prompt", response_model=Ack)
