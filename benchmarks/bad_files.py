@@ -1,4 +1,4 @@
-"""Bad files (issue 37): every hostile log of the issue through `station calibrate`, one row each.
+"""Bad files: every hostile log the tests know through `station calibrate`, one row each.
 
     .venv/bin/python benchmarks/bad_files.py [--nul-gb 2]
 
@@ -6,7 +6,9 @@ The files are tests/test_bad_files.py's (write_cases), written to a temporary fo
 is a valid start followed by --nul-gb GB of holes (truncate: sparse, no disk). Each runs the real
 command line in a subprocess under a small parent (run_measured), so the peak memory is the
 command's own ru_maxrss. Prints: case | exit code | the one stderr line | peak memory MB | seconds.
-Before issue 37 the 2 GB NUL file took 12.7 GB and 93 s, and `ay_g = 1e308` exited 0.
+Before the reader refused what is not text (contracts/logfile.py) and the checks bounded every
+value (contracts/log_checks.py), the 2 GB NUL file took 12.7 GB and 93 s, and `ay_g = 1e308`
+exited 0.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Database figures of issue 4: bytes per DUT run of fast-thermal, and write throughput with 64 DUTs.
+"""Database figures: bytes per DUT run of fast-thermal, and write throughput with 64 DUTs.
 
     .venv/bin/python benchmarks/db_writer_throughput.py [--duts 64] [--url sqlite:///...]
 

@@ -1,4 +1,4 @@
-"""False-discovery and hidden-effect table of `station diagnose` with the realistic noise (issue 11).
+"""False-discovery and hidden-effect table of `station diagnose` with the realistic noise.
 
     python benchmarks/diagnostics_fdr.py [--seeds 20] [--odr HZ] [--effects]
     python benchmarks/diagnostics_fdr.py --speed       # 10-hour validation log, wall and CPU time
@@ -6,7 +6,7 @@
 Part 1 (always): N simulated validation-profile logs (drivers/sim/profiles.py `validation`, one DUT,
 15.7 h) with NO hidden effect and the `realistic` noise model (bias random walk + flicker), seeds
 0..N-1. Prints, per seed, what was admitted, the best candidate's held-out gain, delta BIC and
-p-value, and the diagnose time; then how many logs admitted nothing (issue 11 asks >= 19 of 20).
+p-value, and the diagnose time; then how many logs admitted nothing (the target: >= 19 of 20).
 
 Part 2 (--effects): every hidden effect of the simulator on its own (seed 3): ranked first?
 admitted? held-out after the admitted staircase vs the control floor (the same DUT and noise
@@ -77,7 +77,7 @@ def main() -> int:
 
 def speed() -> int:
     """Wall and CPU time of diagnose() on the first 10 h (117 k samples at 3.125 Hz) of a clean
-    validation log with the realistic noise, 8 built-in candidates (issue 11 asks <= 2 s)."""
+    validation log with the realistic noise, 8 built-in candidates (the target: <= 2 s)."""
     import numpy as np
 
     from contracts.logfile import DutLog

@@ -1,4 +1,4 @@
-"""Per-effect figures of model diagnostics on the simulator's validation profile (issue 6).
+"""Per-effect figures of model diagnostics on the simulator's validation profile.
 
 For each hidden effect (and the control with none): simulate the `validation` profile, run
 `diagnose(..., add=[effect])`, and print the baseline held-out RMS, the held-out RMS after adding

@@ -1,4 +1,4 @@
-"""Speed and memory of `station diagnose` (issue 23 targets on the 2-core station PC).
+"""Speed and memory of `station diagnose` against its targets on the 2-core station PC.
 
     .venv/bin/python benchmarks/diagnostics_speed.py            # all three figures
     .venv/bin/python benchmarks/diagnostics_speed.py --case one # only the single-log figure

@@ -1,5 +1,9 @@
-"""Every figure of issue 2's "What must be shown", computed on the real pipeline (simulator -> logs ->
-station.science) and on the real imucal session, plus the streaming calibrator's throughput.
+"""The science's acceptance figures, computed on the real pipeline (simulator -> logs ->
+station.science) and on the real imucal session: fast-thermal TDB/TDSF against the simulator's
+truth, streaming vs offline TD_i (martinez2022 Table 5), the six-position chamber test's drift error
+before and after compensation (martinez2022 Table 7), SFEM on sfem-24 data (sensors2023 Table 6),
+the station's fit of the imucal session against its reference calibration, and the streaming
+calibrator's throughput.
 
     .venv/bin/python benchmarks/science_report.py [--skip-bench]
 

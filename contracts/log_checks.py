@@ -1,11 +1,12 @@
-"""The checks a log's numbers must pass before any science (issue 22): header numbers in range,
-finite samples, lamp and position codes, acceleration units, samples within the sensor's range
-(|a| <= 16 g on every axis, -60..150 C; issue 37), temperature (kelvin named), strictly
-increasing time, odr_hz against the sample times.
+"""The checks a log's numbers must pass before any science: header numbers in range, finite
+samples, lamp and position codes, acceleration units, samples within the sensor's range
+(|a| <= 16 g on every axis, -60..150 C: a hostile or corrupted file, `ay_g = 1e308`, must stop
+here, not pass through the fit), temperature (kelvin named), strictly increasing time, odr_hz
+against the sample times.
 
 Why a module of its own: the checks are shared by two readers, the design-5.1 log reader
 (contracts/logfile.py: read_log, parse_log, check_log) and the import of other tools' logs
-(station/commands/log_import.py), and they are a subject of their own (units table, bands, the
+(cli/commands/log_import.py), and they are a subject of their own (units table, bands, the
 error lines) apart from the file format. This module knows nothing of the file format and imports
 nothing from contracts.logfile, so the reader can import it without a circle.
 """
@@ -19,7 +20,7 @@ import numpy as np
 
 from contracts.types import StationError
 
-# ---- what a log must look like before any science (issue 22) --------------------------------------
+# ---- what a log must look like before any science -------------------------------------------------
 # A log is believed only after a look: the wrong units, a Kelvin temperature column, a clock that
 # stands still or runs backwards, or an impossible header number each made every analysis give a
 # confident wrong answer (TDB x9.8 from m/s2) or hang a replay (odr_hz 1e9). Every check below is

@@ -61,9 +61,9 @@ class DutLog:
 
 
 CHUNK_BYTES = 1 << 18  # text read and parsed per step (256 KiB): memory stays ~ the final arrays
-# A file that is not text is refused as soon as its first such block is read (issue 37: 2 GB of
-# NUL bytes after a valid start were read as one 2 GB "line", 12.7 GB and 93 s): a NUL byte, a
-# byte that is not UTF-8, or a line longer than this. A log's lines are ~100 characters.
+# A file that is not text is refused as soon as its first such block is read (2 GB of NUL bytes
+# after a valid start were once read as one 2 GB "line": 12.7 GB of memory and 93 s): a NUL byte,
+# a byte that is not UTF-8, or a line longer than this. A log's lines are ~100 characters.
 MAX_LINE_CHARS = 1 << 16
 _NOT_TEXT = re.compile("[\x00\udc80-\udcff]")  # NUL; undecodable bytes (surrogateescape)
 BOM = "\ufeff"  # a spreadsheet's "CSV UTF-8" starts with one: not part of the first line

@@ -1,7 +1,7 @@
 """The SFEM result of one DUT run as it travels and is stored: one typed shape, `SfemResult`.
 
 Why in contracts: the same record is produced by the science (station/science/sfem_record.py, for
-the daemon and `station sfem --json` alike), stored by the database writer (db/writer.py
+the daemon and `station sfem --json` alike), stored by the database writer (db/event_rows.py
 sfem_rows: one row per temperature step plus one for the record), read back by the repository
 (GET /api/duts/{serial}, the MES feed), judged by the verdict and printed on the certificate. The
 database may import nothing of the station, so the shape lives on the ground floor, and every

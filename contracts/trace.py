@@ -1,5 +1,5 @@
-"""What a batch was started for, as the line knows it (issue 24): the work order, the part number
-and revision, the lot, and the serial on each part's label (scanned or typed at the start).
+"""What a batch was started for, as the line knows it: the work order, the part number and
+revision, the lot, and the serial on each part's label (scanned or typed at the start).
 
 Carried by the batch and stamped on every run, result, certificate, export and MES record, so a
 part can be traced from its label to the work order it was built under. Empty strings mean "not

@@ -4,7 +4,7 @@ Measured on main before: `station calibrate` on a log with m/s2 in the g columns
 exit 0; Kelvin temperatures, an all-zero clock, reversed or duplicated rows all gave a result;
 `# odr_hz: 1e9` made `station replay --logs` spin forever, 0/nan/inf/-5 a traceback; a 200 MB log
 took 1.9 GB. Now each is one line on stderr and exit 2, from the reader every command shares
-(contracts/logfile.py read_log -> LogChecker; station/commands/log_import.py for other tools' logs).
+(contracts/logfile.py read_log -> LogChecker; cli/commands/log_import.py for other tools' logs).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from station import cli
+from cli import main as cli
 from contracts import logfile as lf
 from contracts.logfile import DutLog, format_log, parse_log, read_log, write_log
 from station.science.thermal_calibration import calibrate
@@ -114,7 +114,7 @@ def test_sfem_and_diagnose_read_through_the_same_checks(logs, name, capsys, monk
 
 def test_subprocess_no_traceback_and_exit_2(logs):
     for name in ("ms2.csv", "odr_nan.csv"):
-        out = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", name], capture_output=True, text=True,
+        out = subprocess.run([sys.executable, "-m", "cli", "calibrate", name], capture_output=True, text=True,
                              timeout=120, cwd=logs)
         assert out.returncode == 2 and out.stdout == "" and "Traceback" not in out.stderr
         assert out.stderr.splitlines() == [f"station calibrate: error: {dict(BAD)[name]}"]

@@ -1,5 +1,5 @@
-"""The audit trail of REST actions (issue 13): who (the token's name, never the token) did what to
-which batch, with what the request carried: batch start, abort, prompt answers, resume.
+"""The audit trail of REST actions: who (the token's name, never the token) did what to which
+batch, with what the request carried: batch start, abort, prompt answers, resume.
 
 `record(request, ...)` is called by the route once the action was done, so the trail holds what
 happened, not what was attempted. The action has happened by then: a storage failure while

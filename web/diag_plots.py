@@ -2,7 +2,7 @@
 
 A diagnosis of a 15-hour log takes seconds to tens of seconds (every candidate is fitted with
 blocked K-fold held-out validation) and a plot a few hundred ms, and any read token may ask for
-any run with any added effects. So both are bounded work (issue 10: 24 distinct diagnoses at once
+any run with any added effects. So both are bounded work (24 distinct diagnoses at once, unbounded,
 pushed /api/health p50 from 5 to 245 ms):
 
 - reports and PNGs are cached per key in small LRUs (a repeat costs nothing);

@@ -1,4 +1,4 @@
-"""HTTP connection limits of the station's web server (issue 37): slow clients cannot hold it.
+"""HTTP connection limits of the station's web server: slow clients cannot hold it.
 
 uvicorn closes an idle keep-alive connection (`timeout_keep_alive`) but has no timeout for a
 request head that never ends, and no cap on open connections: 1,100 half-sent requests held a

@@ -91,9 +91,9 @@ def payload_of(result: dict, station_name: str) -> dict:
             "streaming": by_method.get("streaming"),
             "offline": by_method.get("offline"),
             "sfem": result.get("sfem"),
-            # what the batch was started for and who ran it (contracts/trace.py, issue 24)
+            # what the batch was started for and who ran it (contracts/trace.py)
             **{k: result.get(k) for k in ("profile", "operator", "sensor", "label_serial", *TRACE_FIELDS)},
-            # the station's decision (issue 12): verdict pass/marginal/fail/error, grade (bin), tray,
+            # the station's decision: verdict pass/marginal/fail/error, grade (bin), tray,
             # plain-words reason, the serial's attempt number and the limits set it was judged by
             **{k: result.get(k) for k in ("verdict", "grade", "tray", "reason", "attempt", "limits_name",
                                           "limits_version")},

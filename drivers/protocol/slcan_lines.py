@@ -1,7 +1,7 @@
 """slcan (Lawicel) receive lines, parsed in bulk (pure: bytes in, frames out).
 
 python-can's slcan reader takes the adapter's bytes one `Serial.read(1)` call at a time, which was
-~40 % of the daemon's CPU with 16 CAN boards (issue 15). The CAN bus reader (drivers/can_board.py)
+~40 % of the daemon's CPU with 16 CAN boards. The CAN bus reader (drivers/can_board.py)
 reads whatever the port holds in one call and splits it here. Only what the station uses is
 decoded: standard data frames `tIIILDD..\\r`; extended/remote/FD frames and the adapter's acks
 (`\\r`, `z\\r`, `Z\\r`) and errors (BEL) are skipped; a line that is not a well-formed frame is

@@ -190,7 +190,7 @@ class ScaleT2(BuiltinEffect):
 
 # A lag shorter than two 10 s fit blocks cannot be told from smoothing the thermometer's own
 # noise and 1 C quantization (an errors-in-variables gain, not a lag): on clean fast-thermal logs a
-# free tau of 1-3 s won delta BIC down to -224 and was admitted once in 8 DUTs (issue 23).
+# free tau of 1-3 s won delta BIC down to -224 and was admitted once in 8 DUTs.
 LAG_MIN_S = 10.0
 
 

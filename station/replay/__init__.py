@@ -1,4 +1,4 @@
-"""Replay recorded batches through simulated boards (`station replay`, issue 16).
+"""Replay recorded batches through simulated boards (`station replay`).
 
     recording.py  what was recorded: each DUT's raw counts, identity, clock, plate state, outcome
     compare.py    pure: the recorded outcome against the replayed one (tolerances, summary, exit)

@@ -1,5 +1,5 @@
-"""Records of the station (issues 13, 16, 24): the audit trail (admin), yield, SPC and the failure
-Pareto with their filters and CSVs, replays. Thin: the repository reads, station/records/spc.py and
+"""Records of the station: the audit trail (admin), yield, SPC and the failure Pareto with their
+filters and CSVs, replays. Thin: the repository reads, station/records/spc.py and
 pareto.py compute, station/replay compared."""
 
 from __future__ import annotations

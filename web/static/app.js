@@ -393,7 +393,7 @@ function showView(name) {
   if (name === "records" && window.loadRecords) window.loadRecords();  // records.js
 }
 
-// ---- the station's database (issue 37) ------------------------------------------------------
+// ---- the station's database ----------------------------------------------------------------
 // /api/health never waits on the database: it says whether the database answers and what waits
 // in the station's journal to be forwarded. Tests go on through an outage; the operator sees why
 // a new batch is refused and that the records are kept on the station.

@@ -1,4 +1,4 @@
-// Model diagnostics panel (issue 6, design 7): for a stored run, rank the effects missing from the
+// Model diagnostics panel (design 7): for a stored run, rank the effects missing from the
 // baseline thermal model; click an effect to add it and watch the error staircase fall.
 // Uses app.js's globals (S for the token, el, fmt, showPlot); loaded after it.
 //

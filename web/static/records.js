@@ -1,4 +1,4 @@
-// Records view (issues 13, 24): filters, SPC per product and limits version (run rules named on the
+// Records view: filters, SPC per product and limits version (run rules named on the
 // points, Cpk from n >= 25 with its interval), the failure Pareto, each with a CSV of what is shown
 // (drawn here as SVG, no library), replays and the audit trail (admin). Uses app.js's globals (api,
 // blobUrl, el, fmt, S); loaded after it.
