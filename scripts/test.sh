@@ -24,7 +24,7 @@ export STATION_REQUIRE_FIRMWARE="${STATION_REQUIRE_FIRMWARE:-1}"
 bash scripts/setup.sh test
 # The typed seams first (pyproject.toml [tool.mypy]): a part that reads another by a name it does
 # not have fails here, in seconds, not at a restart on the line.
-.venv/bin/python -m mypy --no-error-summary || { echo "type check failed (mypy, pyproject.toml [tool.mypy])"; exit 1; }
+.venv/bin/python -m mypy || { echo "type check failed (mypy, pyproject.toml [tool.mypy])"; exit 1; }
 mkdir -p artifacts
 # Three workers on two cores: most tests wait on simulated hardware, not on the CPU. Whole files
 # go to one worker (--dist loadfile): module-scoped stations and venvs are built once.

@@ -47,19 +47,21 @@ async def main(url: str, name: str, seed: int, n_serial: int, speed: float, port
         print("READY", flush=True)
         loop = asyncio.get_running_loop()
         batches: list[int] = []
+        # each batch's status is taken when it ends: the daemon holds only its last ended batch
+        ended: dict[int, asyncio.Task] = {}
         while True:
             line = await loop.run_in_executor(None, sys.stdin.readline)
             if not line:
                 break
             try:
                 batches.append(station.start_batch(PROFILE, None, name))
+                ended[batches[-1]] = asyncio.create_task(station.wait_batch(batches[-1], timeout_s=600))
                 print(json.dumps({"started": batches[-1]}), flush=True)
             except Exception as exc:  # noqa: BLE001 - the test reads the refusal
                 print(json.dumps({"refused": f"{type(exc).__name__}: {exc}"}), flush=True)
         out = {"station": name, "batches": []}
         for bid in batches:
-            await station.wait_batch(bid, timeout_s=600)
-            status = station.batch_status(bid)
+            status = await ended[bid]
             out["batches"].append({
                 "batch_id": bid, "state": status["state"], "error": status["error"],
                 "slots": [{"slot": s["slot"], "serial": s["serial"], "state": s["state"], "run_id": s.get("run_id"),

@@ -53,7 +53,7 @@ def test_audit_trail_over_rest(tmp_path):
     db.upgrade()
     fake = _FakeStation()
     app = create_app(SimpleNamespace(config=None, bus=None, db=db, **{k: getattr(fake, k) for k in
-                                     ("batch_ids", "start_batch", "abort", "answer_prompt", "resume_batch")}),
+                                     ("batch_ids", "running_batch", "start_batch", "abort", "answer_prompt", "resume_batch")}),
                      repo=DbRepository(db), outbox=False,
                      tokens=TokenStore([(OP, "operator", "anna (operator)"), (ADMIN, "admin", "lead"), (MES, "mes", "mes")]))
     url, stop_server = serve_in_thread(app)

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 from station.config import parse_config
 from contracts.events import EventBus
+from contracts.run_records import ProgramRecord, ThermalReport
 from station.profiles import all_profiles
 from station.daemon.dut_run import DutRun
 from station.daemon.progress import time_left
@@ -36,9 +37,10 @@ def station_and_batch(n: int = 2, ending: str = "finished"):
         d.run_id = db.create_run(batch_id, d.slot, d.serial)
         d.attempt = db.run_attempt(d.run_id)  # as slots.connect_duts reads it when the run is made
         d.n_samples = 1000
-        d.result = {"axes": {ax: {"tdb_mg_per_c": 0.1, "tdsf_ppm_per_c": -100.0, "tdsf_sigma_ppm_per_c": 1.0} for ax in "xyz"},
-                    "residual": {"axes": {ax: {"drift_error_fs_pct": 0.3, "drift_error_fs_sigma_pct": 0.02, "bow_mg": 0.5,
-                                               "bow_sigma_mg": 0.2} for ax in "xyz"}}}
+        d.result = ThermalReport.from_json({
+            "axes": {ax: {"tdb_mg_per_c": 0.1, "tdsf_ppm_per_c": -100.0, "tdsf_sigma_ppm_per_c": 1.0} for ax in "xyz"},
+            "residual": {"axes": {ax: {"drift_error_fs_pct": 0.3, "drift_error_fs_sigma_pct": 0.02, "bow_mg": 0.5,
+                                       "bow_sigma_mg": 0.2} for ax in "xyz"}}})
         duts.append(d)
     seq = SimpleNamespace(batch_id=batch_id, profile=all_profiles(CFG)["fast-thermal"], duts=duts, ending=ending, state="analysing",
                           error="", trace=Trace())
@@ -76,9 +78,10 @@ def test_a_verified_profile_requires_crc_compensation_and_verified_figures():
     ok, bad_crc, unverified = seq.duts
     for d in seq.duts:
         d.state = "done"
-    ok.program, ok.verification = good_program, verified
-    bad_crc.program, bad_crc.verification = dict(good_program, readback_crc="00000000"), verified
-    unverified.program = good_program  # e.g. the verification heat never produced its figures
+    ok.program, ok.verification = ProgramRecord.from_json(good_program), verified
+    bad_crc.program = ProgramRecord.from_json(dict(good_program, readback_crc="00000000"))
+    bad_crc.verification = verified
+    unverified.program = ProgramRecord.from_json(good_program)  # e.g. the verification heat never produced its figures
     judge_final(st, seq)
     assert ok.verdict["verdict"] == "pass", ok.verdict["reasons"]
     assert bad_crc.verdict["verdict"] == "fail" and "readback CRC" in bad_crc.verdict["reason"]

@@ -17,7 +17,10 @@ import pytest
 from drivers.protocol.cal_record import crc32_f32, to_f32
 from drivers.sim.physics import draw_population
 from drivers.sim.station_sim import SimStation
+from contracts.run_records import ThermalReport
 from contracts.types import AXES
+from station.daemon import program_verify
+from station.daemon.run_end import RunEnd
 from tests.test_daemon_e2e import coil, daemon
 
 SPEED = 250.0
@@ -158,22 +161,21 @@ SHORT_PV = {
 }
 
 
-class TruthAnalysisStation:
-    """Station whose first-pass analysis returns the simulator's true TDB/TDSF (so that the write
-    path and the lamp can be exercised in seconds); everything else is the real daemon."""
+class TruthRunEnd(RunEnd):
+    """The run's end whose first-pass analysis returns the simulator's true TDB/TDSF (so that the
+    write path and the lamp can be exercised in seconds); the verification and everything else is
+    the real daemon's. Plugged in where the Station wires its parts (Station.run_end, before start)."""
 
-    @staticmethod
-    def make(base, truths):
-        class _S(base):
-            async def analyse(self, seq):
-                from station.daemon import program_verify
-                if program_verify.after_programming(seq):
-                    return await super().analyse(seq)
-                for d in seq.duts:
-                    t = truths[d.slot]
-                    d.result = {"axes": {a: {"tdb_mg_per_c": float(t.tdb_mg_per_c[k]), "tdsf_ppm_per_c": float(t.tdsf_ppm_per_c[k])}
-                                         for k, a in enumerate(AXES)}}
-        return _S
+    truths: dict = {}
+
+    async def _analyse(self, seq):
+        if program_verify.after_programming(seq):
+            return await super()._analyse(seq)
+        for d in seq.duts:
+            t = self.truths[d.slot]
+            d.result = ThermalReport.from_json({"axes": {
+                a: {"tdb_mg_per_c": float(t.tdb_mg_per_c[k]), "tdsf_ppm_per_c": float(t.tdsf_ppm_per_c[k])}
+                for k, a in enumerate(AXES)}})
 
 
 async def _short_daemon(sim, tmp_path):
@@ -184,7 +186,9 @@ async def _short_daemon(sim, tmp_path):
 
     cfg = parse_config(sim_config(sim, speed=SPEED, db_url=f"sqlite:///{tmp_path / 'pv.db'}", profiles=SHORT_PV), "<t>")
     db = open_database(cfg.database_url)
-    st = TruthAnalysisStation.make(Station, truth_by_slot(sim))(cfg, db=db)
+    st = Station(cfg, db=db)
+    st.run_end = TruthRunEnd(st.bank, st.storage, st.verdicts, shutting_down=lambda: not st.running)
+    st.run_end.truths = truth_by_slot(sim)
     await st.start()
     return st, db
 
