@@ -162,6 +162,15 @@ class StationError(Exception):
     """A user-facing error: one clear line, no traceback (CLI exits non-zero, REST gives 4xx)."""
 
 
+class NotFound(KeyError):
+    """What a request names does not exist (an unknown batch, run, profile, export format): REST
+    answers 404 with the message. It is a KeyError for the callers that already catch one; a plain
+    KeyError anywhere else is a bug, and REST answers 500 for it, never "not found"."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else "not found"
+
+
 class StorageUnavailable(StationError):
     """The station's database cannot be used now (not answering, its file deleted): what needs it
     (a new batch: its runs are numbered there) is refused; REST answers 503 with the reason."""

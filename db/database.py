@@ -24,6 +24,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.sql.elements import ColumnElement
 
+from contracts.types import NotFound
 from contracts.trace import Trace
 from db.engine import (
     SQLITE_SYNCHRONOUS,
@@ -169,7 +170,7 @@ class Database(Schema):
         with self.session() as s:
             res = s.execute(update(Batch).where(Batch.id == batch_id).values(**values))
             if res.rowcount == 0:
-                raise KeyError(f"no batch {batch_id}")
+                raise NotFound(f"no batch {batch_id}")
 
     def upsert_dut(self, s: Session, serial: str, sensor: str = "") -> Dut:
         """The DUT row of `serial`, made if new: insert-or-get by the database itself (INSERT ...
@@ -235,7 +236,7 @@ class Database(Schema):
         with self.session() as s:
             a = s.scalar(select(DutRun.attempt).where(DutRun.id == run_id))
             if a is None:
-                raise KeyError(f"no run {run_id}")
+                raise NotFound(f"no run {run_id}")
             return int(a)
 
     def set_run_state(self, run_id: int, state: str, fault_reason: str = "") -> None:
@@ -245,7 +246,7 @@ class Database(Schema):
         with self.session() as s:
             res = s.execute(update(DutRun).where(DutRun.id == run_id).values(**values))
             if res.rowcount == 0:
-                raise KeyError(f"no run {run_id}")
+                raise NotFound(f"no run {run_id}")
 
     # ---- resume ----------------------------------------------------------------------------
     def mark_interrupted(self, reason: str = "station restarted") -> list[int]:
@@ -292,7 +293,7 @@ class Database(Schema):
         with self.session() as s:
             b = s.get(Batch, batch_id)
             if b is None:
-                raise KeyError(f"no batch {batch_id}")
+                raise NotFound(f"no batch {batch_id}")
             return Trace.of(b)
 
     def resume_point(self, batch_id: int) -> ResumePoint:
@@ -300,7 +301,7 @@ class Database(Schema):
         with self.session() as s:
             b = s.get(Batch, batch_id)
             if b is None:
-                raise KeyError(f"no batch {batch_id}")
+                raise NotFound(f"no batch {batch_id}")
             nseg = (
                 select(SegmentRow.run_id, func.count(SegmentRow.id).label("n"))
                 .group_by(SegmentRow.run_id)

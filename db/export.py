@@ -20,7 +20,7 @@ from db.database import RUN_ACTIVE_STATES, Database
 from db.models import Batch, Dut, DutRun, SampleChunk, utcnow
 from contracts.logfile import DutLog, write_log
 from contracts.positions import GRAVITY_DIRECTIONS
-from contracts.types import StationError
+from contracts.types import NotFound, StationError
 from contracts.filenames import safe_name
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,7 @@ def run_log(db: Database, run_id: int) -> DutLog:
             .where(DutRun.id == run_id)
         ).first()
         if row is None:
-            raise KeyError(f"no run {run_id}")
+            raise NotFound(f"no run {run_id}")
         run, serial, sensor, profile = row
     if run.samples_pruned_at is not None:
         raise StationError(

@@ -12,6 +12,7 @@ from datetime import datetime
 
 from sqlalchemy import select, update
 
+from contracts.types import NotFound
 from contracts.json_safe import plain_json
 
 from db.database import Database
@@ -113,7 +114,7 @@ def outbox_mark_delivered(db: Database, outbox_id: int) -> None:
             .values(delivered_at=utcnow(), attempts=Outbox.attempts + 1, last_error="")
         )
         if res.rowcount == 0:
-            raise KeyError(f"no outbox message {outbox_id}")
+            raise NotFound(f"no outbox message {outbox_id}")
 
 
 def outbox_mark_failed(db: Database, outbox_id: int, error: str, next_attempt_at: datetime) -> None:
@@ -124,7 +125,7 @@ def outbox_mark_failed(db: Database, outbox_id: int, error: str, next_attempt_at
             .values(attempts=Outbox.attempts + 1, last_error=str(error)[:2000], next_attempt_at=next_attempt_at)
         )
         if res.rowcount == 0:
-            raise KeyError(f"no outbox message {outbox_id}")
+            raise NotFound(f"no outbox message {outbox_id}")
 
 
 __all__ = ["results_since", "outbox_enqueue", "outbox_enqueue_new", "outbox_pending", "outbox_mark_delivered",

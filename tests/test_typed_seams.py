@@ -109,3 +109,26 @@ def test_the_type_check_passes_and_fails_when_the_moment_reads_a_renamed_part(tr
     assert misread.returncode != 0
     assert re.search(r"moment\.py:\d+: error: \"VerdictContext\" has no attribute \"_profiles\"", misread.stdout), \
         misread.stdout
+
+
+def test_only_what_does_not_exist_reads_as_404_a_bug_stays_a_bug():
+    """The facade says "unknown batch" with contracts.types.NotFound; a KeyError from a bug (a
+    record read by a key it does not have) must not reach the MES as 404 "not found"."""
+    import asyncio
+
+    from fastapi import HTTPException
+
+    from contracts.types import NotFound
+    from web.views import call
+
+    def unknown() -> None:
+        raise NotFound("unknown batch 7")
+
+    def bug() -> object:
+        return {}["verdict"]
+
+    with pytest.raises(HTTPException) as exc:
+        asyncio.run(call(unknown))
+    assert exc.value.status_code == 404 and exc.value.detail == "unknown batch 7"
+    with pytest.raises(KeyError):  # the web app answers it 500 (an internal error), never 404
+        asyncio.run(call(bug))

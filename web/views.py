@@ -9,12 +9,13 @@ from typing import Any
 
 from fastapi import HTTPException
 
-from contracts.types import StorageUnavailable
+from contracts.types import NotFound, StorageUnavailable
 
 
 async def call(fn, *args, conflict: bool = False, **kwargs):
     """Call a Station method that may be sync or async; map the facade's errors (contract:
-    unknown batch -> KeyError, bad request -> ValueError) to 404 / 422 with the message.
+    unknown batch -> contracts.types.NotFound, bad request -> ValueError) to 404 / 422 with the
+    message. Any other exception (a plain KeyError too) is a bug: 500, never "not found".
 
     conflict=True: a ValueError means the request does not fit the batch's current state
     (already ended, no prompt open): 409 Conflict rather than 422."""
@@ -22,7 +23,7 @@ async def call(fn, *args, conflict: bool = False, **kwargs):
         out = fn(*args, **kwargs)
         if inspect.isawaitable(out):
             out = await out
-    except KeyError as exc:
+    except NotFound as exc:
         raise HTTPException(status_code=404, detail=_msg(exc, "not found")) from None
     except StorageUnavailable as exc:
         raise HTTPException(status_code=503, detail=_msg(exc, "the database is not available")) from None

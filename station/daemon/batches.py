@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from contracts.events import EventBus
-from contracts.types import SampleBlock, StorageUnavailable
+from contracts.types import NotFound, SampleBlock, StorageUnavailable
 from contracts.trace import Trace, label_mismatch
 from db import repository as repo
 from db.database import Database, ResumePoint, RunPoint
@@ -198,7 +198,7 @@ class BatchDesk:
                                                  for d in seq.duts], seq.trace)
         detail = repo.batch_detail(self.db, int(batch_id))
         if detail is None:
-            raise KeyError(f"unknown batch {batch_id}")
+            raise NotFound(f"unknown batch {batch_id}")
         if detail["state"] not in TERMINAL:
             raise ValueError(f"batch {batch_id} is {detail['state']} in the database: retest once it has ended")
         if detail.get("station") not in (None, "", self.db.station):  # '' : a row from before migration 0005

@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 from contracts.events import EventBus
 from contracts.trace import Trace
-from contracts.types import StationError
+from contracts.types import NotFound, StationError
 from db.database import Database
 from db.writer import DbWriter
 from drivers.base import Chamber, Fixture, Thermometer
@@ -211,7 +211,7 @@ class Station:
 
     def profile(self, name: str) -> dict[str, object]:
         if name not in self.profiles_by_name:
-            raise KeyError(f"unknown profile {name!r}")
+            raise NotFound(f"unknown profile {name!r}")
         return self.profiles_by_name[name].to_json()
 
     # ================================================================== facade: batches
@@ -235,7 +235,7 @@ class Station:
         try:
             return self.batches[int(batch_id)]
         except (KeyError, ValueError, TypeError):
-            raise KeyError(f"unknown batch {batch_id}") from None
+            raise NotFound(f"unknown batch {batch_id}") from None
 
     def abort(self, batch_id: int, reason: str = "", by: str = "operator") -> None:
         """End a batch for an operator. The batch's error says who and when ("aborted by Ana at

@@ -14,6 +14,8 @@ import re
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
+from contracts.types import NotFound
+
 if TYPE_CHECKING:
     from station.records.export_model import ExportReport
 
@@ -99,7 +101,7 @@ def export_format(name: str) -> ExportFormat:
     try:
         return _FORMATS[name]
     except KeyError:
-        raise KeyError(f"unknown export format {name!r} (known: {', '.join(_FORMATS)})") from None
+        raise NotFound(f"unknown export format {name!r} (known: {', '.join(_FORMATS)})") from None
 
 
 __all__ = ["OCPTV", "STDF", "ExportFormat", "export_format", "export_formats", "register", "unregister"]
