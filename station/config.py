@@ -122,6 +122,18 @@ class Token(_Model):
     name: str = ""
 
 
+class Mes(_Model):
+    """The MES webhook ([mes]): where each final verdict is posted (through the durable outbox, once
+    per record) and how a refused or unreachable MES is retried."""
+
+    webhook_url: str | None = None
+    timeout_s: float = Field(default=10.0, gt=0, le=600, description="one POST's timeout")
+    base_delay_s: float = Field(default=2.0, gt=0, le=3600, description="first retry after this; doubles each time")
+    max_delay_s: float = Field(default=600.0, gt=0, le=86_400, description="retries never wait longer")
+    poll_s: float = Field(default=2.0, gt=0, le=600, description="how often the outbox looks for due messages")
+    batch: int = Field(default=20, ge=1, le=1000, description="messages sent per look")
+
+
 class Http(_Model):
     host: str = "127.0.0.1"
     port: int = Field(default=8080, ge=0, le=65535)
@@ -225,7 +237,8 @@ class StationConfig(_Model):
     # station, forwarded when the database answers. Default: beside a SQLite file (<file>.journal);
     # for PostgreSQL, ~/.local/state/station/<name>-<host>-<port>-<database>.journal
     journal_path: str | None = Field(default=None, min_length=1, max_length=1024)
-    mes_webhook_url: str | None = None
+    mes_webhook_url: str | None = None  # the webhook's URL alone (older configs); [mes] webhook_url is the same
+    mes: Mes = Mes()
     http: Http = Http()
     limits: Limits = Limits()
     timing: Timing = Timing()
@@ -248,6 +261,16 @@ class StationConfig(_Model):
     # ownership.py: one station owns its hardware); default per user: $XDG_RUNTIME_DIR/accel-station or
     # /tmp/accel-station-locks-<uid>. The SQLite database's lock file always sits next to the database.
     lock_dir: str | None = Field(default=None, min_length=1, max_length=1024)
+
+    @model_validator(mode="after")
+    def _one_webhook(self) -> "StationConfig":
+        """`mes_webhook_url` and `[mes] webhook_url` name one webhook: either sets it, both must agree."""
+        if self.mes_webhook_url and self.mes.webhook_url and self.mes_webhook_url != self.mes.webhook_url:
+            raise ValueError("mes_webhook_url and [mes] webhook_url differ: set one")
+        url = self.mes.webhook_url or self.mes_webhook_url
+        self.mes = self.mes.model_copy(update={"webhook_url": url})
+        self.mes_webhook_url = url
+        return self
 
     @model_validator(mode="after")
     def _unique(self) -> "StationConfig":

@@ -114,3 +114,29 @@ def test_example_config_product_is_the_one_used_for_lis3dsh():
     spec = cfg.product_for("LIS3DSH")
     assert (spec.name, spec.version) == ("LIS3DSH-line", "1")
     assert [g.name for g in spec.grades] == ["A", "B"]
+
+
+def test_the_mes_webhook_and_its_retries_are_set_in_toml(tmp_path):
+    """[mes] sets the webhook and how a refused or unreachable MES is retried; the older top-level
+    mes_webhook_url still names the same webhook; two different URLs are refused."""
+    from web.mes_outbox import OutboxConfig
+
+    cfg = _load(tmp_path, 'name = "line-3"\n' + MIN + """
+[mes]
+webhook_url = "http://127.0.0.1:9/hook"
+timeout_s = 3
+base_delay_s = 0.5
+max_delay_s = 30
+poll_s = 1
+batch = 5
+""")
+    out = OutboxConfig.from_config(cfg)
+    assert out == OutboxConfig(url="http://127.0.0.1:9/hook", timeout_s=3.0, base_delay_s=0.5, max_delay_s=30.0,
+                               poll_s=1.0, batch=5, station_name="line-3")
+    legacy = _load(tmp_path, 'mes_webhook_url = "http://127.0.0.1:9/old"\n' + MIN)
+    assert OutboxConfig.from_config(legacy).url == "http://127.0.0.1:9/old"
+    assert OutboxConfig.from_config(legacy).base_delay_s == 2.0  # the documented default
+    assert OutboxConfig.from_config(_load(tmp_path, MIN)) is None
+    assert "mes_webhook_url and [mes] webhook_url differ" in _err(
+        tmp_path, 'mes_webhook_url = "http://a/1"\n' + MIN + '[mes]\nwebhook_url = "http://b/2"\n')
+    assert "mes.base_delay_s" in _err(tmp_path, MIN + "[mes]\nbase_delay_s = -1\n")

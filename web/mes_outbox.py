@@ -22,6 +22,7 @@ import httpx
 from contracts.events import DutVerdict
 from contracts.trace import TRACE_FIELDS
 from station.aio import cancel_and_wait
+from station.config import StationConfig
 from web.repo import WebRepository
 from web.views import clean
 
@@ -39,26 +40,13 @@ class OutboxConfig:
     station_name: str = "station"
 
     @classmethod
-    def from_config(cls, config) -> "OutboxConfig | None":
-        def get(obj, key):
-            if obj is None:
-                return None
-            return obj.get(key) if isinstance(obj, dict) else getattr(obj, key, None)
-
-        for section in (None, "mes", "web"):
-            sec = config if section is None else get(config, section)
-            url = get(sec, "mes_webhook_url" if section is None else "webhook_url") if sec is not None else None
-            if url:
-                kwargs = {}
-                for k in ("timeout_s", "base_delay_s", "max_delay_s", "poll_s"):
-                    v = get(sec, ("mes_" + k) if section is None else k)
-                    if v is not None:
-                        kwargs[k] = float(v)
-                name = get(get(config, "station"), "name") or get(config, "name")
-                if name:
-                    kwargs["station_name"] = str(name)
-                return cls(url=str(url), **kwargs)
-        return None
+    def from_config(cls, config: StationConfig | None) -> "OutboxConfig | None":
+        """The outbox of a station's [mes] section (None: no webhook configured)."""
+        if not isinstance(config, StationConfig) or not config.mes.webhook_url:
+            return None
+        m = config.mes
+        return cls(url=m.webhook_url, timeout_s=m.timeout_s, base_delay_s=m.base_delay_s, max_delay_s=m.max_delay_s,
+                   poll_s=m.poll_s, batch=m.batch, station_name=config.name)
 
 
 def backoff_s(attempts: int, base_s: float, max_s: float) -> float:

@@ -129,7 +129,7 @@ async def yield_summary(request: Request, batch_id: int | None = Query(default=N
 
 def register_webhooks(app) -> None:
     """Document the MES webhook in the OpenAPI (`webhooks`): what the station POSTs to the
-    configured mes_webhook_url for every stored result or verdict."""
+    configured webhook ([mes] webhook_url) for every final verdict."""
 
     @app.webhooks.post("mes-result")
     def mes_result(body: MesResultPayload) -> None:
