@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from contracts.json_safe import JsonDict, plain_json_dict
+from contracts.json_safe import JsonDict, finite_or_none, plain_json_dict
 from contracts.types import AXES, AxisThermal
 
 THERMAL_METHODS = ("streaming", "offline")
@@ -38,12 +38,8 @@ def _axis(d: object, where: str) -> AxisThermal:
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"thermal result: {where} has no numeric tdb_mg_per_c/tdsf_ppm_per_c") from None
 
-    def sigma(key: str) -> float | None:
-        v = d.get(key)
-        return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else None
-
-    return AxisThermal(tdb, tdsf, sigma("tdb_sigma_mg_per_c"), sigma("tdsf_sigma_ppm_per_c"),
-                       bool(d.get("tdsf_clamped", False)))
+    return AxisThermal(tdb, tdsf, finite_or_none(d.get("tdb_sigma_mg_per_c")),
+                       finite_or_none(d.get("tdsf_sigma_ppm_per_c")), bool(d.get("tdsf_clamped", False)))
 
 
 @dataclass(frozen=True)
@@ -132,8 +128,7 @@ class ProgramRecord:
 
     @property
     def comp_from_t(self) -> float | None:
-        v = self.readback.get("comp_from_t")
-        return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+        return finite_or_none(self.readback.get("comp_from_t"))
 
     def to_json(self) -> JsonDict:
         out: JsonDict = {"programmed": self.programmed}
@@ -167,14 +162,4 @@ class ProgramRecord:
                    readback={k: v for k, v in d.items() if k not in own})
 
 
-def thermal_or_none(d: object) -> ThermalReport | None:
-    """A stored thermal document as a report, or None when there is none or it cannot be read."""
-    if not d:
-        return None
-    try:
-        return ThermalReport.from_json(d)
-    except ValueError:
-        return None
-
-
-__all__ = ["ThermalReport", "MethodResult", "ProgramRecord", "thermal_or_none", "THERMAL_METHODS"]
+__all__ = ["ThermalReport", "MethodResult", "ProgramRecord", "THERMAL_METHODS"]

@@ -86,29 +86,27 @@ def _edit(path: Path, old: str, new: str) -> str:
     return text
 
 
+def _fails_after_edit(tree: Path, path: Path, old: str, new: str, error: str) -> None:
+    """The type check of `tree` with `old` replaced by `new` in `path` fails, saying `error`
+    (a regex); the file is put back whatever happens."""
+    before = _edit(path, old, new)
+    try:
+        out = _mypy(tree)
+    finally:
+        path.write_text(before)
+    assert out.returncode != 0
+    assert re.search(error, out.stdout), out.stdout
+
+
 def test_the_type_check_passes_and_fails_when_the_moment_reads_a_renamed_part(tree_copy):
     ok = _mypy(tree_copy)
     assert ok.returncode == 0, ok.stdout + ok.stderr
-
-    supervisor = tree_copy / "station" / "daemon" / "supervisor.py"
-    before = _edit(supervisor, "self.profiles_by_name: dict[str, Profile] =", "self.profile_table: dict[str, Profile] =")
-    try:
-        renamed = _mypy(tree_copy)
-    finally:
-        supervisor.write_text(before)
-    assert renamed.returncode != 0
-    assert re.search(r"supervisor\.py:\d+: error: \"Station\" has no attribute \"profiles_by_name\"", renamed.stdout), \
-        renamed.stdout
-
-    moment = tree_copy / "station" / "decisions" / "moment.py"
-    before = _edit(moment, "prof = ctx.profiles.get(name)", "prof = ctx._profiles.get(name)")
-    try:
-        misread = _mypy(tree_copy)
-    finally:
-        moment.write_text(before)
-    assert misread.returncode != 0
-    assert re.search(r"moment\.py:\d+: error: \"VerdictContext\" has no attribute \"_profiles\"", misread.stdout), \
-        misread.stdout
+    _fails_after_edit(tree_copy, tree_copy / "station" / "daemon" / "supervisor.py",
+                      "self.profiles_by_name: dict[str, Profile] =", "self.profile_table: dict[str, Profile] =",
+                      r"supervisor\.py:\d+: error: \"Station\" has no attribute \"profiles_by_name\"")
+    _fails_after_edit(tree_copy, tree_copy / "station" / "decisions" / "moment.py",
+                      "prof = ctx.profiles.get(name)", "prof = ctx._profiles.get(name)",
+                      r"moment\.py:\d+: error: \"VerdictContext\" has no attribute \"_profiles\"")
 
 
 def test_only_what_does_not_exist_reads_as_404_a_bug_stays_a_bug():

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drivers.base import Chamber, Fixture, Thermometer
+from drivers.base import Chamber, Fixture
 from station.daemon.dut_run import DutRun
 from station.daemon.run_end import RunEnd
 from station.daemon.safety import LampGuard
@@ -26,7 +26,6 @@ class Rig:
     lamp: LampGuard
     fixture: Fixture | None
     chamber: Chamber | None
-    thermometer: Thermometer | None
     fixture_timeout_s: float
     plate_again_after_s: float
     speed: float

@@ -31,7 +31,6 @@ from contracts.trace import Trace
 from contracts.types import NotFound, StationError
 from db.database import Database
 from db.writer import DbWriter
-from drivers.base import Chamber, Fixture, Thermometer
 from station.config import StationConfig
 from station.daemon.batches import BatchDesk
 from station.daemon.dut_run import Calibrator, wall_text
@@ -93,9 +92,6 @@ class Station:
                               profiles=self.profiles_by_name, config=config, calibrator_factory=factory,
                               running=lambda: self.running)
         self.lamp: LampGuard | None = None
-        self.fixture: Fixture | None = None
-        self.chamber: Chamber | None = None
-        self.thermometer: Thermometer | None = None
         self._started = False
         self._closed = False
 
@@ -128,9 +124,9 @@ class Station:
         if self.claim is None:  # one station owns its database, ports and relay (ownership.py): first
             self.claim = StationClaim.take(cfg, database_url=database_url_of(self.db))
         relay = await self.links.relay(cfg.lamp)
-        self.thermometer = await self.links.thermometer(cfg.thermometer) if cfg.thermometer else None
-        self.fixture = await self.links.fixture(cfg.fixture) if cfg.fixture else None
-        self.chamber = await self.links.chamber(cfg.chamber) if cfg.chamber else None
+        thermometer = await self.links.thermometer(cfg.thermometer) if cfg.thermometer else None
+        fixture = await self.links.fixture(cfg.fixture) if cfg.fixture else None
+        chamber = await self.links.chamber(cfg.chamber) if cfg.chamber else None
         self.lamp = LampGuard(
             relay,
             self.bus,
@@ -138,7 +134,7 @@ class Station:
             max_dut_temp_c=cfg.limits.max_dut_temp_c,
             max_plate_temp_c=cfg.limits.max_plate_temp_c,
             speed=cfg.timing.speed,
-            thermometer=self.thermometer,
+            thermometer=thermometer,
             watchdog_s=cfg.limits.relay_watchdog_s,
         )
         self.lamp.on_trip(self._on_lamp_trip)
@@ -148,8 +144,7 @@ class Station:
         await self.lamp.arm_watchdog()
         self.lamp.start()
         self.bank.lamp = self.lamp
-        self.desk.rig = Rig(lamp=self.lamp, fixture=self.fixture, chamber=self.chamber, thermometer=self.thermometer,
-                            fixture_timeout_s=cfg.timing.fixture_timeout_s,
+        self.desk.rig = Rig(lamp=self.lamp, fixture=fixture, chamber=chamber, fixture_timeout_s=cfg.timing.fixture_timeout_s,
                             plate_again_after_s=cfg.timing.plate_again_after_s, speed=cfg.timing.speed,
                             slots=self.bank, run_end=self.run_end)
         self.storage.start()

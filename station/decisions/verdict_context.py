@@ -121,36 +121,5 @@ class EndedBatch(Protocol):
     def trace(self) -> Trace: ...
 
 
-class LinkCounters(Protocol):
-    """A link's counters (drivers.base.LinkStats)."""
-
-    def as_dict(self) -> dict[str, int]: ...
-
-
-class CountingDriver(Protocol):
-    """A board driver, for its link's counters (drivers.base.BoardDriver)."""
-
-    @property
-    def stats(self) -> LinkCounters: ...
-
-
-class LinkedSlot(Protocol):
-    """A station slot, for its driver (station/daemon/slots.py SlotRuntime; None: not connected)."""
-
-    @property
-    def driver(self) -> CountingDriver | None: ...
-
-
-def slot_link_stats(slots: Mapping[str, LinkedSlot]) -> LinkStatsLookup:
-    """The live counters of each slot's link (its driver's `stats`), for a station's slots."""
-
-    def stats(slot: str) -> Mapping[str, int] | None:
-        rt = slots.get(slot)
-        drv = rt.driver if rt is not None else None
-        return drv.stats.as_dict() if drv is not None else None
-
-    return stats
-
-
 __all__ = ["VerdictContext", "VerdictStore", "Publisher", "EndedBatch", "ProductLookup", "LinkStatsLookup",
-           "LinkCounters", "CountingDriver", "LinkedSlot", "no_live_links", "slot_link_stats"]
+           "no_live_links"]
