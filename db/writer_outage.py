@@ -226,24 +226,14 @@ class WriterOutage:
                 if not chunk:
                     continue
             try:
-                self._commit_timed(chunk, False)
-            except _OutcomeUnknown:
-                self._backoff(self.stats["last_error"] or "a commit's answer was lost")
-                return False
-            except OperationalError as exc:
-                self._backoff(_reason(exc))
-                return False
+                if not self._forward_commit(chunk):
+                    return False
             except Exception:  # noqa: BLE001 - a bad event among them: one by one, the rest stored
                 log.exception("db writer: forwarding %d journaled events failed; one by one", len(chunk))
                 for one in chunk:
                     try:
-                        self._commit_timed([one], False)
-                    except _OutcomeUnknown:
-                        self._backoff(self.stats["last_error"] or "a commit's answer was lost")
-                        return False
-                    except OperationalError as exc:
-                        self._backoff(_reason(exc))
-                        return False
+                        if not self._forward_commit([one]):
+                            return False
                     except Exception as exc:  # noqa: BLE001
                         self.stats["dropped_events"] += 1
                         self.stats["last_error"] = repr(exc)
@@ -256,6 +246,19 @@ class WriterOutage:
             if not everything and self._q.qsize() > self.max_events:
                 break  # new events keep their pace: they go behind the journal, forwarded next
         return not self.journal.pending
+
+    def _forward_commit(self, entries: list[Entry]) -> bool:
+        """Commit journaled entries. False, after a backoff, when the database failed or the
+        commit's answer was lost (the whole forward waits); a bad event's error propagates."""
+        try:
+            self._commit_timed(entries, False)
+        except _OutcomeUnknown:
+            self._backoff(self.stats["last_error"] or "a commit's answer was lost")
+            return False
+        except OperationalError as exc:
+            self._backoff(_reason(exc))
+            return False
+        return True
 
     def _settle_tokens(self, seqs: list[int]) -> set[int] | None:
         """Journal entries held under a token (a commit whose answer was lost): those whose commit
