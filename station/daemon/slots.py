@@ -175,7 +175,7 @@ class SlotBank:
     # ------------------------------------------------------------------ a batch's start and end
     async def connect_duts(self, seq: Sequencer) -> None:
         """Identify every DUT of the batch, open (or continue) its run, start its stream and its pump."""
-        self._releasing.discard(seq.batch_id)
+        self._releasing.clear()  # one batch at a time: the ended ones' pumps are long gone (their DUTs ended)
         pumps = self._pumps.setdefault(seq.batch_id, {})
 
         async def connect(d: DutRun) -> bool:
