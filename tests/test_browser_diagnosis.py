@@ -6,6 +6,10 @@ waiting) and another client holds the diagnosis slot when the panel opens, so th
 queue its plots, wait the Retry-After the server asks for, say in words what each request waits
 for, and in the end show every plot with no "busy" left on screen; every candidate in the ranking
 says why it is (not) admitted. The screenshot goes to tmp_path and /tmp/diag_panel.png.
+
+Issue 38: words, never labels: no raw flag (no_evidence, confusable_with:...) anywhere on the panel,
+each flag in words under the candidate's why, the orientations named as the CLI names them
+("position 0 (P)"), and the leftover statement first, above the ranking, when the report has one.
 """
 
 from __future__ import annotations
@@ -154,7 +158,8 @@ def test_diagnosis_panel_retries_429_and_explains_every_candidate(tmp_path, monk
             doc = httpx.get(f"{url}/api/runs/1/diagnosis", headers={"Authorization": f"Bearer {TOKEN}"},
                             timeout=30).json()
             shown = page.eval_on_selector_all("#diag-plots figure", "fs => fs.map(f => f.dataset.plot)")
-            assert sorted(shown) == sorted(doc["plots"])
+            assert shown == doc["plots"]  # in the server's order: the order it renders them in ahead
+            assert "residual_vs_orientation" in shown
             widths = page.eval_on_selector_all("#diag-plots img", "is => is.map(i => i.naturalWidth)")
             assert len(widths) == len(doc["plots"]) and min(widths) > 0
 
@@ -183,7 +188,13 @@ def test_diagnosis_panel_retries_429_and_explains_every_candidate(tmp_path, monk
             assert rows.count() == len(doc["ranking"]) >= 2
             for r in doc["ranking"]:
                 tr = page.locator(f'#diag-ranking tr[data-effect="{r["effect"]}"]')
-                why = " ".join(tr.locator("td.diag-why").inner_text().split())
+                why = " ".join(tr.locator("td.diag-why .diag-reason").inner_text().split())
+                # each flag in words under the reason (the server's flags_text), never the label
+                if r["flags"]:
+                    words = " ".join(tr.locator("td.diag-why .diag-flagwords").inner_text().split())
+                    assert words == " ".join(" · ".join(r["flags_text"]).split()), (r["effect"], words)
+                else:
+                    assert tr.locator("td.diag-why .diag-flagwords").count() == 0
                 if r.get("why"):
                     assert why == " ".join(r["why"].split()), (r["effect"], why)
                 elif r["admitted"]:
@@ -197,7 +208,7 @@ def test_diagnosis_panel_retries_429_and_explains_every_candidate(tmp_path, monk
             not_admitted = [r for r in doc["ranking"] if not r["admitted"]]
             assert not_admitted, doc["ranking"]
             # the reasons derived in the page name the gate that failed, with the numbers
-            derived = {r["effect"]: " ".join(page.locator(f'#diag-ranking tr[data-effect="{r["effect"]}"] td.diag-why')
+            derived = {r["effect"]: " ".join(page.locator(f'#diag-ranking tr[data-effect="{r["effect"]}"] td.diag-why .diag-reason')
                                              .inner_text().split()) for r in not_admitted if not r.get("why")}
             for r in not_admitted:
                 if r.get("why") or any(f.split(":")[0] in ("explained_by", "stands_for_it") for f in r["flags"]):
@@ -211,6 +222,26 @@ def test_diagnosis_panel_retries_429_and_explains_every_candidate(tmp_path, monk
                 for f in r["flags"]:
                     if f.startswith("explained_by:") and not r.get("why"):
                         assert "explained by " + f.split(":", 1)[1].replace(",", " and ") in derived[r["effect"]]
+
+            # words, never labels: no flag label anywhere on the panel (the tooltips included)
+            assert any(r["flags"] for r in doc["ranking"]), doc["ranking"]
+            panel_html = page.inner_html("#diag-panel")
+            for raw in ("no_evidence", "confusable_with:", "explained_by:", "stands_for_it:", "masked:"):
+                assert raw not in panel_text and raw not in panel_html, raw
+            assert not re.search(r"orientation o\d", panel_html), "an orientation by its cluster label"
+            # the orientations as the CLI names them
+            assert page.inner_text("#diag-orientations") == "Orientations in this run: position 0 (P), position 1 (N)"
+            # the leftover statement: first, above the effects and the ranking, when the report has one
+            lo = doc.get("leftover") or {}
+            leftover_text = " ".join(page.inner_text("#diag-leftover").split())
+            if lo.get("statement"):
+                assert leftover_text.startswith(" ".join(lo["statement"].split())), leftover_text
+                top = page.eval_on_selector("#diag-leftover", "e => e.getBoundingClientRect().top")
+                assert top < page.eval_on_selector("#diag-effects", "e => e.getBoundingClientRect().top")
+                assert top < page.eval_on_selector("#diag-ranking", "e => e.getBoundingClientRect().top")
+                assert page.get_attribute("#diag-leftover", "data-above") == ("yes" if lo["above_floor"] else "no")
+            else:
+                assert leftover_text == "" and not page.is_visible("#diag-leftover")
 
             # noise you can see: the Allan-deviation statement of the served JSON, on the page
             noise_text = " ".join(page.locator("#diag-noise").inner_text().split())
@@ -240,6 +271,45 @@ def test_diagnosis_panel_retries_429_and_explains_every_candidate(tmp_path, monk
                                       "(held-out error 11.2 -> 11.5 mg)")
             assert "b, admitted, stands for it" in checks["stands"] and "confusable with b" in checks["stands"]
             assert checks["admitted"] == "admitted"
+
+            # flags in words on rows without flags_text, and the leftover with and without a statement
+            words = page.evaluate("""() => ({
+              none: diagFlagWords("no_evidence"),
+              conf: diagFlagWords("confusable_with:thermal_lag,hysteresis"),
+              expl: diagFlagWords("explained_by:bias_t2"),
+              stands: diagFlagWords("stands_for_it:thermal_lag"),
+              given: diagFlagWords("masked:evidence_given:bias_t2"),
+              other: diagFlagWords("at_bound:tau_s = 10 s at its lower bound"),
+              row: diagFlagTexts({ flags: ["no_evidence", "explained_by:x"] }),
+              orient: [diagOrientationName({}, "6"), diagOrientationName({}, "o1"),
+                       diagOrientationName({ orientations: { S: [{ label: "0", name: "position 0 (P)" }] } }, "0")],
+            })""")
+            assert words["none"] == "no evidence on its own against the baseline"
+            assert words["conf"] == "confusable with thermal_lag and hysteresis on this data"
+            assert words["expl"] == "explained by bias_t2, admitted before it"
+            assert words["stands"].startswith("thermal_lag, admitted, stands for it")
+            assert words["given"] == "its evidence shows only once bias_t2 is in the model"
+            assert words["other"] == "at bound: tau_s = 10 s at its lower bound"
+            assert words["row"] == ["no evidence on its own against the baseline", "explained by x, admitted before it"]
+            assert words["orient"] == ["position 6 (+z)", "orientation o1", "position 0 (P)"]
+            lo_checks = page.evaluate("""() => {
+              const box = document.getElementById("diag-leftover");
+              const keep = [...box.childNodes], keepCls = box.className, keepAbove = box.dataset.above;
+              diagLeftover({ plots: ["residual_vs_orientation"], leftover: { statement: "An unexplained residual remains.",
+                above_floor: true, carrying: ["residual_vs_orientation"] } });
+              const shown = box.innerText;
+              const above = box.dataset.above;
+              diagLeftover({ plots: [] });                      // a report without a leftover
+              const absent = box.innerText;
+              diagLeftover({ leftover: {} });                   // an empty one
+              const empty = box.innerText;
+              box.replaceChildren(...keep); box.className = keepCls;
+              if (keepAbove !== undefined) box.dataset.above = keepAbove;
+              return { shown, above, absent, empty };
+            }""")
+            assert lo_checks["shown"].startswith("An unexplained residual remains.")
+            assert "Look at: residual vs orientation" in lo_checks["shown"] and lo_checks["above"] == "yes"
+            assert lo_checks["absent"] == "" and lo_checks["empty"] == ""
 
             page.locator("#diag-panel").scroll_into_view_if_needed()
             page.locator("#diag-panel").screenshot(path=str(shot))

@@ -73,7 +73,9 @@ class RankingEntry(_Out):
     evidence: bool = Field(default=False, description="it passes the admission gate on its own")
     admitted: bool = Field(default=False, description="the forward staircase admitted it")
     flags: list[str] = Field(default_factory=list, description="no_evidence, confusable_with:..., masked:..., "
-                             "stands_for_it:...")
+                             "stands_for_it:..., explained_by:... (labels: the page shows flags_text)")
+    flags_text: list[str] = Field(default_factory=list, description="each flag in words, in the order of flags "
+                                  "(web/diag_plots.py report_json; station/diagnostics/plots.py flag_words)")
     note: str | None = Field(default=None, description="what the effect is")
     shape: str | None = Field(default=None, description="its fitted shape in words")
     why: str | None = Field(default=None, description="why it was not admitted")
@@ -163,6 +165,51 @@ class EffectInfo(_Out):
     nonlinear: list[NonlinearParam] = Field(default_factory=list, description="its nonlinear parameters")
 
 
+class LeftoverView(_Out):
+    """One view of the held-out residual (station/diagnostics/leftover.py VIEWS)."""
+
+    view: str = Field(description="temperature, rate, time or orientation")
+    plot: str | None = Field(default=None, description="the plot that shows it (.../diagnosis/{plot}.png)")
+    text: str | None = Field(default=None, description="the view in words")
+    excess_share: float | None = Field(default=None, description="share of the residual's variance its groups "
+                                       "explain beyond what they explain of the noise (0..1)")
+
+
+class LeftoverAxis(_Out):
+    """One DUT axis: its held-out error against what the noise model expects on the same legs."""
+
+    heldout_rms_mg: float | None = Field(default=None, description="held-out RMS, mg")
+    expected_rms_mg: float | None = Field(default=None, description="what the noise alone would give, mg")
+    expected_hi_rms_mg: float | None = Field(default=None, description="the upper quantile of that, mg")
+    ratio: float | None = Field(default=None, description="held-out / expected")
+    above: bool | None = Field(default=None, description="a residual remains on this axis")
+    views_excess_share: dict[str, float | None] = Field(default_factory=dict, description="view -> excess share")
+
+
+class Leftover(_Out):
+    """Is anything left that the model misses? (station/diagnostics/leftover.py): said first on the page."""
+
+    statement: str | None = Field(default=None, description="the answer in words")
+    above_floor: bool | None = Field(default=None, description="a residual remains above the noise")
+    model: list[str] = Field(default_factory=list, description="the effects of the model it is about")
+    heldout_rms_mg: float | None = Field(default=None, description="held-out RMS, mg")
+    expected_rms_mg: float | None = Field(default=None, description="what the noise alone would give, mg")
+    ratio: float | None = Field(default=None, description="held-out / expected")
+    above: list[str] = Field(default_factory=list, description="the axes (serial axis) where a residual remains")
+    views: list[LeftoverView] = Field(default_factory=list, description="the views, most telling first")
+    carrying: list[str] = Field(default_factory=list, description="plots of the views that carry the structure")
+    per_dut: dict[str, dict[str, LeftoverAxis]] = Field(default_factory=dict, description="serial -> axis -> figures")
+    method: str | None = Field(default=None, description="how it is computed")
+
+
+class OrientationName(_Out):
+    """An orientation of a DUT's log as the CLI names it."""
+
+    label: str = Field(description="the log's position index (or o0, o1, ... for orientations found by "
+                       "clustering a log without a position column)")
+    name: str = Field(description="'position 0 (P)', or 'orientation o0'")
+
+
 class DiagnosisModel(ModelFigures):
     effects: list[str] = Field(default_factory=list, description="the model's effects (baseline + add=)")
     parameters: dict[str, DutParameters] = Field(default_factory=dict, description="per serial")
@@ -172,6 +219,9 @@ class DiagnosisOut(_Out):
     """Model diagnostics of one run (design 5.2, design 7)."""
 
     serials: list[str] = Field(description="the DUTs diagnosed")
+    leftover: Leftover | None = Field(default=None, description="what the model leaves unexplained, in words first")
+    orientations: dict[str, list[OrientationName]] = Field(default_factory=dict,
+                                                           description="serial -> its orientations, named")
     residual: str = Field(description="what the residual is, with its unit")
     rms_basis: str = Field(description="what the RMS figures average over")
     baseline: ModelFigures = Field(description="the baseline model (TDB/TDSF)")
@@ -187,7 +237,8 @@ class DiagnosisOut(_Out):
     noise_model: NoiseModelDoc = Field(description="the residual's noise model")
     drift: DriftIdentifiability = Field(description="whether TDSF is identifiable")
     baseline_parameters: dict[str, DutParameters] = Field(default_factory=dict, description="per serial")
-    plots: list[str] = Field(default_factory=list, description="plot names for .../diagnosis/{plot}.png")
+    plots: list[str] = Field(default_factory=list, description="plot names for .../diagnosis/{plot}.png, "
+                             "in the page's order")
     library: list[EffectInfo] = Field(default_factory=list, description="every effect that can be added")
     noise: dict[str, dict[str, Any]] = free_form(
         "serial -> the residual's Allan-deviation noise view against the sensor's own noise "

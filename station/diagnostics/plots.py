@@ -1,9 +1,13 @@
 """PNG plots of a diagnosis (design 7), with matplotlib's object API (no pyplot global state).
 
-Per DUT: measured vs model, residual vs temperature (heating and cooling in two colours), residual
-vs time, residual vs dT/dt, residual vs acceleration, and the Allan deviation of the residual against
-the sensor's own noise (a static segment of the log; station/diagnostics/noise_view.py). Per report:
-ranking bars, error staircase.
+Per DUT: measured vs model; residual vs temperature, vs time and vs dT/dt, each point coloured by
+its orientation (the legend names it as the CLI does: "position 0 (P)") and marked heating (filled
+triangle up), cooling (open triangle down) or steady (dot), so that a loop that differs between
+orientations or between heating and cooling shows; residual vs orientation (per orientation and
+axis, a box of the residual's 1-minute means with their mean +- standard deviation beside it);
+residual vs acceleration; and the Allan deviation of the residual against the sensor's own noise (a
+static segment of the log; station/diagnostics/noise_view.py). Per report: ranking bars (flags in
+words), error staircase.
 Sample-level series are drawn as 1-minute means (the report's RMS windows): 940 points for a
 15-hour log instead of 176 000, and the quantity the RMS figures are computed on.
 
@@ -20,15 +24,78 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from contracts.types import AXES, StationError
+from station.diagnostics.noise_view import _position_name
 
 DUT_PLOTS = ("measured_vs_model", "residual_vs_temperature", "residual_vs_time", "residual_vs_rate",
-             "residual_vs_acceleration", "allan_deviation")
+             "residual_vs_orientation", "residual_vs_acceleration", "allan_deviation")
 REPORT_PLOTS = ("ranking", "staircase")
 PLOTS = DUT_PLOTS + REPORT_PLOTS
-HEAT, COOL, STEADY = "#d62728", "#1f77b4", "#999999"
 RATE_STEADY_C_PER_MIN = 0.05
+# heating / cooling / steady: the marker (the colour is the orientation's)
+DIRECTIONS = (("heating", "^", True, f"heating (dT/dt > {RATE_STEADY_C_PER_MIN:g} C/min)"),
+              ("cooling", "v", False, f"cooling (dT/dt < -{RATE_STEADY_C_PER_MIN:g} C/min)"),
+              ("steady", ".", True, "steady"))
+BASELINE_GREY = "#cccccc"
+
+
+def orientation_names(d) -> list[str]:
+    """The orientations of a prepared log (DutData) as the CLI says them: "position 0 (P)", or
+    "orientation o0" for an orientation found by clustering (a log without a position column)."""
+    return [_position_name(lab) for lab in d.pos_labels]
+
+
+def _orientation_colours(n: int) -> list:
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10" if n <= 10 else "tab20"]
+    return [cmap(k % cmap.N) for k in range(n)]
+
+
+def _list_words(s: str) -> str:
+    items = [x for x in s.split(",") if x]
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1] if items else ""
+
+
+def flag_words(flag: str) -> str:
+    """A ranking row's flag (ranking.py, staircase.py) in words: never the raw label on a page."""
+    head, _, rest = flag.partition(":")
+    if flag == "no_evidence":
+        return "no evidence on its own against the baseline"
+    if head == "confusable_with":
+        return f"confusable with {_list_words(rest)} on this data"
+    if head == "explained_by":
+        return f"explained by {_list_words(rest)}, admitted before it"
+    if head == "stands_for_it":
+        return f"{_list_words(rest)}, admitted, stands for it (confusable on this data: only one goes in)"
+    if head == "masked":
+        kind, _, who = rest.partition(":")
+        if kind == "evidence_given":
+            return f"its evidence shows only once {_list_words(who)} is in the model"
+        if kind == "admitted_with":
+            return f"admitted together with {_list_words(who)} (each hides the other on the held-out legs)"
+        return f"masked: {kind.replace('_', ' ')}" + (f" {who}" if who else "")
+    return head.replace("_", " ") + (f": {rest}" if rest else "")  # a flag not known here: its own words
+
+
+def _short_flag(flag: str) -> str:
+    """The ranking bars' label of a flag: a few words."""
+    head, _, rest = flag.partition(":")
+    if flag == "no_evidence":
+        return "no evidence"
+    short = {"confusable_with": "confusable with {}", "explained_by": "explained by {}",
+             "stands_for_it": "{} stands for it"}
+    if head in short:
+        return short[head].format(_list_words(rest))
+    if head == "masked":
+        kind, _, who = rest.partition(":")
+        if kind == "evidence_given":
+            return f"shows once {_list_words(who)} is in"
+        if kind == "admitted_with":
+            return f"with {_list_words(who)}"
+    return textwrap.shorten(flag_words(flag), 48, placeholder="...")
 
 
 def _wmean(d, x: np.ndarray) -> np.ndarray:
@@ -66,6 +133,8 @@ def _series(report, k: int) -> dict:
         "model_drift": _wmean(d, model_mg - acc0_mg),
         "res": _wmean(d, report.model.resid[k]),
         "res_base": _wmean(d, report.baseline.resid[k]) if report.model.effects else None,
+        # a window never straddles a constant-orientation run (segmentation.py): its orientation code
+        "pos": np.rint(_wmean(d, d.pos.astype(float))).astype(int),
     }
 
 
@@ -91,20 +160,51 @@ def plot_measured_vs_model(report, k: int = 0) -> Figure:
     return fig
 
 
-def _residual_panels(report, k: int, x: np.ndarray, xlabel: str, title: str, colour_by_rate: bool = False,
+def _direction_masks(rate: np.ndarray) -> dict[str, np.ndarray]:
+    return {"heating": rate > RATE_STEADY_C_PER_MIN, "cooling": rate < -RATE_STEADY_C_PER_MIN,
+            "steady": np.abs(rate) <= RATE_STEADY_C_PER_MIN}
+
+
+def _legend_by_orientation(fig: Figure, names: list[str], cols: list, present: np.ndarray, dirs: set[str],
+                           baseline: bool) -> None:
+    handles = [Line2D([], [], ls="", marker="s", ms=7, color=cols[p], label=names[p])
+               for p in range(len(names)) if present[p]]
+    handles += [Line2D([], [], ls="", marker=mk, ms=6, color="black", mfc="black" if filled else "none", label=lab)
+                for key, mk, filled, lab in DIRECTIONS if key in dirs]
+    if baseline:
+        handles.append(Line2D([], [], ls="", marker=".", ms=6, color=BASELINE_GREY, label="baseline residual"))
+    fig.legend(handles=handles, loc="outside right upper", fontsize=8, title="orientation / direction",
+               title_fontsize=8)
+
+
+def _residual_panels(report, k: int, x: np.ndarray | None, xlabel: str, title: str, by_orientation: bool = False,
                      per_axis_x: np.ndarray | None = None) -> Figure:
+    """Three panels (x, y, z) of the residual's 1-minute means against x. by_orientation: each point
+    coloured by its orientation and marked by heating / cooling / steady."""
     s = _series(report, k)
-    fig = Figure(figsize=(9, 7), layout="constrained")
-    rate = s["rate"]
+    d = report.data[k]
+    names = orientation_names(d)
+    cols = _orientation_colours(len(names))
+    fig = Figure(figsize=(11 if by_orientation else 9, 7), layout="constrained")
+    masks = _direction_masks(s["rate"])
+    dirs_seen: set[str] = set()
+    present = np.zeros(len(names), bool)
     for i, ax in enumerate(_axes3(fig, sharex=per_axis_x is None)):
         xi = per_axis_x[:, i] if per_axis_x is not None else x
         if s["res_base"] is not None:
-            ax.plot(xi, s["res_base"][:, i], ".", ms=2, color="#cccccc", label="baseline residual")
-        if colour_by_rate:
-            for mask, col, lab in ((rate > RATE_STEADY_C_PER_MIN, HEAT, "heating"),
-                                   (rate < -RATE_STEADY_C_PER_MIN, COOL, "cooling"),
-                                   (np.abs(rate) <= RATE_STEADY_C_PER_MIN, STEADY, "steady")):
-                ax.plot(xi[mask], s["res"][mask, i], ".", ms=3, color=col, label=lab)
+            ax.plot(xi, s["res_base"][:, i], ".", ms=2, color=BASELINE_GREY, label="baseline residual")
+        if by_orientation:
+            for p in range(len(names)):
+                at_p = s["pos"] == p
+                for key, mk, filled, _ in DIRECTIONS:
+                    m = at_p & masks[key] & np.isfinite(s["res"][:, i])
+                    if not m.any():
+                        continue
+                    present[p] = True
+                    dirs_seen.add(key)
+                    ax.plot(xi[m], s["res"][m, i], ls="", marker=mk, ms=2.5 if key == "steady" else 3.5,
+                            color=cols[p], mfc=cols[p] if filled else "none", mew=0.8,
+                            alpha=0.6 if key == "steady" else 0.9)
         else:
             ax.plot(xi, s["res"][:, i], ".", ms=3, color="#2ca02c", label=f"residual ({_model_label(report)})")
         ax.axhline(0.0, color="black", lw=0.5)
@@ -114,24 +214,77 @@ def _residual_panels(report, k: int, x: np.ndarray, xlabel: str, title: str, col
             ax.set_xlabel(f"{AXES[i]} {xlabel}")
     if per_axis_x is None:
         fig.axes[-1].set_xlabel(xlabel)
-    fig.axes[0].legend(loc="best", fontsize=8, markerscale=3)
-    fig.suptitle(f"{report.data[k].serial}: residual = measured - model vs {title} (1-min means)")
+    if by_orientation:
+        _legend_by_orientation(fig, names, cols, present, dirs_seen, s["res_base"] is not None)
+    else:
+        fig.axes[0].legend(loc="best", fontsize=8, markerscale=3)
+    fig.suptitle(f"{d.serial}: residual = measured - model ({_model_label(report)}) vs {title} (1-min means)")
     return fig
 
 
 def plot_residual_vs_temperature(report, k: int = 0) -> Figure:
     s = _series(report, k)
-    return _residual_panels(report, k, s["temp"], "temperature (C)", "temperature", colour_by_rate=True)
+    return _residual_panels(report, k, s["temp"], "temperature (C)", "temperature", by_orientation=True)
 
 
 def plot_residual_vs_time(report, k: int = 0) -> Figure:
     s = _series(report, k)
-    return _residual_panels(report, k, s["t_h"], "time (h)", "time")
+    return _residual_panels(report, k, s["t_h"], "time (h)", "time", by_orientation=True)
 
 
 def plot_residual_vs_rate(report, k: int = 0) -> Figure:
     s = _series(report, k)
-    return _residual_panels(report, k, s["rate"], "dT/dt (C/min)", "dT/dt", colour_by_rate=True)
+    return _residual_panels(report, k, s["rate"], "dT/dt (C/min)", "dT/dt", by_orientation=True)
+
+
+def plot_residual_vs_orientation(report, k: int = 0) -> Figure:
+    """Per axis, per orientation: a box of the residual's 1-minute means (median, quartiles, whiskers
+    at 1.5 IQR) and beside it their mean +- one standard deviation; the baseline's in grey on the
+    left when effects were added. An offset that differs between orientations, or a spread that does,
+    is what a missing orientation-dependent effect (scale, cross-axis) leaves."""
+    s = _series(report, k)
+    d = report.data[k]
+    names = orientation_names(d)
+    cols = _orientation_colours(len(names))
+    P = len(names)
+    fig = Figure(figsize=(max(7.0, 2.0 + 1.1 * P), 7), layout="constrained")
+    xs = np.arange(P, dtype=float)
+    has_base = s["res_base"] is not None
+    for i, ax in enumerate(_axes3(fig)):
+        for p in range(P):
+            r = s["res"][s["pos"] == p, i]
+            r = r[np.isfinite(r)]
+            if has_base:
+                rb = s["res_base"][s["pos"] == p, i]
+                rb = rb[np.isfinite(rb)]
+                if rb.size:
+                    bp = ax.boxplot([rb], positions=[xs[p] - 0.28], widths=0.2, showfliers=False, patch_artist=True)
+                    for b in bp["boxes"]:
+                        b.set(facecolor=BASELINE_GREY, edgecolor="#888888")
+            if not r.size:
+                continue
+            bp = ax.boxplot([r], positions=[xs[p]], widths=0.3, showfliers=False, patch_artist=True)
+            for b in bp["boxes"]:
+                b.set(facecolor=cols[p], alpha=0.5, edgecolor=cols[p])
+            for med in bp["medians"]:
+                med.set(color="black")
+            ax.errorbar([xs[p] + 0.28], [float(np.mean(r))], yerr=[float(np.std(r))], fmt="o", ms=4, capsize=3,
+                        color=cols[p])
+        ax.axhline(0.0, color="black", lw=0.5)
+        ax.set_ylabel(f"{AXES[i]}: residual (mg)")
+        ax.grid(alpha=0.3, axis="y")
+        ax.set_xlim(-0.6, P - 0.4)
+    last = fig.axes[-1]
+    last.set_xticks(xs, names, rotation=20 if P > 4 else 0, ha="right" if P > 4 else "center")
+    last.set_xlabel("orientation")
+    handles = [Line2D([], [], ls="", marker="s", ms=8, color="#777777", alpha=0.6,
+                      label="box: median, quartiles, whiskers 1.5 IQR of the 1-min means"),
+               Line2D([], [], ls="-", marker="o", ms=4, color="#777777", label="mean +- 1 standard deviation")]
+    if has_base:
+        handles.append(Line2D([], [], ls="", marker="s", ms=8, color=BASELINE_GREY, label="baseline residual"))
+    fig.axes[0].legend(handles=handles, loc="best", fontsize=8)
+    fig.suptitle(f"{d.serial}: residual = measured - model ({_model_label(report)}) per orientation (1-min means)")
+    return fig
 
 
 def plot_residual_vs_acceleration(report, k: int = 0) -> Figure:
@@ -228,7 +381,7 @@ def plot_allan_deviation(report, k: int = 0) -> Figure:
 
 def plot_ranking(report) -> Figure:
     rows = report.ranking
-    fig = Figure(figsize=(8, 0.45 * max(len(rows), 2) + 1.6), layout="constrained")
+    fig = Figure(figsize=(10, 0.45 * max(len(rows), 2) + 1.6), layout="constrained")
     ax = fig.add_subplot()
     names = [r["effect"] for r in rows][::-1]
     vals = [r["heldout_rms_mg"] or 0.0 for r in rows][::-1]
@@ -243,10 +396,13 @@ def plot_ranking(report) -> Figure:
     ax.barh(names, vals, color=cols)
     ax.axvline(report.baseline.heldout_rms_mg, color="black", ls="--", lw=1, label="baseline held-out")
     for y, r in enumerate(rows[::-1]):
-        tag = "admitted" if r["admitted"] else ", ".join(r["flags"])
+        words = [_short_flag(f) for f in r["flags"]]
+        tag = "; ".join((["admitted"] if r["admitted"] else []) + words) or "not admitted"
         ax.text(vals[y], y, f"  {tag}", va="center", fontsize=7)
+    top = max([v for v in vals if np.isfinite(v)] + [report.baseline.heldout_rms_mg or 0.0, 1e-9])
+    ax.set_xlim(0.0, 1.9 * top)  # room for the words right of the longest bar
     ax.set_xlabel("held-out RMS with the candidate added (mg)")
-    ax.set_title("candidate effects (green admitted, orange confusable, grey no evidence)")
+    ax.set_title("candidate effects (green admitted, orange confusable, grey not admitted)")
     ax.legend(loc="lower right", fontsize=8)
     return fig
 
@@ -276,6 +432,7 @@ _DUT_FUNCS = {
     "residual_vs_temperature": plot_residual_vs_temperature,
     "residual_vs_time": plot_residual_vs_time,
     "residual_vs_rate": plot_residual_vs_rate,
+    "residual_vs_orientation": plot_residual_vs_orientation,
     "residual_vs_acceleration": plot_residual_vs_acceleration,
     "allan_deviation": plot_allan_deviation,
 }
@@ -327,4 +484,5 @@ def write_plots(report, out_dir: str | Path) -> list[Path]:
     return paths
 
 
-__all__ = ["PLOTS", "DUT_PLOTS", "REPORT_PLOTS", "figure", "render_png", "write_plots", "png_bytes"]
+__all__ = ["PLOTS", "DUT_PLOTS", "REPORT_PLOTS", "figure", "render_png", "write_plots", "png_bytes", "flag_words",
+           "orientation_names"]

@@ -7,11 +7,16 @@
 // (DIAG_PLOT_CONCURRENCY in flight, the server's own plot limit), every request that meets 429 (or
 // 503 with Retry-After) waits the time the server asked for (capped) and tries again, at most
 // DIAG_MAX_TRIES times, and every plot and the diagnosis itself say in words what they wait for.
+// The server renders a report's plots as soon as it has computed the report (web/diag_plots.py), in
+// the order of doc.plots, so by the time the ranking is on screen the first plots are ready.
+//
+// Words, never labels: the leftover statement first (is anything left that the model misses?), each
+// flag in words (doc.ranking[].flags_text, else diagFlagWords), each candidate's `why`, and the
+// orientations as the CLI names them ("position 0 (P)").
 "use strict";
 
-const DIAG = { runId: null, serial: "", add: [], busy: false, plots: [], gen: 0, urls: [], queue: [], workers: 0 };
-const DIAG_PLOTS_SHOWN = ["staircase", "ranking", "residual_vs_temperature", "residual_vs_time",
-  "measured_vs_model", "residual_vs_rate", "residual_vs_acceleration"];
+const DIAG = { runId: null, serial: "", add: [], busy: false, plots: [], leftover: null, gen: 0, urls: [], queue: [],
+  workers: 0 };
 const DIAG_PLOT_CONCURRENCY = 2;  // = the server's MAX_RUNNING_PLOTS: more in flight only earns 429s
 const DIAG_MAX_TRIES = 12;        // per request; then it gives up with a message and a Retry button
 const DIAG_MAX_WAIT_S = 15;       // cap on one Retry-After wait
@@ -140,6 +145,7 @@ async function diagRefresh() {
   title.textContent = `Model diagnostics · ${DIAG.serial} run ${DIAG.runId}` +
     (DIAG.add.length ? ` · baseline + ${DIAG.add.join(" + ")}` : " · baseline");
   document.getElementById("diag-plots").replaceChildren();
+  diagLeftover(null);  // the previous model's statement is not this one's
   const t0 = performance.now();
   let phase = "fitting the models (held-out validation of every candidate: this can take a minute)";
   const show = () => {
@@ -173,7 +179,81 @@ async function diagRefresh() {
   }
 }
 
+// The leftover statement (station/diagnostics/leftover.py): said first, above everything else, when
+// the report has one; with the plots that show what is missing.
+function diagLeftover(doc) {
+  const box = document.getElementById("diag-leftover");
+  if (!box) return;
+  box.replaceChildren();
+  box.className = "diag-leftover";
+  delete box.dataset.above;
+  const lo = doc && doc.leftover;
+  if (!lo || typeof lo.statement !== "string" || !lo.statement.trim()) return;
+  box.dataset.above = lo.above_floor ? "yes" : "no";
+  box.classList.add(lo.above_floor ? "above" : "at-floor");
+  box.append(el("span", { class: "diag-leftover-statement" }, lo.statement));
+  const views = (lo.carrying || []).filter((p) => (doc.plots || []).includes(p));
+  if (lo.above_floor && views.length) {
+    box.append(el("span", { class: "diag-leftover-look" }, "Look at: ",
+      ...views.flatMap((p, i) => [i ? ", " : "", el("button", { type: "button", class: "link", "data-plot": p,
+        onclick: () => document.querySelector(`#diag-plots figure[data-plot="${p}"]`)?.scrollIntoView({ behavior: "smooth", block: "center" }) },
+      diagPlotTitle(p))])));
+  }
+}
+
+// A flag of a ranking row in words (the server's flags_text says the same; this is for a row without it).
+function diagFlagWords(f) {
+  const i = f.indexOf(":");
+  const head = i < 0 ? f : f.slice(0, i);
+  const rest = i < 0 ? "" : f.slice(i + 1);
+  if (f === "no_evidence") return "no evidence on its own against the baseline";
+  if (head === "confusable_with") return `confusable with ${diagList(rest)} on this data`;
+  if (head === "explained_by") return `explained by ${diagList(rest)}, admitted before it`;
+  if (head === "stands_for_it") return `${diagList(rest)}, admitted, stands for it (confusable on this data: only one goes in)`;
+  if (head === "masked") {
+    const j = rest.indexOf(":");
+    const kind = j < 0 ? rest : rest.slice(0, j);
+    const who = j < 0 ? "" : rest.slice(j + 1);
+    if (kind === "evidence_given") return `its evidence shows only once ${diagList(who)} is in the model`;
+    if (kind === "admitted_with") return `admitted together with ${diagList(who)} (each hides the other on the held-out legs)`;
+    return `masked: ${kind.replaceAll("_", " ")}${who ? " " + who : ""}`;
+  }
+  return head.replaceAll("_", " ") + (rest ? ": " + rest : "");
+}
+
+function diagFlagTexts(r) {
+  const flags = r.flags || [];
+  const t = r.flags_text;
+  return Array.isArray(t) && t.length === flags.length ? t.map(String) : flags.map(diagFlagWords);
+}
+
+// An orientation label of the report as the CLI says it ("position 0 (P)"); the server names them
+// (doc.orientations), this is for a label it did not name.
+function diagOrientationName(doc, label) {
+  for (const list of Object.values((doc && doc.orientations) || {})) {
+    const o = list.find((x) => String(x.label) === String(label));
+    if (o) return o.name;
+  }
+  const k = Number(label);
+  const name = Number.isInteger(k) && typeof positionNameOf === "function" ? positionNameOf({ position: k }) : "";
+  return Number.isInteger(k) ? `position ${k}${name ? ` (${name})` : ""}` : `orientation ${label}`;
+}
+
+function diagPlotTitle(name) {
+  return String(name).replaceAll("_", " ").replace(/^residual vs rate$/, "residual vs dT/dt");
+}
+
 function diagRender(doc) {
+  diagLeftover(doc);
+
+  // the orientations of the run, named as the CLI names them
+  const or = document.getElementById("diag-orientations");
+  if (or) {
+    const parts = Object.entries(doc.orientations || {}).map(([serial, list]) =>
+      (Object.keys(doc.orientations).length > 1 ? serial + ": " : "") + list.map((o) => o.name || diagOrientationName(doc, o.label)).join(", "));
+    or.textContent = parts.length ? "Orientations in this run: " + parts.join("; ") : "";
+  }
+
   // effect buttons: every library effect; added ones highlighted, in staircase order
   const effects = document.getElementById("diag-effects");
   const rows = new Map(doc.ranking.map((r) => [r.effect, r]));
@@ -206,14 +286,16 @@ function diagRender(doc) {
     el("tr", {}, el("th", {}, "effect"), el("th", {}, "held-out mg"), el("th", {}, "ΔBIC"),
       el("th", {}, "score p"), el("th", { class: "diag-why" }, "admitted? why")));
   for (const r of doc.ranking) {
-    const flags = r.flags || [];
+    const words = diagFlagTexts(r);
     rk.append(el("tr", { class: r.admitted ? "admitted" : "rejected", "data-effect": r.effect },
       el("td", { class: "diag-name" },
         el("button", { type: "button", class: "link", onclick: () => diagToggle(r.effect) }, r.effect),
         r.shape ? el("span", { class: "diag-shape" }, r.shape) : null),
       el("td", {}, fmt(r.heldout_rms_mg, 4)), el("td", {}, fmt(r.delta_bic, 1)),
       el("td", {}, diagP(r.score_p)),
-      el("td", { class: "diag-why", title: flags.length ? "flags: " + flags.join(" ") : null }, diagReason(r, doc))));
+      el("td", { class: "diag-why" },
+        el("span", { class: "diag-reason" }, diagReason(r, doc)),
+        words.length ? el("span", { class: "diag-flagwords" }, words.join(" · ")) : null)));
   }
 
   // flags: confusable pairs, unidentifiable candidates, with the test that would settle them
@@ -244,6 +326,7 @@ function diagRender(doc) {
     }
   }
   DIAG.plots = doc.plots || [];
+  DIAG.leftover = doc.leftover || null;
 }
 
 function diagValue(e) {
@@ -298,6 +381,7 @@ function diagReason(r, doc) {
     const parts = ["admitted"];
     for (const x of flagged("masked:admitted_with:")) parts.push(`together with ${diagList(x)} (each hides the other held out)`);
     for (const x of flagged("masked:evidence_given:")) parts.push(`its evidence shows once ${diagList(x)} is in the model`);
+    for (const x of flagged("confusable_with:")) parts.push(`confusable with ${diagList(x)} on this data (see below)`);
     return parts.join(": ");
   }
   const parts = [];
@@ -320,7 +404,7 @@ function diagReason(r, doc) {
   }
   for (const x of flagged("confusable_with:")) parts.push(`confusable with ${diagList(x)} on this data (see below)`);
   for (const f of flags) {
-    if (!/^(no_evidence|explained_by:|stands_for_it:|confusable_with:|masked:)/.test(f)) parts.push(f.replaceAll("_", " "));
+    if (!/^(no_evidence|explained_by:|stands_for_it:|confusable_with:|masked:)/.test(f)) parts.push(diagFlagWords(f));
   }
   if (r.same_as) parts.push(`same term as ${(r.aliases || []).join(", ")} on this data`);
   if (!parts.length) parts.push("passes the gate alone but the forward staircase did not admit it");
@@ -328,9 +412,9 @@ function diagReason(r, doc) {
 }
 
 // ---- plots: a queue, DIAG_PLOT_CONCURRENCY in flight, each with its state in words ----------------
+// In the server's order (doc.plots): the order it renders them in ahead of these requests.
 function diagPlotNames() {
-  const names = DIAG.plots.map((p) => String(p).replace(/^.*\//, "").replace(/\.png(\?.*)?$/, ""));
-  return [...DIAG_PLOTS_SHOWN.filter((p) => names.includes(p)), ...names.filter((p) => !DIAG_PLOTS_SHOWN.includes(p))];
+  return [...new Set(DIAG.plots.map((p) => String(p).replace(/^.*\//, "").replace(/\.png(\?.*)?$/, "")))];
 }
 
 function diagPlotState(item, state, text) {
@@ -349,8 +433,10 @@ function diagLoadPlots(gen) {
   const box = document.getElementById("diag-plots");
   box.replaceChildren();
   DIAG.queue = [];
+  const carrying = new Set((DIAG.leftover && DIAG.leftover.above_floor && DIAG.leftover.carrying) || []);
   for (const name of diagPlotNames()) {
-    const fig = el("figure", { class: "diag-plot", "data-plot": name }, el("figcaption", {}, name.replaceAll("_", " ")));
+    const fig = el("figure", { class: "diag-plot" + (carrying.has(name) ? " carrying" : ""), "data-plot": name },
+      el("figcaption", {}, diagPlotTitle(name) + (carrying.has(name) ? " · shows what the model misses" : "")));
     const item = { name, fig, state: el("div", { class: "diag-plot-state", role: "status" }) };
     fig.append(item.state);
     box.append(fig);
@@ -408,7 +494,7 @@ async function diagLoadPlot(item, gen) {
     diagCheck(gen);
     const url = URL.createObjectURL(blob);
     DIAG.urls.push(url);
-    const img = el("img", { src: url, alt: item.name.replaceAll("_", " "), width: "440", onclick: () => showPlot(url) });
+    const img = el("img", { src: url, alt: diagPlotTitle(item.name), width: "440", onclick: () => showPlot(url) });
     try {
       await img.decode();
     } catch (_) {
