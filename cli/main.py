@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
-
-from contracts.types import StationError
 
 COMMANDS: dict[str, str] = {
     "demo": "a whole simulated station on this machine, serving the operator page",
@@ -34,21 +33,67 @@ def one_line(text: str) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="station", description="MEMS accelerometer thermal calibration station")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    sub.required = True
-    for name, help_text in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+# Commands whose linear algebra is thousands of small problems (a few thousand rows, a few dozen
+# columns): OpenBLAS's worker threads only add hand-offs there, and on the 2-core station PC, with
+# anything else running, they wait for each other (`station diagnose`: 2-3x the wall time, twice the
+# CPU time). One BLAS thread gives the same numbers (measured: identical report).
+ONE_BLAS_THREAD = frozenset({"diagnose"})
+BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _blas_threads(command: str) -> None:
+    """One BLAS thread for the commands of ONE_BLAS_THREAD, unless the caller set the variables
+    (BLAS reads them once, when numpy is first imported: a process that has numpy already, such
+    as a test calling main() in-process, is left alone, and its environment is not changed)."""
+    if command in ONE_BLAS_THREAD and "numpy" not in sys.modules:
+        for var in BLAS_THREAD_VARS:
+            os.environ.setdefault(var, "1")
+
+
+class _CommandParser(argparse.ArgumentParser):
+    """A subcommand's parser that imports its module (cli/commands/NAME.py) and adds its arguments
+    only when the command is parsed or its help is shown: `station --help` and every other command
+    never import what one command needs (scipy, matplotlib, the simulator, SQLAlchemy, the web)."""
+
+    def __init__(self, *args, command: str | None = None, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._command = command  # None: a nested parser (e.g. `db export`), built by its command
+
+    def _load(self) -> None:
+        name, self._command = self._command, None
+        if name is None:
+            return
+        _blas_threads(name)
         try:
             module = importlib.import_module(f"cli.commands.{name.replace('-', '_')}")
         except ModuleNotFoundError as exc:
             if exc.name and exc.name.startswith("cli.commands"):
-                p.set_defaults(_module=None, _command=name)
-                continue
+                self.set_defaults(_module=None, _command=name)
+                return
             raise
-        module.add_arguments(p)
-        p.set_defaults(_module=module, _command=name)
+        module.add_arguments(self)
+        self.set_defaults(_module=module, _command=name)
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        self._load()
+        return super().parse_known_args(args, namespace)
+
+    def format_usage(self) -> str:
+        self._load()
+        return super().format_usage()
+
+    def format_help(self) -> str:
+        self._load()
+        return super().format_help()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="station", description="MEMS accelerometer thermal calibration station")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_CommandParser)
+    sub.required = True
+    for name, help_text in COMMANDS.items():
+        # the command's module is imported when the command is used (_CommandParser)
+        sub.add_parser(name, help=help_text, description=help_text, command=name)
     return parser
 
 
@@ -117,6 +162,8 @@ def _point_at_devnull(stream) -> None:
 def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    from contracts.types import StationError  # numpy: not imported by `station --help`
+
     if args._module is None:
         print(f"station {args._command}: not available in this build", file=sys.stderr)
         return 2

@@ -15,7 +15,7 @@ from __future__ import annotations
 import io
 import math
 import re
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NoReturn, TextIO, TypeVar
@@ -73,7 +73,8 @@ def _check_text(block: str, lines: list[str], before: int, source: str) -> None:
     """One block of a file's text (`before` lines precede it): a NUL byte in a header or data row,
     undecodable bytes or an overlong line is one StationError line naming the file's line. A NUL in
     a `#` line is the metadata's own business (a hostile serial is made safe where it is used)."""
-    if _NOT_TEXT.search(block) is not None:
+    # ASCII text (what str knows without a look) holds no undecodable byte: only a NUL to find
+    if ("\x00" in block) if block.isascii() else (_NOT_TEXT.search(block) is not None):
         for k, ln in enumerate(lines):
             if _NOT_TEXT.search(ln) is None:
                 continue
@@ -154,7 +155,11 @@ class _Header:
         first = self.line_no + 1
         for block in _chain([self._rest], self._blocks):
             n = len(block)
-            keep = [k for k, ln in enumerate(block) if ln.strip() and not ln.lstrip().startswith("#")]
+            keep: Sequence[int]
+            if _plain_rows(block):  # the usual block: no line to skip, and no look at each line
+                keep = range(n)
+            else:
+                keep = [k for k, ln in enumerate(block) if ln.strip() and not ln.lstrip().startswith("#")]
             if len(keep) == n:
                 rows, nos = block, np.arange(first, first + n, dtype=np.int64)
             else:
@@ -162,6 +167,20 @@ class _Header:
             first += n
             if rows:
                 yield rows, nos
+
+
+_SKIP_MARKS = (" ", "\t", "\r", "\x1f", "#")  # what a blank (str.strip) or `#` line of ASCII text must hold
+
+
+def _plain_rows(block: list[str]) -> bool:
+    """True when no line of the block is blank or a `#` line (the test rows() applies line by line),
+    decided on the joined text: ASCII text without an empty line, a `#` or any whitespace that
+    str.strip() removes ('\n' joins the lines; '\x0b', '\x0c', '\x1c'-'\x1e' end a line in
+    str.splitlines, so no line holds one). False means: look at each line."""
+    if not block or not block[0] or not block[-1]:
+        return False
+    text = "\n".join(block)
+    return text.isascii() and "\n\n" not in text and not any(c in text for c in _SKIP_MARKS)
 
 
 def _chain(*iterables: Iterable[_T]) -> Iterator[_T]:

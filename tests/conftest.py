@@ -1,8 +1,14 @@
-"""Test-run order only: the files that take minutes of CPU start first, so parallel workers
+"""Test-run order, and the diagnose cache switched off: the files that take minutes of CPU start first, so parallel workers
 (scripts/test.sh runs pytest-xdist with --dist loadfile, which hands out whole files in collection
 order) do not end with one worker grinding through an 8-DUT diagnosis while the others idle."""
 
 from __future__ import annotations
+
+import os
+
+# `station diagnose` keeps its ranking in the user's cache folder; a test run must not fill it
+# (tests/test_diagnostics_cache.py points it at its own folders)
+os.environ.setdefault("STATION_DIAGNOSE_CACHE", "off")
 
 HEAVY_FIRST = (
     "test_fault_matrix.py",

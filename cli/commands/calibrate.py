@@ -11,7 +11,6 @@ import json
 import sys
 
 from cli.commands.log_import import add_import_arguments, read_any_log
-from station.science.thermal_calibration import calibrate
 from contracts.types import AXES
 
 
@@ -60,6 +59,8 @@ def format_table(res: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.science.thermal_calibration import calibrate  # scipy: imported by the command, not by --help
+
     log = read_any_log(args.log, args)
     res = calibrate(log)
     if args.json:

@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 from contracts.types import StationError
-from db.database import plain_url  # noqa: F401 - the commands' message helper, re-exported
 
 DEFAULT_URL = "sqlite:///var/station.db"
 ENV = "STATION_DB_URL"
@@ -42,6 +41,14 @@ class DbChoice:
     flag: str = "--db"
     default: bool = False  # no option, no environment, no config: the station default
     consulted: tuple[str, ...] = ()  # what was looked at before the default, for the error
+
+
+def plain_url(url: str) -> str:
+    """db.database.plain_url (a URL without its password, for messages), the commands' message
+    helper: imported when first called, so that `station --help` does not load SQLAlchemy."""
+    from db.database import plain_url as _plain_url
+
+    return _plain_url(url)
 
 
 def to_url(value: str) -> str:

@@ -29,7 +29,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 from drivers.sim.hidden_effects import HiddenEffects
 from drivers.sim.physics import DEFAULT_NOISE, SENSORS, DutTruth, NoiseModel, noise_model
@@ -407,6 +406,15 @@ class SimWorld:
                 self._fl[i][:, c] = y[-1]
                 out = out + y
         return out
+
+
+def lfilter(b, a, x, axis: int = -1, zi=None):
+    """scipy.signal.lfilter, imported when first called: scipy.signal takes ~0.7 s to import, which
+    every command that only names the simulator's profiles (`station --help`) would pay."""
+    from scipy.signal import lfilter as _lfilter
+
+    return _lfilter(b, a, x, axis=axis, zi=zi)
+
 
 def _first_order(x: np.ndarray, y0: np.ndarray, tau_s: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """y_k = a y_{k-1} + (1 - a) x_k per row, a = exp(-dt/tau): exact for an input held over each
