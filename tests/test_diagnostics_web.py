@@ -242,8 +242,8 @@ def test_render_ahead_stays_within_the_plot_limits():
 def test_diagnosis_plots_are_rendered_once_and_the_caches_are_bounded(client):
     """Issue 10: plots were rendered on every request. A repeat is served from the PNG cache
     (same bytes, no render); both caches stay within their sizes."""
-    pngs = client.app.state.diagnosis_cache.pngs
     first = client.get("/api/runs/1/diagnosis/ranking.png", params={"add": "bias_t2"}, headers=AUTH)
+    pngs = client.app.state.diagnosis_cache.pngs  # made at the first diagnosis request
     ahead = client.app.state.diagnosis_cache.ahead  # plots rendered ahead of the page: let it finish
     wait_for(lambda: ahead.pending == 0 and pngs.running == 0, 60, 0.05, "render-ahead idle")
     rendered = pngs.computed

@@ -54,6 +54,12 @@ class GateRecord(_Out):
     score: float | None = Field(default=None, description="likelihood-ratio statistic")
     score_df: int | None = Field(default=None, description="its degrees of freedom")
     score_p: float | None = Field(default=None, description="its p-value")
+    legs_better: int | None = Field(default=None, description="held-out legs predicted better")
+    legs: int | None = Field(default=None, description="held-out legs compared")
+    heldout_loss_share: float | None = Field(default=None, description="what the legs predicted worse lose, as a "
+                                             "share of what the better ones gain")
+    legs_p: float | None = Field(default=None, description="one-sided sign-flip p of the legs' gains")
+    at_bound: str | None = Field(default=None, description="its nonlinear parameters at a bound, in words")
 
 
 class RankingEntry(_Out):
@@ -70,10 +76,15 @@ class RankingEntry(_Out):
     score_df: int | None = Field(default=None, description="its degrees of freedom")
     score_p: float | None = Field(default=None, description="its p-value")
     predicted_rms_reduction_mg: float | None = Field(default=None, description="in-sample RMS reduction, mg")
+    legs_better: int | None = Field(default=None, description="held-out legs predicted better")
+    legs: int | None = Field(default=None, description="held-out legs compared")
+    heldout_loss_share: float | None = Field(default=None, description="what the legs predicted worse lose, as a "
+                                             "share of what the better ones gain")
+    legs_p: float | None = Field(default=None, description="one-sided sign-flip p of the legs' gains")
     evidence: bool = Field(default=False, description="it passes the admission gate on its own")
     admitted: bool = Field(default=False, description="the forward staircase admitted it")
     flags: list[str] = Field(default_factory=list, description="no_evidence, confusable_with:..., masked:..., "
-                             "stands_for_it:..., explained_by:... (labels: the page shows flags_text)")
+                             "stands_for_it:..., explained_by:..., at_bound:... (labels: the page shows flags_text)")
     flags_text: list[str] = Field(default_factory=list, description="each flag in words, in the order of flags "
                                   "(web/diag_plots.py report_json; station/diagnostics/plots.py flag_words)")
     note: str | None = Field(default=None, description="what the effect is")
@@ -184,6 +195,8 @@ class LeftoverAxis(_Out):
     ratio: float | None = Field(default=None, description="held-out / expected")
     above: bool | None = Field(default=None, description="a residual remains on this axis")
     views_excess_share: dict[str, float | None] = Field(default_factory=dict, description="view -> excess share")
+    follows: list[str] = Field(default_factory=list, description="views of temperature, rate or orientation the "
+                               "residual follows more than every noise draw does")
 
 
 class Leftover(_Out):

@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from cli.commands.log_import import add_import_arguments
 
     add_import_arguments(parser)
+    parser.add_argument("--no-cache", action="store_true",
+                        help="do not read or write the ranking cache (a first run's ranking, reused by the next "
+                             "--add; $STATION_DIAGNOSE_CACHE: its folder, or off; see docs/diagnostics.md)")
     parser.add_argument("--save-model", metavar="PATH",
                         help="save the fitted model (baseline + added effects): a file for one log, "
                              "a directory (one <serial>.model.json per DUT, the serial made a safe file "
@@ -71,6 +74,12 @@ def format_report(doc: dict) -> str:
     """The human-readable report: ranking, flags, staircase, fitted effect parameters."""
     lines = []
     lines.append(f"DUT(s): {', '.join(doc['serials'])}   residual = {doc['residual']}   RMS of {doc['rms_basis']}")
+    left = doc.get("leftover") or {}
+    if left.get("statement"):
+        # said first: whether anything the model does not explain remains on the held-out legs
+        lines.append(("LEFTOVER: " if left.get("above_floor") else "leftover: ") + left["statement"])
+        if left.get("above_floor") and left.get("carrying"):
+            lines.append(f"  plots that show it: {', '.join(left['carrying'])} (--plots DIR)")
     b = doc["baseline"]
     lines.append(f"baseline (eq. 1: Acc0 per orientation, TDB, TDSF): in-sample {_f(b['rms_mg'])} mg, "
                  f"held-out {_f(b['heldout_rms_mg'])} mg")
@@ -90,9 +99,11 @@ def format_report(doc: dict) -> str:
             lines.append(f"    test that would identify it: {drift.get('test_to_identify')}")
     lines.append("")
     lines.append("candidate effects, best held-out first (each alone against the baseline):")
-    lines.append(f"  {'effect':<20}{'held-out mg':>12}{'gain mg':>10}{'delta BIC':>12}{'LR p':>10}  {'admitted':<9}flags")
+    lines.append(f"  {'effect':<20}{'held-out mg':>12}{'gain mg':>10}{'legs better':>12}{'delta BIC':>12}{'LR p':>10}  "
+                 f"{'admitted':<9}flags")
     for r in doc["ranking"]:
-        lines.append(f"  {r['effect']:<20}{_f(r['heldout_rms_mg']):>12}{_f(r['heldout_gain_mg']):>10}"
+        legs = f"{r['legs_better']}/{r['legs']}" if r.get("legs") else "-"
+        lines.append(f"  {r['effect']:<20}{_f(r['heldout_rms_mg']):>12}{_f(r['heldout_gain_mg']):>10}{legs:>12}"
                      f"{_f(r['delta_bic'], '.1f'):>12}{_f(r['score_p'], '.2g'):>10}  "
                      f"{'yes' if r['admitted'] else 'no':<9}{' '.join(r['flags'])}")
         if r.get("shape"):
@@ -150,6 +161,10 @@ def format_report(doc: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.no_cache:  # the sources the ranking cache's key names, read before they are imported
+        from station.diagnostics import disk_cache
+
+        disk_cache.code_digest()
     from station.diagnostics.effects import get_effect, load_effects_file
     from station.diagnostics.ranking import diagnose
 
@@ -168,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
     serials = [lg.serial for lg in logs]
     if len(set(serials)) != len(serials):
         raise StationError(f"the same DUT serial appears twice among the logs ({', '.join(serials)})")
-    report = diagnose(logs, add=add, candidates=candidates, basis=args.basis)
+    with _ranking_cache(args):
+        report = diagnose(logs, add=add, candidates=candidates, basis=args.basis)
     doc = report.to_json()
     doc["noise"] = {d.serial: report.noise(k) for k, d in enumerate(report.data)}
     if args.plots:
@@ -187,6 +203,20 @@ def run(args: argparse.Namespace) -> int:
         for p in doc.get("saved_models", []):
             print(f"model saved: {p}")
     return 0
+
+
+def _ranking_cache(args: argparse.Namespace):
+    """The ranking cache on disk (station/diagnostics/disk_cache.py) for this command's diagnose():
+    a first run ranks the candidates and keeps the ranking, `--add EFFECT` on the same log(s),
+    candidates, effects and software reuses it and fits only the added models."""
+    from contextlib import nullcontext
+
+    if args.no_cache:
+        return nullcontext()
+    from station.diagnostics import disk_cache
+    from station.version import software_version
+
+    return disk_cache.enabled(version=software_version())
 
 
 def _read(path: str, args: argparse.Namespace):

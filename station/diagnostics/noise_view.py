@@ -404,10 +404,21 @@ def noise_view(report, k: int = 0) -> dict:
                        "terms, no joins); the static segment minus its mean; 1-sigma chi-squared intervals (NIST SP "
                        "1065 edf); the model's own noise = its sensitivity to the per-sample temperature times the "
                        "temperature minus its 60 s mean"),
-            "statement": _summary(d.serial, seg_json, axes)}
+            "statement": _summary(d.serial, seg_json, axes, _leftover_of(report, d.serial))}
 
 
-def _summary(serial: str, seg: dict, axes: dict) -> str:
+def _leftover_of(report, serial: str) -> dict | None:
+    """The report's leftover for this DUT (leftover.py), if a residual remains above what the noise
+    model expects on the held-out legs."""
+    lo = getattr(report, "leftover", None) or {}
+    if not lo.get("above_floor") or list(lo.get("model") or []) != list(report.model.effects):
+        return None
+    per = (lo.get("per_dut") or {}).get(serial) or {}
+    above = [ax for ax, v in per.items() if v.get("above")]
+    return {"axes": above, "ratio": lo.get("ratio")} if above else None
+
+
+def _summary(serial: str, seg: dict, axes: dict, left: dict | None = None) -> str:
     if not seg["found"]:
         return f"{serial}: {seg['note']}."
     where = (f"static segment {float(seg['duration_s']) / 60:.0f} min in {seg['where']} at "
@@ -436,9 +447,18 @@ def _summary(serial: str, seg: dict, axes: dict) -> str:
         lo = min(cmp[ax]["compared_taus_s"][0] for ax in at)
         hi = max(cmp[ax]["compared_taus_s"][1] for ax in at)
         bound = [cmp[ax]["bound_taus_s"][1] for ax in at if cmp[ax].get("bound_taus_s")]
-        parts.append(f"the residual is at the sensor's noise on {', '.join(at)} at all averaging times compared "
-                     f"({_fmt_tau(lo)} to {_fmt_tau(hi)}, within the error bars"
-                     + (f"; not above its upper bound up to {_fmt_tau(max(bound))}" if bound else "") + ")")
+        span = (f"({_fmt_tau(lo)} to {_fmt_tau(hi)}, within the error bars"
+                + (f"; not above its upper bound up to {_fmt_tau(max(bound))}" if bound else "") + ")")
+        left_at = [ax for ax in at if left and ax in left["axes"]]
+        if left_at:
+            # the Allan curve reaches a fraction of one dwell; the held-out legs reach the whole log
+            parts.append(f"the residual's noise matches the sensor's on {', '.join(left_at)} only at the averaging "
+                         f"times an Allan curve of one dwell reaches {span}: over whole held-out legs it is "
+                         f"{left['ratio']}x what the noise model expects, an unexplained residual remains")
+        rest = [ax for ax in at if ax not in left_at]
+        if rest:
+            parts.append(f"the residual is at the sensor's noise on {', '.join(rest)} at all averaging times compared "
+                         + span)
     if none:
         parts.append(f"{', '.join(none)} not compared")
     return f"{serial}: " + "; ".join(parts) + f" ({where})."

@@ -7,16 +7,17 @@ of a perfect model is not white and its minutes are not independent; every figur
 - held-out RMS: blocked K-fold over whole thermal legs (a heating or cooling ramp with its hold,
   i.e. a profile step; segmentation.Segmentation), each predicted by a fit that saw neither the leg nor a
   guard of 10 min on each side of it. Never short interleaved chunks, never at random.
-- noise model of the residual: AR(p) (p <= 6 by BIC) of the 10 s block means, per DUT and axis and
-  within constant-orientation runs, estimated on the residual of the larger model of each
+- noise model of the residual: AR(p) (p <= 6 by BIC) of the 10 s block means, per DUT and axis over
+  the whole log (levels carry across orientation changes), estimated on the residual of the larger model of each
   comparison (so an effect missing from the smaller model is not mistaken for noise). A bias
   random walk shows up as phi ~ 1; the AR filter prewhitens data and regressors (GLS).
 - likelihood-ratio test (reported as score / score_p): LR = sum n ln(SSR_small / SSR_big) of the
   prewhitened GLS fits ~ chi2(dk), dk = extra linear and nonlinear parameters.
 - delta BIC = sum n ln(SSR_big / SSR_small) + dk ln(N), N = prewhitened block count.
 - uncertainties: GLS covariance sigma^2 (X~' X~)^-1 of the prewhitened fit.
-- admission gate (model before -> model with the effect): delta BIC < -30, LR p < 0.001 and
-  held-out RMS lower by >= 3 %. The forward staircase gates every candidate against the model
+- admission gate (model before -> model with the effect): LR p < 0.001, held-out RMS lower by
+  >= 3 %, the held-out legs agree (those predicted worse lose at most half of
+  what the better ones gain) and no nonlinear parameter at its bound (gate.py). The forward staircase gates every candidate against the model
   holding exactly the effects admitted before it and admits, of those that pass, the one with the
   lowest delta BIC; repeated until none passes. `admitted` is the staircase `--add` of those effects
   reproduces, each step lowering the held-out error. When no single candidate passes, the (at most
@@ -50,11 +51,12 @@ import numpy as np
 
 from station.diagnostics.effects import REGISTRY, get_effect, load_effects_file
 from station.diagnostics.evaluation import ModelEval, _spec, evaluate
-from station.diagnostics.gate import BIC_GATE, HELDOUT_GAIN_GATE, SCORE_P_GATE, why_not
+from station.diagnostics.gate import EVIDENCE_TIE, _gate, at_bound, why_not
 from station.diagnostics.identifiability import (
     CONFUSABLE_COS, FEATURE_TEXT, TERMS, UNIDENTIFIABLE_REL, _contribution, _cos, alias_groups, data_features,
     drift_identifiability, identifiability,
 )
+from station.diagnostics.leftover import leftover
 from station.diagnostics.model import DiagnosticModel
 from station.diagnostics.noise_gls import compare
 from station.diagnostics.noise_view import noise_view
@@ -88,6 +90,7 @@ class DiagnosisReport:
     noise_model: dict = field(default_factory=dict)
     drift: dict = field(default_factory=dict)
     baseline_parameters: dict = field(default_factory=dict)
+    leftover: dict = field(default_factory=dict)
     candidates: dict[str, ModelEval] = field(repr=False, default_factory=dict)
     ranked: "Ranked | None" = field(repr=False, default=None)
     _noise: dict = field(repr=False, default_factory=dict)
@@ -102,6 +105,7 @@ class DiagnosisReport:
     def to_json(self) -> dict:
         return {
             "serials": self.serials,
+            "leftover": self.leftover,
             "residual": "measured - model, mg",
             "rms_basis": self.rms_basis,
             "baseline": _eval_json(self.baseline),
@@ -150,6 +154,18 @@ class Ranked:
     auto_steps: list[dict]
     noise_model: dict = field(default_factory=dict)
     drift: dict = field(default_factory=dict)
+    leftovers: dict = field(default_factory=dict)  # effects tuple -> leftover JSON
+
+    def leftover(self, effs: list[str]) -> dict:
+        """The honest leftover of a model (leftover.py), computed once per effect list."""
+        key = tuple(effs)
+        if key not in self.leftovers:
+            m = self.get_eval(list(effs))
+            doc = leftover(self.data, m.fits, m.heldout_block, list(effs))
+            if doc["above_floor"] and list(effs) == self.admitted:
+                doc["statement"] += " No other candidate in the library passed the gate on top of it."
+            self.leftovers[key] = doc
+        return self.leftovers[key]
 
     def get_eval(self, effs: list[str]) -> ModelEval:
         key = tuple(effs)
@@ -201,7 +217,12 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
     key = _log_key(logs, names, basis, seg)
     ranked = _RANKED.get(key)
     if ranked is None:
-        ranked = _rank(logs, names, basis, seg)
+        from station.diagnostics import disk_cache  # an earlier `station diagnose` run's ranking (off by default)
+
+        ranked = disk_cache.load(logs, names, basis, seg, Ranked)
+        if ranked is None:
+            ranked = _rank(logs, names, basis, seg)
+            disk_cache.store(ranked, logs, names, basis, seg)
         _RANKED[key] = ranked
         while len(_RANKED) > RANKED_CACHE_SIZE:
             _RANKED.popitem(last=False)
@@ -262,6 +283,8 @@ def _rank(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation) -
         cand = get_eval([name])
         cmp = compare(data, _spec(base), _spec(cand))
         gain = (base.heldout_rms_mg - cand.heldout_rms_mg) / base.heldout_rms_mg if base.heldout_rms_mg > 0 else 0.0
+        gate_rec, passes = _gate(cmp, base, cand)
+        bound = at_bound(name, cand)
         row = {
             "effect": name,
             "heldout_rms_mg": _r(cand.heldout_rms_mg),
@@ -272,9 +295,11 @@ def _rank(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation) -
             "n_eff": cmp.n,
             "score": _r(cmp.lr, 3), "score_df": cmp.df, "score_p": float(f"{cmp.p:.3g}"),
             "predicted_rms_reduction_mg": _r(max(base.rms_mg - cand.rms_mg, 0.0)),
-            "evidence": bool(cmp.delta_bic < BIC_GATE and cmp.p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE),
+            "legs_better": gate_rec["legs_better"], "legs": gate_rec["legs"],
+            "heldout_loss_share": gate_rec["heldout_loss_share"], "legs_p": gate_rec["legs_p"],
+            "evidence": passes and not bound,
             "admitted": False,
-            "flags": [],
+            "flags": ["at_bound:" + "; ".join(bound)] if bound else [],
             "note": get_effect(name).note,
             "shape": _shape_text(name, cand),
         }
@@ -294,7 +319,7 @@ def _rank(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation) -
             c = _cos(contrib[a], contrib[b])
             ra = next(r for r in rows if r["effect"] == a)
             rb = next(r for r in rows if r["effect"] == b)
-            if abs(c) > CONFUSABLE_COS and abs(ra["delta_bic"] - rb["delta_bic"]) < -BIC_GATE:
+            if abs(c) > CONFUSABLE_COS and abs(ra["delta_bic"] - rb["delta_bic"]) < EVIDENCE_TIE:
                 confusable.append({"effects": [a, b], "cosine": _r(c, 4),
                                    "reason": "their fitted contributions are nearly collinear on this data",
                                    "to_separate": f"{get_effect(a).identify_hint}; {get_effect(b).identify_hint}"})
@@ -334,7 +359,8 @@ def _rank(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation) -
     n_seg = [int(d.seg_bounds_s.shape[0]) for d in data]
     noise_model = {
         "residual": ("local level (bias random walk + white, IMA(1,1)) + AR(p <= 6 by BIC) of the 10 s block "
-                     "means of the residual, per DUT and axis within constant-orientation runs, estimated on the "
+                     "means of the residual, per DUT and axis over the whole log (the plate's moves are gaps, not "
+                     "restarts: levels carry across orientation changes), estimated on the "
                      "larger model of each comparison; p-values, delta BIC and parameter sigmas come from the "
                      "prewhitened (GLS) fits"),
         "baseline": base_noise,
@@ -397,7 +423,8 @@ def _report(st: Ranked, add: list[str]) -> DiagnosisReport:
         unidentifiable=unident, parameters=_params_json(data, current.fits), features=st.feats, data=data,
         candidates={k[0]: v for k, v in st.cache.items() if len(k) == 1},
         admitted=st.admitted, admitted_staircase=admitted_staircase, aliases=aliases, noise_model=st.noise_model,
-        drift=st.drift, baseline_parameters=_params_json(data, base.fits), ranked=st)
+        drift=st.drift, baseline_parameters=_params_json(data, base.fits), ranked=st,
+        leftover=st.leftover(add if add else st.admitted))
 
 
 __all__ = ["diagnose", "with_added", "DiagnosisReport", "Ranked"]

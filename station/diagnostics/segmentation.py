@@ -86,8 +86,27 @@ class DutData:
         return s / self.block_count.reshape(shape)
 
 
+def at_positions(log: DutLog) -> DutLog:
+    """The log without its samples at position -1 (the contract's "moving or unknown": the daemon
+    stores every sample of a plate move as -1). Those samples belong to no orientation, so they are
+    never fitted as one; a log without a position column, or with every row at a position, is
+    returned as it is. The gap they leave is a break between runs, like any gap in time."""
+    if log.position is None:
+        return log
+    keep = np.asarray(log.position) >= 0
+    if keep.all():
+        return log
+    if not keep.any():
+        raise StationError(f"{log.serial or 'log'}: every sample is at position -1 (moving or unknown); "
+                           f"nothing to diagnose")
+    return DutLog(time_s=log.time_s[keep], acc_g=log.acc_g[keep], temp_c=log.temp_c[keep], meta=log.meta,
+                  lamp=None if log.lamp is None else log.lamp[keep], position=log.position[keep],
+                  ref_dir=None if log.ref_dir is None else log.ref_dir[keep])
+
+
 def _orientation_codes(log: DutLog) -> tuple[np.ndarray, list[str]]:
-    """Orientation per sample: the log's position column, else clusters of the acceleration."""
+    """Orientation per sample: the log's position column, else clusters of the acceleration.
+    (prepare() has dropped the rows at position -1 first.)"""
     if log.position is not None and np.all(log.position >= 0):
         uniq = sorted(set(int(p) for p in np.unique(log.position)))
         lut = {p: k for k, p in enumerate(uniq)}
@@ -160,6 +179,7 @@ def _legs(time_s: np.ndarray, temp_c: np.ndarray, a: int, b: int, seg: Segmentat
 def prepare(log: DutLog, seg: Segmentation | None = None) -> DutData:
     """Cut a log into constant-orientation runs, fit blocks, RMS windows and held-out legs."""
     seg = seg or Segmentation()
+    log = at_positions(log)
     n = len(log)
     if n < 50:
         raise StationError(f"{log.serial or 'log'}: only {n} samples, too short to diagnose")
@@ -250,4 +270,4 @@ def train_mask(d: DutData, k: int) -> np.ndarray:
     return ok
 
 
-__all__ = ["Segmentation", "DutData", "prepare", "train_mask"]
+__all__ = ["Segmentation", "DutData", "prepare", "train_mask", "at_positions"]

@@ -10,14 +10,14 @@ the candidates left out because an admitted effect explains them or stands for t
 from __future__ import annotations
 
 from station.diagnostics.evaluation import ModelEval, _spec, _spec_plus
-from station.diagnostics.gate import BIC_GATE, SCORE_P_GATE, _gate, _masked_pair
+from station.diagnostics.gate import SCORE_P_GATE, _gate, _masked_pair, at_bound
 from station.diagnostics.noise_gls import compare
 
 
 def _admit_forward(data, base: ModelEval, rows: list[dict], confusable: list[dict], get_eval) -> tuple[list[str], list[dict]]:
     """Monotone forward staircase: at each step every candidate is gated against the model that holds
     exactly the effects admitted before it (no stand-ins); of those that pass, the one with the
-    lowest delta BIC is admitted. A candidate
+    lowest delta BIC (the strongest in-sample evidence) is admitted. A candidate
     with no evidence on its own (masked by an effect of opposite sign) is screened again against the
     current model (a cheap GLS test at its own nonlinear values) and, if significant, gated like the
     others. A confusable partner of an admitted effect is not tested on top of it."""
@@ -45,12 +45,15 @@ def _admit_forward(data, base: ModelEval, rows: list[dict], confusable: list[dic
             else:
                 if not r["evidence"]:
                     screen = compare(data, _spec(current), _spec_plus(current, get_eval([name]), name))
-                    if not (screen.p < SCORE_P_GATE and screen.delta_bic < BIC_GATE):
+                    if not screen.p < SCORE_P_GATE:
                         continue
                 cand = get_eval(admitted + [name])
                 rec, ok = _gate(compare(data, _spec(current), _spec(cand)), current, cand)
+                bound = at_bound(name, cand)
+                if bound:
+                    rec["at_bound"] = "; ".join(bound)
                 r["given_admitted"] = rec
-                if not ok:
+                if not ok or bound:
                     continue
             passing.append((rec["delta_bic"], r, cand, rec))
         if not passing:
