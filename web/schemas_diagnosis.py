@@ -44,7 +44,17 @@ class DutParameters(_Out):
         default_factory=dict, description="effect -> parameter -> value (nonlinear) or axis -> value (linear)")
 
 
-class GateRecord(_Out):
+class LegsAgreement(_Out):
+    """Do the held-out legs agree the effect generalises? (station/diagnostics/gate.py leg_agreement)"""
+
+    legs_better: int | None = Field(default=None, description="held-out legs predicted better")
+    legs: int | None = Field(default=None, description="held-out legs compared")
+    heldout_loss_share: float | None = Field(default=None, description="what the legs predicted worse lose, as a "
+                                             "share of what the better ones gain")
+    legs_p: float | None = Field(default=None, description="one-sided sign-flip p of the legs' gains")
+
+
+class GateRecord(LegsAgreement):
     """An admission test against the model before it (station/diagnostics/gate.py)."""
 
     effects: list[str] = Field(default_factory=list, description="the model it was tested against")
@@ -54,15 +64,10 @@ class GateRecord(_Out):
     score: float | None = Field(default=None, description="likelihood-ratio statistic")
     score_df: int | None = Field(default=None, description="its degrees of freedom")
     score_p: float | None = Field(default=None, description="its p-value")
-    legs_better: int | None = Field(default=None, description="held-out legs predicted better")
-    legs: int | None = Field(default=None, description="held-out legs compared")
-    heldout_loss_share: float | None = Field(default=None, description="what the legs predicted worse lose, as a "
-                                             "share of what the better ones gain")
-    legs_p: float | None = Field(default=None, description="one-sided sign-flip p of the legs' gains")
     at_bound: str | None = Field(default=None, description="its nonlinear parameters at a bound, in words")
 
 
-class RankingEntry(_Out):
+class RankingEntry(LegsAgreement):
     """One candidate effect against the baseline (station/diagnostics/ranking.py)."""
 
     effect: str = Field(description="effect name (see library)")
@@ -76,11 +81,6 @@ class RankingEntry(_Out):
     score_df: int | None = Field(default=None, description="its degrees of freedom")
     score_p: float | None = Field(default=None, description="its p-value")
     predicted_rms_reduction_mg: float | None = Field(default=None, description="in-sample RMS reduction, mg")
-    legs_better: int | None = Field(default=None, description="held-out legs predicted better")
-    legs: int | None = Field(default=None, description="held-out legs compared")
-    heldout_loss_share: float | None = Field(default=None, description="what the legs predicted worse lose, as a "
-                                             "share of what the better ones gain")
-    legs_p: float | None = Field(default=None, description="one-sided sign-flip p of the legs' gains")
     evidence: bool = Field(default=False, description="it passes the admission gate on its own")
     admitted: bool = Field(default=False, description="the forward staircase admitted it")
     flags: list[str] = Field(default_factory=list, description="no_evidence, confusable_with:..., masked:..., "
