@@ -31,6 +31,8 @@ from scipy.optimize import least_squares, minimize_scalar
 
 from station.diagnostics.design import _Design
 from station.diagnostics.effects import Effect, get_effect
+from station.diagnostics.fold_support import unsupported
+from station.diagnostics.rms import block_rms, window_rms
 from station.diagnostics.segmentation import DutData, train_mask
 
 
@@ -89,58 +91,6 @@ def _solve(A: np.ndarray, yw: np.ndarray, want_cov: bool = True):
         except np.linalg.LinAlgError:
             pass
     return beta, cov, live
-
-
-SUPPORT_MIN = 0.3  # a fold fits an effect column only where its training blocks hold this share of it
-
-
-def unsupported(X_full: np.ndarray, rows: np.ndarray, P: int, X_train: np.ndarray | None = None) -> np.ndarray:
-    """(k_effect,) bool: effect columns a fold's training blocks cannot learn.
-
-    What the baseline (Acc0 per orientation, TDB, TDSF) cannot explain of a column is its signal;
-    a fold whose training blocks hold less than SUPPORT_MIN of that signal (its norm) would fit it
-    to the noise and extrapolate it into the held-out leg: a bias step whose one side is held out
-    (inside the training data the step is an orientation's offset: 17 mg held-out errors), a
-    warm-up transient whose head is held out (fitted on its tail and extrapolated 14x). Such a
-    column is left out of that fold's fit, so the held-out leg is predicted without the term, as the
-    baseline predicts it; the folds that can learn the term show whether it generalises.
-    X_train: X_full[rows] when the caller has it already."""
-    E = X_full[:, P + 2:]
-    if not E.shape[1]:
-        return np.zeros(0, bool)
-
-    def signal(X: np.ndarray) -> np.ndarray:
-        B, Ek = X[:, :P + 2], X[:, P + 2:]
-        norm = np.sqrt(np.einsum("ij,ij->j", B, B))
-        live = norm > 0  # the baseline's columns with a value on these blocks
-        if not live.any():
-            return np.sqrt(np.einsum("ij,ij->j", Ek, Ek))
-        return _span_residual_norms(B[:, live], Ek, norm[live])
-
-    full = signal(X_full)
-    train = signal(X_full[rows] if X_train is None else X_train)
-    return (full > 0) & (train < SUPPORT_MIN * full)
-
-
-def _span_residual_norms(B: np.ndarray, E: np.ndarray, norm: np.ndarray) -> np.ndarray:
-    """(m,): the norm of each column of E left after its least-squares projection on the columns
-    of B (none zero; `norm` their norms). The normal equations of the unit-scaled columns by
-    Cholesky when they are well conditioned (a fold's baseline: a few columns over thousands of
-    blocks, 3-5x faster than lstsq's SVD, which runs for every fold, pass and axis), else lstsq;
-    the two agree to ~1e-14 of the column's norm there (cond(G) <= 1e8; measured on the
-    diagnoses of tests/diag_helpers' logs: no decision of unsupported() changes)."""
-    Bs = B / norm
-    c, info = dpotrf(Bs.T @ Bs, lower=0, clean=0, overwrite_a=0)
-    if info == 0:
-        dg = np.abs(np.diag(c))
-        if dg.min() >= 1e-4 * dg.max():
-            coef, info = dpotrs(c, Bs.T @ E, lower=0, overwrite_b=0)
-            if info == 0:
-                R = E - Bs @ coef
-                return np.sqrt(np.einsum("ij,ij->j", R, R))
-    coef, *_ = np.linalg.lstsq(B, E, rcond=None)
-    R = E - B @ coef
-    return np.sqrt(np.einsum("ij,ij->j", R, R))
 
 
 def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray, passes: int = 3,
@@ -466,53 +416,12 @@ def predict_dut(d: DutData, fit: DutFit) -> np.ndarray:
     return pred
 
 
-def window_rms(d: DutData, resid_mg: np.ndarray, mask: np.ndarray | None = None,
-               basis: str = "window") -> float:
-    """RMS of the residual over axes: per sample, or of means over the RMS windows."""
-    ok = ~np.isnan(resid_mg).any(axis=1)
-    if mask is not None:
-        ok &= mask
-    if not ok.any():
-        return float("nan")
-    r = resid_mg[ok]
-    if basis == "sample":
-        return float(np.sqrt(np.mean(r**2)))
-    wid = d.window[ok]
-    cnt = np.bincount(wid).astype(float)
-    sums = np.stack([np.bincount(wid, weights=r[:, i]) for i in range(3)], axis=1)
-    keep = cnt > 0
-    means = sums[keep] / cnt[keep, None]
-    return float(np.sqrt(np.sum(cnt[keep, None] * means**2) / (3.0 * cnt[keep].sum())))
-
-
 def predict_blocks(d: DutData, fit: DutFit) -> np.ndarray:
     """Model prediction on the fit blocks (n_blocks, 3) in mg; NaN for orientations never seen."""
     mats, _ = _Design(d, [get_effect(n) for n in fit.effects]).block_matrices(fit.nl, fit.acc0_g)
     pred = np.stack([mats[i] @ fit.beta[i] for i in range(3)], axis=1)
     pred[np.isnan(fit.acc0_g[d.block_pos]).any(axis=1)] = np.nan
     return pred
-
-
-def block_rms(d: DutData, resid_block_mg: np.ndarray, basis: str = "window") -> float:
-    """RMS over axes of a block-level residual (measured block mean - model), NaN blocks left out.
-
-    window: RMS of the means over the RMS windows (whole blocks, exact). sample: the per-sample
-    RMS of a model held constant over each 10 s block: the block residual plus the measurement's
-    own scatter inside the block (the model moves far less than the noise in 10 s)."""
-    ok = ~np.isnan(resid_block_mg).any(axis=1)
-    if not ok.any():
-        return float("nan")
-    r = resid_block_mg[ok]
-    cnt = d.block_count[ok]
-    if basis == "sample":
-        ss = float(np.sum(cnt[:, None] * r**2) + np.sum(d.block_ss_within[ok]))
-        return float(np.sqrt(ss / (3.0 * cnt.sum())))
-    wid = d.block_window[ok]
-    cw = np.bincount(wid, weights=cnt)
-    sums = np.stack([np.bincount(wid, weights=cnt * r[:, i], minlength=cw.size) for i in range(3)], axis=1)
-    keep = cw > 0
-    means = sums[keep] / cw[keep, None]
-    return float(np.sqrt(np.sum(cw[keep, None] * means**2) / (3.0 * cw[keep].sum())))
 
 
 def heldout_blocks(d: DutData, effect_names: list[str], full: DutFit, max_nfev: int = 8) -> np.ndarray:

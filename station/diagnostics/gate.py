@@ -79,15 +79,20 @@ def leg_agreement(before: ModelEval, after: ModelEval) -> tuple[int, int, float,
             sign_flip_p(diff))
 
 
-def legs_agree(loss_share: float, legs_p: float, legs: int) -> bool:
+def legs_agree(loss_share: float, legs_p: float, legs: int, delta_bic: float) -> bool:
     """The held-out legs agree the effect generalises: the legs predicted worse lose at most half of
     what the better ones gain, and either the gains are many legs' (sign-flip p) or nearly nothing
     is lost anywhere (a local effect, a warm-up or a step, shows on the few legs that hold it and
     costs the others < 10 % of that: the sign-flip test of one leg's gain can never pass). The local
-    reading needs MIN_LEGS legs: on six legs "nothing lost elsewhere" happens by chance."""
+    reading needs MIN_LEGS legs: on six legs "nothing lost elsewhere" happens by chance. With fewer
+    legs than that neither test can speak (5 legs give a sign-flip p of 1/32 at best), so the
+    in-sample information criterion stands in for them (delta BIC < FEW_LEGS_BIC_GATE), and the few
+    legs must all but agree (the others lose < LOCAL_LOSS_SHARE)."""
     if loss_share > LOSS_SHARE_GATE:
         return False
-    return legs_p < LEGS_P_GATE or (legs >= MIN_LEGS and loss_share <= LOCAL_LOSS_SHARE)
+    if legs < MIN_LEGS:
+        return delta_bic < FEW_LEGS_BIC_GATE and loss_share <= LOCAL_LOSS_SHARE
+    return legs_p < LEGS_P_GATE or loss_share <= LOCAL_LOSS_SHARE
 
 
 def _gate(cmp: Comparison, before: ModelEval, after: ModelEval) -> tuple[dict, bool]:
@@ -99,8 +104,8 @@ def _gate(cmp: Comparison, before: ModelEval, after: ModelEval) -> tuple[dict, b
            "score_df": cmp.df, "score_p": float(f"{cmp.p:.3g}"),
            "legs_better": better, "legs": legs, "heldout_loss_share": _r(loss_share, 3),
            "legs_p": float(f"{legs_p:.3g}")}
-    ok = bool(cmp.p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE and legs_agree(loss_share, legs_p, legs)
-              and (legs >= MIN_LEGS or cmp.delta_bic < FEW_LEGS_BIC_GATE))
+    ok = bool(cmp.p < SCORE_P_GATE and gain >= HELDOUT_GAIN_GATE
+              and legs_agree(loss_share, legs_p, legs, cmp.delta_bic))
     return rec, ok
 
 
@@ -210,15 +215,19 @@ def why_not(row: dict, base_heldout_mg: float | None) -> str:
             parts.append(f"it does not predict the held-out legs better ({base_heldout_mg} -> {held} mg)")
     legs_p = row.get("legs_p")
     if gain is not None and gain > 0 and share is not None and legs_p is not None and legs is not None \
-            and not legs_agree(share, legs_p, legs):
+            and legs >= MIN_LEGS and not legs_agree(share, legs_p, legs, math.inf):
         parts.append(f"the held-out legs do not agree: it predicts {better} of {legs} legs better and loses on the "
-                     f"others {100 * share:.0f} % of what it gains there (at most {100 * LOSS_SHARE_GATE:g} %), "
+                     f"others {abs(100 * share):.0f} % of what it gains there (at most {100 * LOSS_SHARE_GATE:g} %), "
                      f"sign-flip p {legs_p} (needs < {LEGS_P_GATE:g}, or the others losing < {100 * LOCAL_LOSS_SHARE:g} %): the gain may be the noise of a few legs, not a "
                      f"shape that repeats" if share is not None and math.isfinite(share) else
                      f"the held-out legs do not agree (sign-flip p {legs_p}, needs < {LEGS_P_GATE:g})")
     if legs is not None and legs < MIN_LEGS and (dbic is None or dbic >= FEW_LEGS_BIC_GATE):
-        parts.append(f"with only {legs} held-out legs (fewer than {MIN_LEGS}) the legs cannot show on their own that "
-                     f"it generalises, and delta BIC {dbic} is not below {FEW_LEGS_BIC_GATE:g}")
+        parts.append(f"with only {legs} held-out legs (fewer than {MIN_LEGS}) the legs cannot show that it "
+                     f"generalises, so the information criterion must, and delta BIC {dbic} is not below "
+                     f"{FEW_LEGS_BIC_GATE:g}")
+    elif legs is not None and legs < MIN_LEGS and share is not None and share > LOCAL_LOSS_SHARE:
+        parts.append(f"the held-out legs predicted worse lose {abs(100 * share):.0f} % of what the better ones gain "
+                     f"(with so few legs at most {100 * LOCAL_LOSS_SHARE:g} %)")
     if p is None or p >= SCORE_P_GATE:
         parts.append(f"the in-sample evidence is too weak once the sensor's wandering bias is accounted for "
                      f"(likelihood-ratio p {p if p is None else f'{p:.3g}'}, needs < {SCORE_P_GATE:g}; delta BIC "

@@ -38,6 +38,7 @@ from scipy.signal import lfilter
 from station.diagnostics.design import _Design
 from station.diagnostics.effects import get_effect
 from station.diagnostics.fit import DutFit
+from station.diagnostics.fold_support import unsupported
 from station.diagnostics.noise_gls import NoiseFilter, _runs_of_blocks, ar_fit
 from station.diagnostics.report_values import _r
 from station.diagnostics.segmentation import DutData, train_mask
@@ -47,6 +48,7 @@ N_DRAWS = 48
 LEFTOVER_RATIO = 1.15  # the held-out error must be at least this much above the expected ...
 LEFTOVER_QUANTILE = 0.975  # ... and above this quantile of the noise draws
 VIEW_MIN_EXCESS = 0.10  # a view "carries the structure" when its groups explain this much more than in noise
+MIN_BLOCKS = 12  # fewer held-out blocks on an axis: nothing to compare
 COVARIATE_VIEWS = ("temperature", "rate", "orientation")
 TIME_BIN_S = 1800.0
 TEMP_BIN_C = 5.0
@@ -150,6 +152,7 @@ def _heldout(d: DutData, X: np.ndarray, Y: np.ndarray, P: int) -> np.ndarray:
         full_max = np.abs(X[:, P + 2:]).max(axis=0) if X.shape[1] > P + 2 else np.zeros(0)
         if full_max.size:
             live[P + 2:] &= np.abs(X[train][:, P + 2:]).max(axis=0) >= 1e-2 * full_max
+            live[P + 2:] &= ~unsupported(X, np.flatnonzero(train), P)  # the fit's rule (fold_support.py)
         A = X[train][:, live] * sw[train, None]
         coef, *_ = np.linalg.lstsq(A, Y[train] * sw[train, None], rcond=None)
         r = Y[test] - X[test][:, live] @ coef
@@ -182,6 +185,9 @@ def dut_leftover(d: DutData, fit: DutFit, heldout_block: np.ndarray, seed: int =
         nf = ar_fit(y - X[:, live] @ coef, pieces, robust=True)
         draws = _heldout(d, X, _simulate(nf, y.size, pieces, rng, N_DRAWS), P)
         okd = ok & ~np.isnan(draws).any(axis=1)
+        if np.count_nonzero(okd) < MIN_BLOCKS:  # no held-out legs to compare (a model no fold can fit)
+            out[ax] = AxisLeftover(heldout_rms_mg=math.nan, expected_rms_mg=math.nan, expected_hi_rms_mg=math.nan)
+            continue
         ms_draws = _window_ms(d, draws, okd)
         h = heldout_block[:, i:i + 1]
         ms = float(_window_ms(d, h, okd)[0])
@@ -212,6 +218,8 @@ def leftover(data: list[DutData], fits: list[DutFit], heldout: list[np.ndarray],
         axes = dut_leftover(d, f, h)
         n = float(d.block_count.sum())
         for ax, a in axes.items():
+            if not (math.isfinite(a.heldout_rms_mg) and math.isfinite(a.expected_rms_mg)):
+                continue
             num += n * a.heldout_rms_mg**2
             num_e += n * a.expected_rms_mg**2
             den += n
@@ -230,7 +238,10 @@ def leftover(data: list[DutData], fits: list[DutFit], heldout: list[np.ndarray],
     model = "baseline" + "".join(f" + {e}" for e in effects)
     ranked_views = sorted(best_views.items(), key=lambda kv: -kv[1])
     carrying = [v for v, x in ranked_views if x >= VIEW_MIN_EXCESS]
-    if above_all:
+    if not den:
+        statement = (f"The held-out legs cannot be compared with the noise for {model}: no held-out leg was "
+                     f"predicted (too short a log, or a model no fold can fit).")
+    elif above_all:
         shape = (f"its shape shows in {VIEWS[carrying[0]][0]} (the groups explain "
                  f"{100 * best_views[carrying[0]]:.0f} % more of it than of the noise)"
                  + (", then " + ", ".join(VIEWS[v][0] for v in carrying[1:]) if carrying[1:] else "")
