@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from station.diagnostics.effects import BuiltinEffect, Context, NonlinearParam, _per_axis, smooth_temperature
+from station.diagnostics.effect_base import BuiltinEffect, Context, NonlinearParam, _per_axis
+from station.diagnostics.operators import smooth_temperature
 
 # ---------------------------------------------------------------------------------------------
 # effects of the rate of temperature change, of time, and of the acceleration itself
