@@ -40,12 +40,16 @@ class SampleBuffer:
         self.columns = columns
         self.limit = limit
         self._rows: list[Row] = []
+        # rows that came in bulk (a driver's fast path: drivers/protocol/sample_lines.py), already
+        # as columns (time in s, counts (n, 4)), in arrival order before the rows in _rows
+        self._chunks: list[tuple[np.ndarray, np.ndarray]] = []
+        self._n_chunked = 0
         self._lost = 0  # samples lost since the last block
         self._fresh = False  # rows added since the last flush()
         self._data = asyncio.Event()
 
     def __len__(self) -> int:
-        return len(self._rows)
+        return len(self._rows) + self._n_chunked
 
     def renew(self) -> None:
         """A new wake-up event (the link opens: the reader may wait in another event loop)."""
@@ -54,6 +58,28 @@ class SampleBuffer:
     def add(self, row: Row) -> None:
         self._rows.append(row)
         self._fresh = True
+
+    def add_columns(self, time_s: np.ndarray, counts: np.ndarray) -> None:
+        """Many rows at once, already as columns (time in s, raw counts (n, 4)): the bulk path."""
+        if self._rows:  # keep the arrival order: the rows before these become a chunk first
+            self._chunks.append(self.columns(self._rows))
+            self._n_chunked += len(self._rows)
+            self._rows = []
+        self._chunks.append((time_s, counts))
+        self._n_chunked += len(time_s)
+        self._fresh = True
+
+    def _columns_all(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Everything held as one pair of columns (and nothing held any more); None when empty."""
+        parts = list(self._chunks)
+        if self._rows:
+            parts.append(self.columns(self._rows))
+        self._rows, self._chunks, self._n_chunked = [], [], 0
+        if not parts:
+            return None
+        if len(parts) == 1:
+            return parts[0]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
     def count_lost(self, n: int) -> None:
         """n samples lost on the link (a seq gap): counted, and reported with the next block."""
@@ -66,10 +92,13 @@ class SampleBuffer:
         if not self._fresh:
             return
         self._fresh = False
-        if len(self._rows) > self.limit:
-            drop = len(self._rows) - self.limit
-            del self._rows[:drop]
+        if len(self) > self.limit:
+            drop = len(self) - self.limit
+            held = self._columns_all()
+            assert held is not None
+            self._chunks, self._n_chunked = [(held[0][drop:], held[1][drop:])], len(held[0]) - drop
             self.count_lost(drop)
+            self.stats.samples_lost_queue += drop
         self._data.set()
 
     def wake(self) -> None:
@@ -78,8 +107,8 @@ class SampleBuffer:
 
     def discard(self) -> int:
         """Drop the rows held and the losses not yet reported; returns how many rows."""
-        n = len(self._rows)
-        self._rows.clear()
+        n = len(self)
+        self._rows, self._chunks, self._n_chunked = [], [], 0
         self._lost = 0
         return n
 
@@ -87,7 +116,7 @@ class SampleBuffer:
                    error: Callable[[], DriverError | None]) -> None:
         """With nothing held: `check()` the link (it raises when the link is down or not open),
         then wait up to timeout_s for rows. Still none and the link has failed: its error."""
-        if self._rows:
+        if self._rows or self._chunks:
             return
         check()
         self._data.clear()
@@ -96,18 +125,18 @@ class SampleBuffer:
         except asyncio.TimeoutError:
             pass
         err = error()
-        if not self._rows and err is not None:
+        if not len(self) and err is not None:
             raise err
 
     def take_block(self, identity: Identity | None) -> SampleBlock:
         """Every row held and the losses since the last block, as one SampleBlock in g and C
         (empty when there are no rows; a board not identified yet reads with Identity's defaults)."""
-        rows, self._rows = self._rows, []
+        held = self._columns_all()
         lost, self._lost = self._lost, 0
-        if not rows:
+        if held is None:
             return SampleBlock(np.empty(0), np.empty((0, 3)), np.empty(0), lost)
         ident = identity or Identity(serial="")
-        time_s, counts = self.columns(rows)
+        time_s, counts = held
         return SampleBlock(
             time_s=time_s,
             acc_g=ident.acc_g(counts[:, 0:3]),

@@ -20,9 +20,14 @@ import serial
 
 from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats, StreamBreak
 from drivers.protocol import serial_frames as sf
+from drivers.protocol.sample_lines import SampleLines
 from drivers.protocol.stream_timeline import ClockUnwrapper, SeqTracker, StreamTimeline
 from drivers.sample_buffer import MAX_PENDING_SAMPLES as MAX_PENDING_SAMPLES, Row, SampleBuffer
 from contracts.types import Identity, SampleBlock
+
+
+RAW_PARSE_BYTES = 1 << 18  # unparsed bytes beyond this are parsed at once (nobody reads: a bound)
+CLEAN_BAND = 0.2  # of the period: a clock step this close to it is "ok" for every per-frame check (see _take_clean)
 
 
 def _columns(rows: list[Row]) -> tuple[np.ndarray, np.ndarray]:
@@ -81,6 +86,7 @@ class SerialBoard(BoardDriver):
         self._thread: threading.Thread | None = None
         self._running = False
         self._held = SampleBuffer(self.stats, _columns)  # rows: t_us, ax, ay, az, t
+        self._raw = bytearray()  # taken off the port, not parsed yet (_on_readable)
         self._broken = False  # a StreamBreak was seen: samples are not taken until the next START
         self._breaks: list[StreamBreak] = []
         self._error: DriverError | None = None
@@ -130,7 +136,22 @@ class SerialBoard(BoardDriver):
         if not data:
             self._fail(f"serial port {self.port} vanished (EOF)")
             return
-        self._feed(data)
+        # The bytes are taken off the port at once (its buffer never overruns while the loop turns);
+        # they are parsed in bulk when the pump reads (read_block, every read period), or at once
+        # while a command waits for its reply (the reply, and the samples before it, in order).
+        self.last_rx_wall = time.monotonic()
+        self._raw += data
+        if self._ack_waiters or (self._ident_fut is not None and not self._ident_fut.done()) \
+                or len(self._raw) >= RAW_PARSE_BYTES:
+            self._drain()
+        else:
+            self._held.wake()
+
+    def _drain(self) -> None:
+        """Parse the bytes taken off the port and not parsed yet."""
+        if self._raw:
+            data, self._raw = bytes(self._raw), bytearray()
+            self._parse(data)
 
     def _reader_thread(self) -> None:
         ser = self._ser
@@ -164,40 +185,89 @@ class SerialBoard(BoardDriver):
     # ---- frames ----------------------------------------------------------------------------
     def _feed(self, data: bytes) -> None:
         self.last_rx_wall = time.monotonic()
-        for frame in self._parser.feed(data):
-            if type(frame) is sf.SampleFrame:
-                if self._broken:  # after a break: not this run's timeline (until the next START)
-                    self.stats.frames_after_break += 1
-                    continue
-                line = self._timeline.check(frame.seq, frame.t_us, self.last_rx_wall)
-                if line == "skip":  # off its timeline, not confirmed: garbage that passed the checksum
-                    self._malformed()
-                    continue
-                if line in ("reset", "clock_jump"):
-                    self._stream_break(line)
-                    continue
-                lost = self._seq.update(frame.seq)
-                if lost:
-                    self._held.count_lost(lost)
-                t_us = self._clock.update(frame.t_us, lost + 1)
-                if t_us is None:  # a time that follows nothing: a corrupt frame, not a clock wrap
-                    self._malformed()
-                    continue
-                self._held.add((t_us, frame.ax, frame.ay, frame.az, frame.t))
-                self.last_sample_t = t_us / 1e6
-            elif isinstance(frame, sf.IdentityFrame):
-                if self._ident_fut is not None and not self._ident_fut.done():
-                    self._ident_fut.set_result(frame.identity)
-            elif isinstance(frame, (sf.AckFrame, sf.CalReadFrame, sf.SfemReadFrame)):
-                key = frame.command if isinstance(frame, sf.AckFrame) else ("C" if isinstance(frame, sf.CalReadFrame) else "S")
-                fut = self._ack_waiters.get(key)
-                if fut is not None and not fut.done():
-                    fut.set_result(frame)
-            elif isinstance(frame, sf.ErrorFrame):
-                for fut in self._ack_waiters.values():
-                    if not fut.done():
-                        fut.set_exception(BoardErrorReply(self.port, frame.code, frame.text))
+        self._parse(data)
+
+    def _parse(self, data: bytes) -> None:
+        lines = self._parser.feed_samples(data)
+        if lines is not None:  # a read of nothing but sample frames (the usual one)
+            if not self._take_clean(lines):
+                for seq, t_us, (ax, ay, az, tc) in zip(lines.seq.tolist(), lines.t_us.tolist(),
+                                                        lines.counts.tolist()):
+                    self._frame(sf.SampleFrame(seq, t_us, ax, ay, az, tc))
+        else:
+            for frame in self._parser.feed(b""):
+                self._frame(frame)
         self._held.flush()
+
+    def _take_clean(self, lines: SampleLines) -> bool:
+        """Take a run of sample frames at once when it simply goes on the stream's one timeline:
+        every seq one more than the one before, every clock step within CLEAN_BAND of the learned
+        period (so each frame's own check would say "ok": StreamTimeline, ClockUnwrapper), no wrap,
+        no break. Else False, and each frame goes through `_frame` (the one definition)."""
+        tl, clock, seqt = self._timeline, self._clock, self._seq
+        if (self._broken or tl.last is None or tl.period_us is None or tl._n_on_line < tl.CONFIRM_FRAMES
+                or tl._cand or clock.last is None or clock.period_us is None or clock._candidate is not None
+                or clock._skipped_steps or seqt.last is None or clock.last != tl.last[1]
+                or seqt.last != tl.last[0]):
+            return False
+        seq, t_us = lines.seq, lines.t_us
+        last_t = clock.last
+        if last_t >= clock.WRAP or int(t_us.max()) >= clock.WRAP:
+            return False
+        p0 = tl.period_us
+        dt = np.diff(t_us, prepend=last_t)
+        dseq = np.diff(seq, prepend=seqt.last)
+        if not ((dseq == 1).all() and (np.abs(dt - p0) <= CLEAN_BAND * p0).all()
+                and abs(int(dt[0]) - clock.period_us) <= clock.TOLERANCE * clock.period_us):
+            return False
+        # the state each frame's own check would leave (the timeline's period, smoothed per frame)
+        p = p0
+        for step in dt.tolist():
+            p += 0.05 * (step - p)
+        n = len(lines)
+        last_seq, last_tus = int(seq[-1]), int(t_us[-1])
+        tl.period_us, tl.last, tl.last_wall_s = p, (last_seq, last_tus), self.last_rx_wall
+        tl._n_on_line += n
+        clock.period_us, clock.last = float(dt[-1]), last_tus
+        seqt.last, seqt.index = last_seq, seqt.index + n
+        self._held.add_columns((t_us + clock.offset) / 1e6, lines.counts)
+        self.last_sample_t = (last_tus + clock.offset) / 1e6
+        return True
+
+    def _frame(self, frame: sf.Frame) -> None:
+        """One frame from the board, in order: a sample onto its timeline, a reply to its waiter."""
+        if type(frame) is sf.SampleFrame:
+            if self._broken:  # after a break: not this run's timeline (until the next START)
+                self.stats.frames_after_break += 1
+                return
+            line = self._timeline.check(frame.seq, frame.t_us, self.last_rx_wall)
+            if line == "skip":  # off its timeline, not confirmed: garbage that passed the checksum
+                self._malformed()
+                return
+            if line in ("reset", "clock_jump"):
+                self._stream_break(line)
+                return
+            lost = self._seq.update(frame.seq)
+            if lost:
+                self._held.count_lost(lost)
+            t_us = self._clock.update(frame.t_us, lost + 1)
+            if t_us is None:  # a time that follows nothing: a corrupt frame, not a clock wrap
+                self._malformed()
+                return
+            self._held.add((t_us, frame.ax, frame.ay, frame.az, frame.t))
+            self.last_sample_t = t_us / 1e6
+        elif isinstance(frame, sf.IdentityFrame):
+            if self._ident_fut is not None and not self._ident_fut.done():
+                self._ident_fut.set_result(frame.identity)
+        elif isinstance(frame, (sf.AckFrame, sf.CalReadFrame, sf.SfemReadFrame)):
+            key = frame.command if isinstance(frame, sf.AckFrame) else ("C" if isinstance(frame, sf.CalReadFrame) else "S")
+            fut = self._ack_waiters.get(key)
+            if fut is not None and not fut.done():
+                fut.set_result(frame)
+        elif isinstance(frame, sf.ErrorFrame):
+            for fut in self._ack_waiters.values():
+                if not fut.done():
+                    fut.set_exception(BoardErrorReply(self.port, frame.code, frame.text))
 
     def _malformed(self) -> None:
         """A frame the parser counted ok that is no sample after all: counted malformed instead."""
@@ -313,6 +383,7 @@ class SerialBoard(BoardDriver):
         await self._command(sf.cmd_start(), "START")
 
     def discard_held(self) -> int:
+        self._drain()
         return self._held.discard()
 
     async def stop(self) -> None:
@@ -372,7 +443,9 @@ class SerialBoard(BoardDriver):
 
     # ---- samples ---------------------------------------------------------------------------
     async def read_block(self, timeout_s: float = 1.0) -> SampleBlock:
+        self._drain()
         await self._held.wait(timeout_s, self._check, lambda: self._error)
+        self._drain()
         if self.identity is None and len(self._held):
             await self.identify()
         return self._held.take_block(self.identity)

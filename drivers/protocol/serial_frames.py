@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike
 from drivers.base import LinkStats
 from drivers.protocol.cal_record import N_SFEM, N_THERMAL, to_f32
 from drivers.protocol import selfcal_frames
+from drivers.protocol.sample_lines import SampleLines, decode_sample_lines
 from drivers.protocol.stream_timeline import ClockUnwrapper as ClockUnwrapper  # re-exported: callers import them here
 from drivers.protocol.stream_timeline import SeqTracker as SeqTracker
 from drivers.protocol.stream_timeline import StreamTimeline as StreamTimeline
@@ -290,6 +291,23 @@ class FrameParser:
         self.stats = stats if stats is not None else LinkStats()
         self.board_side = board_side
         self._buf = bytearray()
+
+    def feed_samples(self, data: bytes) -> SampleLines | None:
+        """The fast path for a read of nothing but clean sample frames (sample_lines.py): `data` is
+        taken in; when every complete line held is such a frame, they are decoded at once, counted
+        and returned (a partial line stays for the next read). Else None, and nothing is consumed:
+        `feed(b"")` then reads the lines one by one, as ever."""
+        buf = self._buf
+        buf += data
+        end = buf.rfind(b"\n") + 1
+        if end == 0 or self.board_side:
+            return None
+        lines = decode_sample_lines(bytes(buf[:end]))
+        if lines is None:
+            return None
+        del buf[:end]
+        self.stats.frames_ok += len(lines)
+        return lines
 
     def feed(self, data: bytes) -> list[Frame]:
         buf = self._buf
