@@ -78,7 +78,11 @@ class LinkStats:
     frames_bad_checksum: int = 0
     frames_malformed: int = 0  # short line, unknown type, unparsable field
     bytes_skipped: int = 0  # garbage between frames
-    samples_lost: int = 0  # sequence gaps
+    samples_lost: int = 0  # sequence gaps, and samples dropped from a full queue (samples_lost_queue)
+    samples_lost_queue: int = 0  # of samples_lost: dropped by this driver, its queue full (nobody read)
+    # of samples_lost: lost while the station ran behind this link (its backlog, not the board's
+    # doing; station/daemon/intake_monitor.py), queue drops included; set by the station's pump
+    samples_lost_station: int = 0
     errors_reported: int = 0  # `E,...` frames from the board
     resets: int = 0  # the board restarted while streaming (its seq went back): StreamBreak "reset"
     clock_jumps: int = 0  # its clock jumped while its seq ran on: StreamBreak "clock_jump"

@@ -4,6 +4,12 @@ hardware would. Writes OUT.json ({"config": station config dict, "truths": {slot
 READY, and runs until SIGTERM.
 
     python tests/sim_station_child.py OUT.json --serial 3 --can 1 --speed 120 --seed 8
+
+--real-plant: the plant never waits for the station (real boards do not; by default the simulated
+plant holds its clock while the daemon is behind, which hides an overloaded station) and each
+serial board's transmit buffer is a real one's few KiB (--tx-buffer), so a station that does not
+read in time loses samples there, as sequence gaps. At SIGTERM, OUT.json.end holds each serial
+slot's bytes the board could not send (the truth of what the station lost).
 """
 
 from __future__ import annotations
@@ -13,12 +19,17 @@ import asyncio
 import json
 import signal
 
+from drivers.sim import serial_pty
 from drivers.sim.station_sim import SimStation
 from cli.commands.demo import sim_config, truth_by_slot
 
 
 async def main(args: argparse.Namespace) -> None:
+    if args.real_plant:
+        serial_pty.OUT_BUFFER_MAX_BYTES = args.tx_buffer
     async with SimStation(n_serial=args.serial, n_can=args.can, seed=args.seed, speed=args.speed) as sim:
+        if args.real_plant:
+            sim.backpressure_bytes = 1 << 62
         cfg = sim_config(sim, speed=args.speed, db_url="sqlite://")
         truths = {
             slot: {"serial": t.serial, "tdb_mg_per_c": [float(x) for x in t.tdb_mg_per_c],
@@ -33,6 +44,9 @@ async def main(args: argparse.Namespace) -> None:
             loop.add_signal_handler(sig, stop.set)
         print("READY", flush=True)
         await stop.wait()
+        with open(args.out + ".end", "w") as f:
+            json.dump({"bytes_dropped": {slot: b.port.bytes_dropped for slot, b in
+                                         zip((s["name"] for s in cfg["slots"]), sim.serial_boards)}}, f)
 
 
 if __name__ == "__main__":
@@ -42,4 +56,6 @@ if __name__ == "__main__":
     p.add_argument("--can", type=int, default=1)
     p.add_argument("--speed", type=float, default=120.0)
     p.add_argument("--seed", type=int, default=8)
+    p.add_argument("--real-plant", action="store_true", help="the plant never waits; small board buffers")
+    p.add_argument("--tx-buffer", type=int, default=4096, help="a serial board's transmit buffer with --real-plant")
     asyncio.run(main(p.parse_args()))

@@ -24,11 +24,31 @@ class LinkStats(_Out):
     frames_bad_checksum: int = Field(default=0, description="frames dropped for a bad checksum")
     frames_malformed: int = Field(default=0, description="short line, unknown type, unparsable field")
     bytes_skipped: int = Field(default=0, description="garbage bytes skipped between frames")
-    samples_lost: int = Field(default=0, description="samples missing by sequence gaps")
+    samples_lost: int = Field(default=0, description="samples missing by sequence gaps or dropped from a full queue")
+    samples_lost_queue: int = Field(default=0, description="of samples_lost: dropped from the driver's full queue")
+    samples_lost_station: int = Field(default=0, description="of samples_lost: lost while the station ran behind "
+                                      "this link (its own backlog, not the part's; queue drops included)")
     errors_reported: int = Field(default=0, description="error frames the board sent")
     resets: int = Field(default=0, description="times the board restarted while streaming (its run ended there)")
     clock_jumps: int = Field(default=0, description="times its clock jumped while its seq ran on (its run ended there)")
     frames_after_break: int = Field(default=0, description="sample frames of another timeline after a reset or clock jump, not taken")
+
+
+class Overload(_Out):
+    """Is the station keeping up with its boards? (station/daemon/intake_monitor.py)"""
+
+    behind_s: float = Field(description="the most the station runs behind any board link, wall seconds")
+    alarm: str | None = Field(default=None, description="in words while the station cannot follow its boards "
+                              "(behind by 3 s or more, or samples lost to its backlog in the last 30 s); null when it can")
+    lost_station: int = Field(default=0, description="samples lost to the station's own backlog in this batch")
+    lost_by_slot: dict[str, int] = Field(default_factory=dict, description="slot -> samples lost to the station's "
+                                         "backlog (slots without loss left out)")
+    cost_us_per_sample: float | None = Field(default=None, description="the station's CPU microseconds per sample "
+                                             "(measured while boards stream, else the configured figure)")
+    capacity_samples_per_s: float | None = Field(default=None, description="samples per second this PC follows")
+    intake_samples_per_s: float | None = Field(default=None, description="samples per second taken in lately")
+    cpu_share: float | None = Field(default=None, description="the station process's CPU seconds per wall second "
+                                    "lately (0.85 or more: saturated, a gap on a link then is the station's loss)")
 
 
 class StepInfo(_Out):
@@ -280,6 +300,8 @@ class BatchStatus(TraceFields):
     sample_time_s: float | None = Field(default=None, description="the boards' sample clock in this batch, s")
     step_elapsed_s: float | None = Field(default=None, description="sample seconds the current step has logged")
     slots: list[SlotStatus] = Field(default_factory=list, description="every DUT of the batch")
+    overload: Overload | None = Field(default=None, description="live only: is the station keeping up with the "
+                                      "batch's boards (an alarm in words when it is not)")
     error: str | None = Field(default=None, description="why the batch failed or was aborted")
     prompt: Prompt | None = Field(default=None, description="the open operator prompt, if any")
     lamp_on: bool | None = Field(default=None, description="what the station last commanded")
@@ -376,3 +398,5 @@ class Health(_Out):
     forwarding: Forwarding | None = Field(default=None, description="what waits in the station's journal to be "
                                                                     "forwarded to the database; null without a station")
     lamp: LampHealth | None = Field(default=None, description="the lamp; null without a station")
+    intake: Overload | None = Field(default=None, description="is the station keeping up with its boards; null "
+                                    "without a station")

@@ -108,6 +108,17 @@ class BatchDesk:
         """The batch that has not ended (one plate, one lamp: at most one), or None."""
         return next((bid for bid, seq in self.batches.items() if seq.state not in TERMINAL), None)
 
+    def _require_capacity(self, names: list[str]) -> None:
+        """Refuse a batch whose boards demand more samples per second than this PC follows
+        (station/daemon/intake_monitor.py): it would fall behind them and lose their samples. The
+        rates are the boards' own (identified at the daemon's start or after the last batch); a
+        board not identified yet is not counted, and the run's own monitor says so if it falls behind."""
+        odr = [float(rt.identity.odr_hz) for n in names
+               if (rt := self.slots.slots[n]).identity is not None and rt.identity.odr_hz]
+        refusal = self.slots.monitor.refuse_start(odr)
+        if refusal is not None:
+            raise ValueError(refusal)
+
     def _require_no_batch(self) -> None:
         if self.running_batch() is not None:
             raise ValueError("a batch is already running on this station (one plate, one lamp)")
@@ -167,6 +178,7 @@ class BatchDesk:
         stray = sorted(set(trace.labels) - set(names))
         if stray:
             raise ValueError(f"label serial(s) given for slot(s) not in the batch: {', '.join(stray)}")
+        self._require_capacity(names)
         batch_id = int(self.db.create_batch(profile, operator, self.config.snapshot(),
                                             replay_of=self.config.replay_of, trace=trace))
         duts = [DutRun(slot=n, link=self.slots.slots[n].cfg.link, label_serial=trace.labels.get(n)) for n in names]
@@ -266,6 +278,7 @@ class BatchDesk:
             raise ValueError(f"batch {batch_id}: slot(s) {', '.join(missing)} are not in this config")
         if not runs:
             raise ValueError(f"batch {batch_id} has no interrupted DUT run to resume")
+        self._require_capacity([r.slot for r in runs])
         duts = [self.restored_dut(r, rp) for r in runs]
         self._run(rig, Sequencer(batch_id, prof, duts, rig, self.bus, operator=operator or rp.operator,
                            start_step=min(rp.next_step, len(prof.steps)), trace=self.db.batch_trace(batch_id)))

@@ -93,6 +93,13 @@ class DutRun:
     step_windows: dict[int, tuple[float, float]] = field(default_factory=dict)  # step -> board time span
     result: ThermalReport | SfemResult | None = None  # the analysis (run_end.py): typed until the edges
     link_stats: dict[str, Any] = field(default_factory=dict)
+    # The station's own backlog (station/daemon/intake_monitor.py): how far behind this link it runs
+    # (wall s), the samples it lost while behind and their sample time, and that time when the
+    # current step began logging: a step's clock does not count sample time the station lost.
+    link_behind_s: float = 0.0
+    station_lost_samples: int = 0
+    station_lost_s: float = 0.0
+    station_lost_step0_s: float = 0.0
     # Resume of an interrupted batch: the serial the stored run belongs to, the board time its
     # stored stream ended at (the live stream is joined on after it) and the offset applied.
     expected_serial: str | None = None
@@ -222,6 +229,7 @@ class DutRun:
         """The step begins logging (Done, or the fixture reached): the plate is watched from here.
         gated: the step's requirement counts only from here (it switches the lamp, or heats)."""
         self.plate_check_t = self.step_t_start
+        self.station_lost_step0_s = self.station_lost_s
         floor = self.step_setup_t if math.isfinite(self.step_setup_t) else (self.t0 if self.t0 is not None else -math.inf)
         self.requirement_floor_t = self.step_t_start if gated else floor
 
@@ -248,15 +256,18 @@ class DutRun:
         figure is an upper bound, as is the batch's clock since Done (batch_s): the smaller one
         counts, and such a board is never timed out sooner than on the batch's clock. Only a board
         that has delivered nothing since is timed on the batch's clock alone (the stall watchdog
-        faults a silent one long before)."""
+        faults a silent one long before). Sample time the station lost while it ran behind this
+        link (its own backlog: intake_monitor.py) is not counted: a segment it hid is not the
+        part's to deliver."""
         start = self.step_clock_start_t()
         if self.last_t is None or start is None:
             return batch_s
         if self.arrived_t is not None:
             start = max(self.arrived_t, start)
+        lost_s = max(0.0, self.station_lost_s - self.station_lost_step0_s)
         if not math.isfinite(self.step_t_start):  # its board time at Done is unknown
-            return min(self.last_t - start, batch_s)
-        return self.last_t - start
+            return min(self.last_t - start - lost_s, batch_s)
+        return self.last_t - start - lost_s
 
     def since_plate_check_s(self) -> float:
         """Board seconds of this DUT's own stream since the plate is watched (its own clock: in

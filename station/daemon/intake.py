@@ -23,9 +23,10 @@ import numpy as np
 
 from contracts.events import EventBus, SamplesReceived, SegmentLogged
 from contracts.types import SampleBlock
-from drivers.base import BoardDriver, DriverError
+from drivers.base import BoardDriver, DriverError, LinkStats
 from station.config import Timing
 from station.daemon.dut_run import DutRun, annotate_segment
+from station.daemon.intake_monitor import IntakeMonitor
 from station.daemon.safety import LampGuard
 from station.daemon.sequencer import Sequencer
 from station.science.placement import direction_id, label_cuts, same_direction
@@ -40,6 +41,7 @@ class IntakeHost(Protocol):
     bus: EventBus
     timing: Timing
     lamp: LampGuard | None
+    monitor: IntakeMonitor
 
     def fault_dut(self, seq: Sequencer, d: DutRun, reason: str) -> None: ...
 
@@ -67,6 +69,9 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
     cap_s = listen_cap_s(period)
     silent_s = 0.0  # wall seconds this board had the chance to send and sent nothing
     t_prev = time.monotonic()
+    queue0 = stats.samples_lost_queue
+    t_read_prev = t_read_last = t_prev  # when this pump's previous and latest reads returned
+    st.monitor.forget(d.slot)  # a new run: its link's lag is learned again
     try:
         while d.live and not st.releasing(seq.batch_id):
             t_read = time.monotonic()
@@ -85,7 +90,9 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
                 return
             now = time.monotonic()
             chance_s, t_prev = min(now - t_prev, cap_s), now
+            t_read_prev, t_read_last = t_read_last, now
             if len(block):
+                queue0 = _note_lag(st.monitor, d, block, stats, queue0, now, now - t_read_prev - period)
                 try:
                     ingest(st, seq, d, block)
                 except Exception as exc:  # noqa: BLE001 - same: this slot only, with a reason
@@ -121,6 +128,26 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
                 await asyncio.sleep(rest)
     finally:
         d.link_stats = stats.as_dict()
+
+
+def _note_lag(monitor: IntakeMonitor, d: DutRun, block: SampleBlock, stats: LinkStats, queue0: int,
+              now: float, late_s: float) -> int:
+    """Tell the monitor how late this block comes and what its link lost; the losses the station
+    caused (gaps while it ran behind, its driver's full queue) are counted on the link and kept on
+    the run (the step clock does not count their sample time: dut_run.step_elapsed_s). Returns the
+    queue-drop counter now."""
+    dropped = stats.samples_lost_queue - queue0
+    gaps = max(0, block.lost_samples - dropped)
+    odr = d.identity.odr_hz if d.identity and d.identity.odr_hz else None
+    board_t = float(block.time_s[-1]) + d.time_offset_s
+    ours = monitor.note_block(d.slot, now, board_t, len(block), gaps, odr, late_s) + dropped
+    monitor.note_dropped(d.slot, dropped, now)
+    d.link_behind_s = monitor.behind_s(d.slot)
+    if ours:
+        stats.samples_lost_station += ours
+        d.station_lost_samples += ours
+        d.station_lost_s += ours / odr if odr else 0.0
+    return stats.samples_lost_queue
 
 
 def listen_cap_s(read_period_s: float) -> float:

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections import defaultdict
 
 from station.daemon.dut_run import DutRun
+from station.daemon.intake_monitor import ATTRIBUTE_BEHIND_S
 from station.steps import Step
 from station.science.placement import direction_id, direction_name
 
@@ -96,6 +97,11 @@ def timed_out_reason(step: Step, d: DutRun, elapsed_s: float, station_s: float, 
     stopped (the station's clock ran station_s, its own elapsed_s), or the step's requirement not
     met (the step's kind says what was missing)."""
     need = step.kind.need_words(step)
+    if d.station_lost_samples or d.link_behind_s > ATTRIBUTE_BEHIND_S:
+        # the station's own backlog hid what this board sent: not the part's fault
+        return (f"step '{step.name}' could not be judged: station overloaded (it ran {d.link_behind_s:.0f} s "
+                f"behind this board and lost {d.station_lost_samples} of its samples to its own backlog); "
+                f"no {need} within {elapsed_s:.0f} s of the sample time it received; not the part")
     if d.arrived_t is None:
         return never_arrived_reason(step, d, elapsed_s, others_arrived, after)
     if not d.at_step_position():

@@ -33,6 +33,7 @@ from contracts.trace import Trace
 from station.daemon import batch_view, plate_watch
 from station.daemon.dut_run import DutRun, wall_text
 from station.daemon.positioning import BatchFailed, Plate, device_call
+from station.daemon.intake_monitor import ATTRIBUTE_BEHIND_S
 from station.daemon.states import BATCH_STATE, TERMINAL, TRANSITIONS
 from station.profiles import Profile
 from station.steps import Step
@@ -420,8 +421,11 @@ class Sequencer:
         # stall watchdog's (wall time) to fault.
         # The station's clock bounds them all: a board whose own clock slowed or stopped while
         # its seq ran on would otherwise hold the step (and the plate's lamp) for ever.
+        # A link the station runs behind (its own backlog: intake_monitor.py) has samples waiting
+        # that may hold the step's requirement: it is judged once they are in, within the bound.
         station_s = self._station_step_s()
-        late = [(d, e) for d in pending if (e := d.step_elapsed_s(station_s)) >= step.timeout_s
+        late = [(d, e) for d in pending if ((e := d.step_elapsed_s(station_s)) >= step.timeout_s
+                                            and d.link_behind_s <= ATTRIBUTE_BEHIND_S)
                 or station_s >= step.timeout_s * STATION_CLOCK_FACTOR]
         if not late:
             return False

@@ -30,6 +30,7 @@ from station.daemon.dut_run import Calibrator, DutRun
 from station.daemon.identity_check import batch_identity_problems, identity_change
 from station.daemon.instruments import Links
 from station.daemon.intake import pump
+from station.daemon.intake_monitor import IntakeMonitor
 from station.daemon.safety import LampGuard
 from station.daemon.sequencer import Sequencer
 from station.daemon.states import TERMINAL
@@ -98,6 +99,8 @@ class SlotBank:
         self.timing = timing
         self.calibrator_factory = calibrator_factory
         self.lamp: LampGuard | None = None  # the station's, set when it starts (the pumps report to it)
+        # how far behind its boards the station runs, what it lost, what it can follow
+        self.monitor = IntakeMonitor(timing.speed, timing.intake_cost_us_per_sample)
         self._pumps: dict[int, dict[str, asyncio.Task[None]]] = {}
         self._releasing: set[int] = set()
 

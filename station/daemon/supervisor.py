@@ -22,6 +22,7 @@ Unknown batch -> KeyError; a bad request -> ValueError.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -259,6 +260,8 @@ class Station:
             if stats is not None:
                 s["link_stats"] = stats
         st.update(batch_extras(self, seq))
+        if seq.state not in TERMINAL:
+            st["overload"] = self.intake_status()
         return st
 
     def batch_marker(self, batch_id: int) -> tuple[object, ...]:
@@ -322,6 +325,11 @@ class Station:
             return {"state": "unknown", "relay_error": "station not started"}
         return {"state": lamp.state, "on_commanded": lamp.is_on, "relay_error": lamp.relay_error,
                 "watchdog_s": lamp.watchdog_s if lamp.watchdog_armed else 0, "trip": lamp.trip_reason}
+
+    def intake_status(self) -> dict[str, object]:
+        """Is the station keeping up with its boards (station/daemon/intake_monitor.py): how far
+        behind, what it lost to its backlog, what it follows, and the alarm in words."""
+        return dataclasses.asdict(self.bank.monitor.state(time.monotonic()))
 
     def _on_lamp_trip(self, reason: str) -> None:
         for seq in self.batches.values():

@@ -78,8 +78,11 @@ def sfem_measurements(result: Record | None) -> list[Measurement]:
 def link_measurements(link_stats: Record | None, n_samples: int) -> list[Measurement]:
     """Lost samples (% of expected) and link errors (bad/malformed frames, board error replies)."""
     st = link_stats or _EMPTY
-    lost = _count(st.get("samples_lost", 0))
-    total = int(n_samples) + lost
+    # what the station lost while it ran behind this link is its own backlog, not the part's
+    # (station/daemon/intake_monitor.py): the lost-sample figure judges what the link lost
+    lost_all = _count(st.get("samples_lost", 0))
+    lost = max(0, lost_all - _count(st.get("samples_lost_station", 0)))
+    total = int(n_samples) + lost_all
     out = [LINK_ERRORS.measured(sum(_count(st.get(k, 0)) for k in ("frames_bad_checksum", "frames_malformed",
                                                                      "errors_reported")))]
     if total > 0:

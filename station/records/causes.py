@@ -26,6 +26,7 @@ from station.records.parameter_names import words
 # the general ("could not turn the plate" quotes a prompt that may name a plate's position; a
 # programming link loss is a link loss, said before "program").
 _RULES: tuple[tuple[str, str], ...] = (
+    ("station overloaded", r"\bstation overloaded\b"),
     ("cannot do it (operator)", r"\bcould not (?:.*: )?turn the plate to \S+: "),
     ("label mismatch", r"\blabel serial '.*' does not match the board's own serial"),
     ("board swapped (resume)", r"\bthe interrupted run was \S+ \(board swapped\?\)"),

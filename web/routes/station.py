@@ -42,8 +42,9 @@ async def health(request: Request):
     if station is not None and hasattr(station, "lamp_status"):
         lamp = station.lamp_status()
     waiting = station.storage.waiting() if station is not None and hasattr(station, "storage") else None
+    intake = station.intake_status() if station is not None and hasattr(station, "intake_status") else None
     return {"status": "ok", "version": __version__, "time": time.time(), "db": db_state, "lamp": lamp,
-            "forwarding": waiting}
+            "forwarding": waiting, "intake": intake}
 
 
 @router.get("/slots", response_model=list[SlotOut], responses=AUTHED, dependencies=[Depends(require_read)])
