@@ -112,7 +112,11 @@ class BatchDesk:
         """Refuse a batch whose boards demand more samples per second than this PC follows
         (station/daemon/intake_monitor.py): it would fall behind them and lose their samples. The
         rates are the boards' own (identified at the daemon's start or after the last batch); a
-        board not identified yet is not counted, and the run's own monitor says so if it falls behind."""
+        board not identified yet is not counted, and the run's own monitor says so if it falls behind.
+        A replay is not refused: its plant waits for the daemon (station/replay), so its speed is no
+        demand the boards make."""
+        if self.config.replay_of is not None:
+            return
         odr = [float(rt.identity.odr_hz) for n in names
                if (rt := self.slots.slots[n]).identity is not None and rt.identity.odr_hz]
         refusal = self.slots.monitor.refuse_start(odr)
