@@ -121,6 +121,12 @@ class BoardDriver(abc.ABC):
     @abc.abstractmethod
     async def stop(self) -> None: ...
 
+    def backlog_samples(self) -> int:
+        """Samples received by this host and not handed out yet, as far as the driver can see (the
+        port's OS buffer, bytes not parsed, its queue): how far behind its board the station runs
+        (station/daemon/intake_monitor.py). 0 when it cannot tell."""
+        return 0
+
     def take_breaks(self) -> list[StreamBreak]:
         """Stream breaks seen since the last call (the pump asks after every block). A link whose
         frames carry no board clock (CAN, design 3.2: time is our own sample count) reports none:

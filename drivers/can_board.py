@@ -419,6 +419,12 @@ class CanBoard(BoardDriver):
             await self.identify()
         await self._send(cf.encode_command(cf.CMD_START))
 
+    def backlog_samples(self) -> int:
+        """Its queue, and its share of the frames the bus's reader took in and the loop has not
+        dispatched yet (one adapter's inbox for every board on it)."""
+        boards = max(1, len(self.bus._boards))
+        return len(self._held) + len(self.bus._inbox) // boards
+
     def discard_held(self) -> int:
         return self._held.discard()
 

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import fcntl
 import os
+import struct
+import termios
 import threading
 import time
 
@@ -87,6 +90,7 @@ class SerialBoard(BoardDriver):
         self._running = False
         self._held = SampleBuffer(self.stats, _columns)  # rows: t_us, ax, ay, az, t
         self._raw = bytearray()  # taken off the port, not parsed yet (_on_readable)
+        self._bytes_parsed = 0  # bytes parsed so far: with frames_ok, the bytes of a frame
         self._broken = False  # a StreamBreak was seen: samples are not taken until the next START
         self._breaks: list[StreamBreak] = []
         self._error: DriverError | None = None
@@ -147,6 +151,16 @@ class SerialBoard(BoardDriver):
         else:
             self._held.wake()
 
+    def backlog_samples(self) -> int:
+        pending = len(self._raw) + len(self._parser._buf)
+        if self._fd is not None:
+            try:
+                pending += struct.unpack("i", fcntl.ioctl(self._fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+            except OSError:
+                pass
+        per_frame = max(16, self._bytes_parsed // max(1, self.stats.frames_ok))
+        return len(self._held) + pending // per_frame
+
     def _drain(self) -> None:
         """Parse the bytes taken off the port and not parsed yet."""
         if self._raw:
@@ -188,6 +202,7 @@ class SerialBoard(BoardDriver):
         self._parse(data)
 
     def _parse(self, data: bytes) -> None:
+        self._bytes_parsed += len(data)
         lines = self._parser.feed_samples(data)
         if lines is not None:  # a read of nothing but sample frames (the usual one)
             if not self._take_clean(lines):

@@ -39,31 +39,37 @@ def test_the_monitor_tells_the_stations_loss_from_the_links():
     with hysteresis; a batch beyond its capacity is refused with the numbers."""
     cpu = [0.0]
     m = IntakeMonitor(speed=10.0, cost_us_per_sample=10.0, cpu_clock=lambda: cpu[0])
-    wall = 0.0
-    for k in range(40):  # fresh samples: 10 board seconds per wall second, 0.1 s blocks
-        wall, cpu[0] = 0.1 * k, 0.01 * k
-        assert m.note_block("s01", wall, 10.0 * wall + 5.0, 31, 0, 3.125) == 0
-    assert m.note_block("s01", 4.0, 45.0, 31, 7, 3.125) == 0  # on time, idle CPU: the link's gap
+    for k in range(40):  # 31 samples per read, a few waiting: the station keeps up
+        cpu[0] = 0.01 * k
+        assert m.note_block("s01", 0.1 * k, 3, 31, 0, 3.125) == 0
+    assert m.behind_s("s01") == pytest.approx(3 / 31.25)
+    assert m.note_block("s01", 4.0, 3, 31, 7, 3.125) == 0  # on time, idle CPU: the link's gap
     assert m.state(4.0).alarm is None and m.links["s01"].lost_link == 7
-    # the station falls 2.5 s behind (its samples come late), then the link shows a gap
-    assert m.note_block("s01", 7.0, 45.0 + 5.0, 31, 0, 3.125) == 0
-    assert m.behind_s("s01") == pytest.approx(2.5, abs=0.02)
-    assert m.note_block("s01", 7.5, 50.5, 31, 12, 3.125) == 12
+    # 78 samples wait in its queues: at 3.125 Hz x10 that is 2.5 s of the board's sending
+    assert m.note_block("s01", 7.0, 78, 31, 0, 3.125) == 0
+    assert m.behind_s("s01") == pytest.approx(2.5, abs=0.01)
+    assert m.note_block("s01", 7.5, 95, 31, 12, 3.125) == 12  # then the link shows a gap: ours
     st = m.state(7.5)
     assert st.lost_station == 12 and st.lost_by_slot == {"s01": 12}
     assert st.alarm is not None and "lost to the station's backlog" in st.alarm, st.alarm
     # caught up, but the alarm holds for ALARM_HOLD_S after a loss, then clears
-    m.note_block("s01", 8.0, 75.0 + 5.0, 31, 0, 3.125)
+    m.note_block("s01", 8.0, 2, 31, 0, 3.125)
     assert m.state(20.0).alarm is not None
-    m.note_block("s01", 40.0, 400.0 + 5.0, 31, 0, 3.125)
+    m.note_block("s01", 40.0, 2, 31, 0, 3.125)
     assert m.behind_s("s01") < 0.1 and m.state(40.0).alarm is None
+    # a gap after a read that came late (the loop was held up) is ours too, however short the queue
+    assert m.note_block("s01", 41.0, 2, 31, 4, 3.125, loop_late_s=0.8) == 4
+    # 100 samples waiting (3.2 s): the alarm, in words, with how far behind
+    m.note_block("s01", 80.0, 100, 31, 0, 3.125)
+    words = m.state(80.0).alarm
+    assert words is not None and words.startswith("station behind by 3 s"), words
     # a saturated process (CPU 0.95 s per wall second over a window): a gap is the station's
     m2 = IntakeMonitor(speed=10.0, cost_us_per_sample=5000.0, cpu_clock=lambda: cpu[0])
     for k in range(60):
         wall, cpu[0] = 0.1 * k, 0.095 * k
-        m2.note_block("s02", wall, 10.0 * wall, 31, 0, 3.125)
+        m2.note_block("s02", wall, 0, 31, 0, 3.125)
     assert m2.saturated
-    assert m2.note_block("s02", 6.0, 60.0, 31, 5, 3.125) == 5
+    assert m2.note_block("s02", 6.0, 0, 31, 5, 3.125) == 5
     # capacity: measured cost 0.095 s / (31 samples per 0.1 s) ~ 3.1 ms/sample -> ~260 samples/s
     assert m2.cost_us_per_sample == pytest.approx(0.095 / 31 * 1e6, rel=0.05)
     assert m2.refuse_start([3.125] * 4) is None  # 4 x 3.125 x 10 = 125 samples/s

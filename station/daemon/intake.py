@@ -23,7 +23,7 @@ import numpy as np
 
 from contracts.events import EventBus, SamplesReceived, SegmentLogged
 from contracts.types import SampleBlock
-from drivers.base import BoardDriver, DriverError, LinkStats
+from drivers.base import BoardDriver, DriverError
 from station.config import Timing
 from station.daemon.dut_run import DutRun, annotate_segment
 from station.daemon.intake_monitor import IntakeMonitor
@@ -92,7 +92,7 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
             chance_s, t_prev = min(now - t_prev, cap_s), now
             t_read_prev, t_read_last = t_read_last, now
             if len(block):
-                queue0 = _note_lag(st.monitor, d, block, stats, queue0, now, now - t_read_prev - period)
+                queue0 = _note_lag(st.monitor, d, drv, block, queue0, now, now - t_read_prev - period)
                 try:
                     ingest(st, seq, d, block)
                 except Exception as exc:  # noqa: BLE001 - same: this slot only, with a reason
@@ -130,17 +130,17 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
         d.link_stats = stats.as_dict()
 
 
-def _note_lag(monitor: IntakeMonitor, d: DutRun, block: SampleBlock, stats: LinkStats, queue0: int,
+def _note_lag(monitor: IntakeMonitor, d: DutRun, drv: BoardDriver, block: SampleBlock, queue0: int,
               now: float, late_s: float) -> int:
     """Tell the monitor how late this block comes and what its link lost; the losses the station
     caused (gaps while it ran behind, its driver's full queue) are counted on the link and kept on
     the run (the step clock does not count their sample time: dut_run.step_elapsed_s). Returns the
     queue-drop counter now."""
+    stats = drv.stats
     dropped = stats.samples_lost_queue - queue0
     gaps = max(0, block.lost_samples - dropped)
     odr = d.identity.odr_hz if d.identity and d.identity.odr_hz else None
-    board_t = float(block.time_s[-1]) + d.time_offset_s
-    ours = monitor.note_block(d.slot, now, board_t, len(block), gaps, odr, late_s) + dropped
+    ours = monitor.note_block(d.slot, now, drv.backlog_samples(), len(block), gaps, odr, late_s) + dropped
     monitor.note_dropped(d.slot, dropped, now)
     d.link_behind_s = monitor.behind_s(d.slot)
     if ours:

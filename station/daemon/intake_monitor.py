@@ -7,11 +7,13 @@ the part's: this module measures it, the pump (intake.py) and the step clock (du
 
 Pure bookkeeping (numbers in, numbers out; the caller passes the clocks), one monitor per station:
 
-- **Behind, per link**: the latency of a link is wall time minus board time / speed (speed: plant
-  seconds per wall second, 1 on real hardware). Its constant part (the board clock's offset, the
-  read period) is the smallest latency seen; what exceeds it is how far the station runs behind
-  that link. The smallest latency may creep up by `CREEP_S_PER_S` (1000 ppm of wall time) so a
-  board clock slower than the station's is never read as a backlog; a backlog grows far faster.
+- **Behind, per link**: the samples waiting in the queues the station can see when its pump has
+  just read (the OS buffer of the port, the bytes not parsed yet, the driver's queue:
+  BoardDriver.backlog_samples), as the wall seconds the board takes to send them (ODR x speed,
+  speed: plant seconds per wall second, 1 on real hardware). A queue, not the latency of the
+  board's clock: a plant that runs slower than its nominal speed (a simulated one that waits for
+  the station, a board clock slower than the station's) is no backlog, and a station that falls
+  behind always has one.
 - **Lost to the station**: a board's buffer overruns when the station does not read it in time.
   So a sequence gap found within `STRAIN_MEMORY_S` of a sign of strain is the station's loss: a
   link `ATTRIBUTE_BEHIND_S` behind, a pump that read `LOOP_LATE_S` later than it meant to (the
@@ -44,7 +46,6 @@ ALARM_BEHIND_S = 3.0  # wall seconds behind any link: the alarm
 CLEAR_BEHIND_S = 1.0  # every link under this (and no loss for ALARM_HOLD_S): the alarm clears
 ATTRIBUTE_BEHIND_S = 1.0  # a sequence gap while this far behind its link is the station's loss
 ALARM_HOLD_S = 30.0  # a loss keeps the alarm up this long (wall seconds)
-CREEP_S_PER_S = 1e-3  # the smallest latency may rise this fast: a slow board clock is no backlog
 COST_WINDOW_S = 2.0  # CPU cost per sample is measured over windows at least this long (wall)
 COST_MIN_SAMPLES = 500  # ... holding at least this many samples
 COST_EMA = 0.3  # weight of a new window in the cost estimate
@@ -58,7 +59,6 @@ CORE_SHARE = 0.8  # of one core, what the sample intake may use (the GIL: one co
 class LinkLag:
     """One slot's link as the monitor follows it."""
 
-    min_latency_s: float | None = None
     last_wall_s: float | None = None
     behind_s: float = 0.0
     lost_station: int = 0  # samples lost to the station's backlog (gaps while behind, queue drops)
@@ -146,24 +146,19 @@ class IntakeMonitor:
         self._said = alarm
 
     # ------------------------------------------------------------------ per block
-    def note_block(self, slot: str, wall_s: float, board_t_s: float, n: int, lost: int,
+    def note_block(self, slot: str, wall_s: float, waiting: int, n: int, lost: int,
                    odr_hz: float | None, loop_late_s: float = 0.0) -> int:
-        """A block of n samples taken in from `slot`: its newest sample's board time, the samples its
-        link lost before it, how much later than meant its pump read it (wall s). Returns how many
-        of the lost samples the station lost (module doc)."""
+        """A block of n samples taken in from `slot`, with `waiting` samples still queued for it (the
+        driver's backlog_samples), the samples its link lost before it, how much later than meant its
+        pump read it (wall s). Returns how many of the lost samples the station lost (module doc)."""
         self._samples += n
         if self._win is None or wall_s - self._win[0] >= COST_WINDOW_S:
             self.note_cpu(wall_s, self.cpu_clock(), self._samples)
         lag = self.links.setdefault(slot, LinkLag())
         if odr_hz:
             lag.odr_hz = float(odr_hz)
-        latency = wall_s - board_t_s / self.speed
-        if lag.min_latency_s is None or lag.last_wall_s is None:
-            lag.min_latency_s = latency
-        else:
-            crept = lag.min_latency_s + CREEP_S_PER_S * max(0.0, wall_s - lag.last_wall_s)
-            lag.min_latency_s = min(crept, latency)
-        lag.behind_s = max(0.0, latency - lag.min_latency_s)
+        rate = (lag.odr_hz or 0.0) * self.speed
+        lag.behind_s = waiting / rate if rate > 0 else 0.0
         lag.last_wall_s = wall_s
         if lag.behind_s > ATTRIBUTE_BEHIND_S or loop_late_s > LOOP_LATE_S or self.saturated:
             self._strain_wall_s = wall_s

@@ -101,7 +101,7 @@ def timed_out_reason(step: Step, d: DutRun, elapsed_s: float, station_s: float, 
         # the station's own backlog hid what this board sent: not the part's fault
         return (f"step '{step.name}' could not be judged: station overloaded (it ran {d.link_behind_s:.0f} s "
                 f"behind this board and lost {d.station_lost_samples} of its samples to its own backlog); "
-                f"no {need} within {elapsed_s:.0f} s of the sample time it received; not the part")
+                f"still without {need} after {elapsed_s:.0f} s of the sample time it received; not the part")
     if d.arrived_t is None:
         return never_arrived_reason(step, d, elapsed_s, others_arrived, after)
     if not d.at_step_position():
