@@ -1,27 +1,30 @@
-"""Latency of GET /api/batches/{id} at a fixed request rate while 64 simulated DUTs stream.
+"""Latency of the operator page's poll, GET /api/batches/{id}?view=compact, at a fixed request rate
+while 64 simulated DUTs stream.
 
     .venv/bin/python benchmarks/web_load.py [--rate 100] [--requests 3000] [--serial 48] [--can 16]
-                                            [--speed 60] [--sse 1] [--view full|compact] [--no-etag]
-                                            [--no-gc-freeze]
+                                            [--speed 60] [--sse 1] [--view compact|full] [--plain]
+                                            [--no-etag] [--no-gc-freeze]
 
 A whole simulated station (48 serial boards on pseudo-terminals + 16 CAN boards behind an slcan
 adapter, lamp relay and fixture on Modbus TCP, all on this machine), the real daemon with SQLite
 and the web app on a loopback port (tests/web_support.LiveStation). A fast-thermal batch runs on
 every slot; the simulated boards run in a child process (as real boards are outside the daemon;
---sim-in-daemon puts them in the daemon's event loop instead). Once all of them stream, a separate client process (its own interpreter, so it does not
-share the daemon's GIL) sends GET /api/batches/{id} open-loop at --rate requests/s from 16 threads
-on keep-alive connections (each request is due at its scheduled time; "scheduled -> answer" also
-counts any wait for a free client thread) while --sse clients
-listen to /api/events like an open operator page. Prints p50/p90/p99/max latency, the achieved
-rate, errors, bytes per answer, and the samples/s the daemon ingested meanwhile.
+--sim-in-daemon puts them in the daemon's event loop instead). Once all of them stream, a separate
+client process (its own interpreter, so it does not share the daemon's GIL) sends GET
+/api/batches/{id}?view=compact open-loop at --rate requests/s from 16 threads on keep-alive
+connections (each request is due at its scheduled time; "scheduled -> answer" also counts any wait
+for a free client thread) while --sse clients listen to /api/events like an open operator page.
 
-Two passes, each on a fresh station and batch, measured from the moment every DUT streams (the
-same part of the batch): first the plain client (no If-None-Match, the figures this benchmark
-always printed), then (unless --no-etag) a revalidating client like a browser: each worker thread
-sends the ETag of the last answer it got in If-None-Match and counts 200s and 304s (a 304 has no
-body). --view compact asks both passes for GET /api/batches/{id}?view=compact. Once the station
-is up, its start-up heap is frozen as the daemon does (station/daemon/heap.py; --no-gc-freeze: not).
-No assertion: a figure, not a test. Loopback only.
+By default the client does what the page does (web/static/status.js): it asks for the compact view
+and revalidates like a browser, each worker thread sending the ETag of the last answer it got in
+If-None-Match (a 304 has no body). Prints the answers' sizes (200s and 304s), p50/p90/p99/max
+latency, the achieved rate, errors, the daemon's event-loop lag, and the samples/s the daemon
+ingested meanwhile. --view full asks for the full status instead (what the page polled before
+issue 40; the MES's view); --plain first runs a pass of a client that never sends If-None-Match, on
+a fresh station at the same point of its batch (--view full --plain --no-etag: the figures this
+benchmark printed before); --no-etag skips the revalidating pass. Once the station is up, its
+start-up heap is frozen as the daemon does (station/daemon/heap.py; --no-gc-freeze: not). No
+assertion: a figure, not a test. Loopback only; on a shared machine the figures are noisy.
 """
 
 from __future__ import annotations
@@ -145,11 +148,13 @@ def main() -> None:
     ap.add_argument("--sim-in-daemon", action="store_true",
                     help="run the simulated boards in the daemon's own event loop (default: a child process, "
                          "like real boards outside the daemon)")
-    ap.add_argument("--view", choices=("full", "compact"), default="full",
-                    help="ask for GET /api/batches/{id}?view=compact (what the operator page shows) instead of "
-                         "the full status (default full)")
+    ap.add_argument("--view", choices=("full", "compact"), default="compact",
+                    help="compact (default): GET /api/batches/{id}?view=compact, what the operator page polls; "
+                         "full: the full status (what the page polled before; the MES's view)")
+    ap.add_argument("--plain", action="store_true",
+                    help="first a pass of a client that never sends If-None-Match (on a fresh station)")
     ap.add_argument("--no-etag", dest="etag", action="store_false",
-                    help="skip the second pass (a client that revalidates with If-None-Match)")
+                    help="skip the pass of the client that revalidates with If-None-Match, like the page")
     ap.add_argument("--no-gc-freeze", dest="gc_freeze", action="store_false",
                     help="do not freeze the start-up heap once the station is up, as the daemon does when it "
                          "serves the web (station/daemon/heap.py)")
@@ -163,17 +168,22 @@ def main() -> None:
         return
 
     n_duts = args.serial + args.can
+    query = "?view=compact" if args.view == "compact" else ""
     print(f"web_load: {args.serial} serial + {args.can} CAN simulated DUTs, speed x{args.speed:g}, "
-          f"{args.requests} x GET /api/batches/{{id}} at {args.rate:g}/s, {args.sse} SSE client(s)"
+          f"{args.requests} x GET /api/batches/{{id}}{query} at {args.rate:g}/s, {args.sse} SSE client(s)"
           + ("" if args.gc_freeze else ", start-up heap NOT frozen"), flush=True)
-    passes = [("plain", run_pass(args, etag=False))]
+    if not (args.plain or args.etag):
+        raise SystemExit("web_load: --no-etag without --plain leaves no pass to run")
+    passes = [("plain", run_pass(args, etag=False))] if args.plain else []
     if args.etag:
         passes.append(("etag", run_pass(args, etag=True)))
     for name, (bid, res, odr_hz) in passes:
-        if name == "etag":
-            print(f"--- the same with If-None-Match, on a fresh station at the same point of its batch: each "
-                  f"client thread sends the ETag of its last answer (like a browser)"
-                  f"{' [view=compact]' if args.view == 'compact' else ''}")
+        if name == "plain":
+            print(f"--- a client that never sends If-None-Match [view={args.view}]")
+        else:
+            print(f"--- a client that revalidates like the page's browser: each thread sends the ETag of its last "
+                  f"answer [view={args.view}]" + (", on a fresh station at the same point of its batch" if args.plain
+                                                  else ""))
         report(bid, res, n_duts, n_duts * odr_hz * args.speed)
 
 
@@ -241,7 +251,7 @@ def run_pass(args: argparse.Namespace, etag: bool) -> tuple[int, dict, float]:
 
 
 def report(bid: int, res: dict, n_duts: int, expected: float) -> None:
-    """The figures of one pass; the plain pass prints exactly the lines this benchmark always did."""
+    """The figures of one pass: the batch, the answers (sizes, 200s and 304s), latency, the loop lag."""
     st1 = res["st"]
     faulted = [s["slot"] for s in st1["slots"] if s["state"] == "faulted"]
     lat_ms = [x * 1000 for x in res["lat"]]
@@ -251,6 +261,8 @@ def report(bid: int, res: dict, n_duts: int, expected: float) -> None:
           f"achieved {len(lat_ms) / res['wall']:.1f} req/s over {res['wall']:.1f} s, {res['bytes'] / 1024:.1f} KiB per answer")
     statuses = res.get("statuses") or {}
     full = [b for b in res.get("sizes") or [] if b > 0]
+    if full:
+        print(f"answer sizes (with a body): min {min(full)} B, max {max(full)} B ({max(full) / 1024:.1f} KiB)")
     if "304" in statuses:
         print(f"answers: {statuses.get('200', 0)} x 200 ({sum(full) / max(1, len(full)) / 1024:.1f} KiB each), "
               f"{statuses['304']} x 304 (no body); {sum(full) / max(1, len(lat_ms)) / 1024:.1f} KiB per request")

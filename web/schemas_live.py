@@ -274,6 +274,26 @@ class DutCounts(_Out):
     interrupted: int = Field(default=0, description="DUTs the batch's end interrupted")
 
 
+class SlotLive(_Out):
+    """The slots' fast-changing figures as columns, one entry per slot in the order of `slots`
+    (web/views.py slot_live). Why columns: the operator page polls them for every slot every two
+    seconds (GET /api/batches/{id}?view=compact), and 64 objects that each repeat their field names
+    would alone fill the 8 KiB the poll may take; `rev` tells the page when to fetch a slot's other
+    fields again (GET /api/batches/{id}/slots), instead of polling them."""
+
+    state: list[str | None] = Field(default_factory=list, description="each slot's state, as SlotStatus.state")
+    segments: list[int | None] = Field(default_factory=list, description="segments logged, as SlotStatus.segments")
+    samples: list[int | None] = Field(default_factory=list, description="samples received, as SlotStatus.samples")
+    steps_done: list[int | None] = Field(default_factory=list, description="steps completed (progress dots), as "
+                                         "SlotStatus.steps_done; null for a stored batch")
+    waiting_for: list[str | None] = Field(default_factory=list, description="what the slot waits for, as "
+                                          "SlotStatus.waiting_for")
+    rev: list[str] = Field(default_factory=list, description="a short fingerprint of the slot's fields the compact "
+                           "view leaves out (serial, label, sensor, run, fault, program, verification, verdict): "
+                           "it changes when one of them does. Compare for equality only; it may differ after a "
+                           "restart of the daemon")
+
+
 class BatchStatus(TraceFields):
     """A batch: live from the daemon (station/daemon/batch_view.py status + progress.py batch_extras,
     through web/views.py batch_view), or, once the daemon no longer holds it, from the database
@@ -326,6 +346,10 @@ class BatchStatus(TraceFields):
                              "for analysis 'none' (validation)")
     counts: DutCounts | None = Field(default=None, description="DUTs per state")
     transitions: list[Transition] = Field(default_factory=list, description="the sequencer's state changes; live only")
+    current_step: StepRow | None = Field(default=None, description="the row of `steps` that is running now (null "
+                                         "when none is): the compact view carries it instead of the whole list")
+    slot_live: SlotLive | None = Field(default=None, description="the slots' fast-changing figures as columns in the "
+                                       "order of `slots` (what the compact view carries per slot)")
     # a batch the daemon no longer holds, from the database (web/db_repo.py batch)
     stored: bool | None = Field(default=None, description="true: read from the database (the daemon no longer "
                                 "holds the batch, e.g. after a restart); absent for a live batch")

@@ -1,6 +1,7 @@
 """What makes GET /api/batches/{id} cheap for pollers (web/routes/batches.py `get_batch`): the
 rendered answer kept for a moment, a strong ETag of its bytes, the If-None-Match test, and the
-compact view (only what the operator page shows).
+compact view (what the operator page polls: bounded, a few KiB at 64 DUTs; the rest of a slot and
+the step list it fetches when they change, from the same kept render).
 
 Why: every open page and the MES poll the running batch's status; at 64 DUTs the full answer is
 ~40 KiB and rendering it (daemon status -> view -> schema -> JSON, 3-5 ms) costs the daemon's
@@ -28,19 +29,23 @@ from web.views import batch_view
 
 View = Literal["full", "compact"]  # GET /api/batches/{id}?view=
 
-# What the operator page (web/static/app.js applyBatch, cards.js renderSteps / renderProgress /
-# renderSorting / traceText) reads of the status; everything else (transitions, link statistics,
-# lamp on-time, windows, ...) stays in the full view for the MES and diagnostics. Each name is a
-# declared field of web/schemas.py BatchStatus / SlotStatus (tests/test_web_etag.py checks it), so
-# the compact answer still matches the document.
-COMPACT_BATCH_FIELDS = ("id", "profile", "state", "step", "steps", "progress", "error", "prompt", "lamp_on",
-                        "lamp_state", "decision", "sorting", "time_left", "elapsed_s", "waiting_for", "note", "counts",
-                        "work_order", "part_number", "part_revision", "lot", "slots")
-# Per slot; a field whose value is null is left out of the compact view (the page treats a missing
-# field as null), which is most of a running slot's verdict fields.
-COMPACT_SLOT_FIELDS = ("slot", "serial", "label_serial", "sensor", "state", "segments", "samples", "steps_done",
-                       "waiting_for", "error", "run_id", "plot_url", "program", "verification", "program_verify",
-                       "verdict", "grade", "tray", "reason", "attempt", "limits_name", "limits_version")
+# What the operator page polls (web/static/status.js pollBatch, every 2 s and on its live events),
+# bounded whatever the batch's length and at most a few KiB at 64 DUTs (tests/test_web_compact.py
+# holds every polled answer under 8 KiB): the batch's header, the running step's row (not the step
+# list: GET /api/batches/{id}/steps, fetched when the running step changes), the verdict counts, and
+# per slot only its name in `slots` and its live figures as columns in `slot_live` (state, samples,
+# segments, steps done, waiting for, and `rev`, which tells the page to fetch that slot's other
+# fields once: GET /api/batches/{id}/slots). Not here: transitions (they grow with the batch),
+# results, program and verify records, verdict texts and the sorting list (the page builds it from
+# the slots' verdicts), link statistics, lamp on-time, windows. Each name is a declared field of
+# web/schemas.py BatchStatus / SlotStatus (tests/test_web_etag.py checks it), so the compact answer
+# still matches the document. `overload`: its alarm is a banner on the page.
+COMPACT_BATCH_FIELDS = ("id", "profile", "state", "step", "current_step", "progress", "error", "prompt", "lamp_on",
+                        "lamp_state", "decision", "time_left", "elapsed_s", "waiting_for", "note", "counts",
+                        "work_order", "part_number", "part_revision", "lot", "created_at", "ended_at", "slots",
+                        "slot_live", "overload")
+# Per slot only its name: the rest of what the page polls per slot is in `slot_live`, as columns.
+COMPACT_SLOT_FIELDS = ("slot",)
 # Of the step and the time left, the page shows "2 / 4 · P hot" and the two wall clocks.
 COMPACT_STEP_FIELDS = ("index", "name", "count")
 COMPACT_TIME_LEFT_FIELDS = ("step_wall_s", "batch_wall_s")
@@ -88,9 +93,9 @@ class Rendered:
 
     t_s: float
     marker: Hashable | None
-    model: BaseModel | None = None
+    model: BatchStatus | None = None
     views: dict[str, tuple[bytes, str]] = field(default_factory=dict)
-    task: asyncio.Task | None = None
+    task: asyncio.Task[BatchStatus] | None = None
 
     def fresh(self, now_s: float, marker: Hashable | None, ttl_s: float) -> bool:
         """Still the answer: the daemon knows the batch (marker), its marker has not moved (a state,
@@ -102,12 +107,18 @@ class Rendered:
         one, and a request that goes away (its client hung up) does not cancel it for the others."""
         self.task = asyncio.ensure_future(self._render(fetch, batch_id))
 
-    async def ready(self) -> BaseModel:
+    async def ready(self) -> BatchStatus:
         """The validated status (at once once rendered); raises what the render raised (a 404)."""
         assert self.task is not None
         return await asyncio.shield(self.task)
 
-    async def _render(self, fetch: Callable[[], Awaitable[dict]], batch_id: int) -> BaseModel:
+    @property
+    def status(self) -> BatchStatus:
+        """The validated status of a render that is ready (see `ready`)."""
+        assert self.model is not None
+        return self.model
+
+    async def _render(self, fetch: Callable[[], Awaitable[dict]], batch_id: int) -> BatchStatus:
         raw = await fetch()  # the daemon's status: a snapshot, in one go
         await asyncio.sleep(0)  # then the view and the schema, each in its own turn of the loop
         shaped = batch_view(raw, batch_id)

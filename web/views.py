@@ -136,7 +136,47 @@ def batch_view(raw: dict, batch_id: int) -> dict:
         error=_first(d, "error", "reason", "fault_reason") or None,
         prompt=prompt_view(d.get("prompt")),
     )
-    return clean(out)
+    out = clean(out)
+    out["current_step"] = next((r for r in out.get("steps") or [] if isinstance(r, dict) and r.get("state") == "running"),
+                               None)
+    out["slot_live"] = slot_live(out["slots"])
+    return out
+
+
+# What the operator page polls of every slot (SlotLive, GET /api/batches/{id}?view=compact): the
+# fields that change while a batch runs. The page fetches a slot's other fields once, again only when
+# its `rev` moves (GET /api/batches/{id}/slots).
+LIVE_SLOT_FIELDS = ("state", "segments", "samples", "steps_done", "waiting_for")
+# What `rev` fingerprints: what the page shows of a slot besides its live fields (its result it
+# reads from GET /api/runs/{run_id} once the run is stored).
+REV_SLOT_FIELDS = ("serial", "label_serial", "sensor", "error", "run_id", "program", "verification",
+                   "program_verify") + DECISION_FIELDS
+
+
+def _shallow(value: object) -> object:
+    """A field made hashable and cheap: a nested record (program, verification) by its scalar items
+    and the sizes of its lists, a list by its size. Such records are written once per run (a new
+    program or verification is a new record, whose flags, CRC or pass differ), and reading every
+    float of them in each render would cost the poll more than the fingerprint saves."""
+    if type(value) is list:
+        return ("list", len(value))
+    if type(value) is not dict:
+        return value
+    return tuple((k, v if v is None or type(v) in (str, int, bool) else len(v) if type(v) in (list, dict) else 0)
+                 for k, v in value.items())
+
+
+def slot_rev(slot: dict) -> str:
+    """Fingerprint of REV_SLOT_FIELDS of one shaped slot: 8 hex digits of Python's hash (salted per
+    process, so it compares within one daemon's life: after a restart the page fetches once more)."""
+    return f"{hash(tuple(_shallow(slot.get(k)) for k in REV_SLOT_FIELDS)) & 0xFFFFFFFF:08x}"
+
+
+def slot_live(slots: list[dict]) -> dict[str, list[object]]:
+    """SlotLive of the shaped slots: their live fields as columns and each slot's rev."""
+    cols: dict[str, list[object]] = {k: [s.get(k) for s in slots] for k in LIVE_SLOT_FIELDS}
+    cols["rev"] = [slot_rev(s) for s in slots]
+    return cols
 
 
 def prompt_view(raw: dict | None) -> dict | None:

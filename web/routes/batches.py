@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+import pydantic_core
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
 
 from web import audit
@@ -11,8 +12,8 @@ from web.auth import require_control, require_read
 from web.db_gate import db_call
 from contracts.trace import Trace
 from web.schemas import (Ack, BatchCreate, BatchCreated, BatchStatus, Prompt, PromptAnswer, RetestCreate,
-                         error_responses)
-from web.status_etag import Rendered, none_match
+                         SlotStatus, StepRow, error_responses)
+from web.status_etag import Rendered, compact_body, none_match
 from web.views import batch_view, call, prompt_view
 
 router = APIRouter(prefix="/api/batches", tags=["batches"], responses=error_responses(401, 403, 404, 409))
@@ -58,11 +59,18 @@ async def retest_batch(body: RetestCreate, request: Request, response: Response,
 
 
 @router.get("", response_model=list[BatchStatus], dependencies=[Depends(require_read)])
-async def list_batches(request: Request, limit: int = Query(default=20, ge=1, le=200)):
+async def list_batches(request: Request, limit: int = Query(default=20, ge=1, le=200),
+                       view: str = Query(default="full", pattern="^(full|compact)$",
+                                         description="as GET /api/batches/{id}: compact is what the operator "
+                                         "page needs to find its batch, without its transitions and results")):
     """Batches the daemon holds (this process), newest first: the page finds the running one here."""
     station = request.app.state.station
     ids = sorted((await call(station.batch_ids)), reverse=True)[:limit]
-    return [batch_view(await call(station.batch_status, i), i) for i in ids]
+    shaped = [batch_view(await call(station.batch_status, i), i) for i in ids]
+    if view == "full":
+        return shaped
+    return Response(b"[" + b",".join(compact_body(BatchStatus.model_validate(b)) for b in shaped) + b"]",
+                    media_type="application/json")
 
 
 # Many clients poll the status of the running batch (every page, the MES): the answer of a batch
@@ -83,23 +91,10 @@ def _status_cache(request: Request) -> dict:
     return cache
 
 
-@router.get("/{batch_id}", response_model=BatchStatus, dependencies=[Depends(require_read)],
-            responses={304: {"description": "Not Modified: the If-None-Match tag is the current answer's ETag "
-                                            "(no body)"}})
-async def get_batch(request: Request, batch_id: int = BatchId,
-                    view: str = Query(default="full", pattern="^(full|compact)$",
-                                      description="full: everything; compact: only what the operator page shows "
-                                      "(docs/operator-page.md), a slot's null fields left out")):
-    """Live status from the daemon; a batch it no longer holds (ended before a restart) from the db.
-
-    Pollers revalidate instead of downloading: the answer carries a strong `ETag` of its bytes and
-    `Cache-Control: no-cache`; a request whose `If-None-Match` holds the current tag gets 304 with
-    no body (decided from the kept render, without rendering, while it is fresh). `view=compact`
-    carries only what the operator page shows (about a third of the bytes): state, step and step
-    list, progress, lamp, prompt, error, note, times left, counts, decision, sorting, the trace
-    (work order, part, revision, lot), and per slot its serial and label serial, sensor, state,
-    samples, segments, steps done, waiting for, error, run and plot, program/verify and verdict.
-    """
+async def _rendered(request: Request, batch_id: int) -> Rendered:
+    """The batch's kept render, rendered anew when it is stale (see STATUS_TTL_S), once ready: the
+    status and the slot and step routes below share it, so the page's fetches of a slot's fields or
+    of the step list cost no render of their own."""
     station = request.app.state.station
     cache = _status_cache(request)
     now = time.monotonic()
@@ -136,11 +131,61 @@ async def get_batch(request: Request, batch_id: int = BatchId,
         if cache.get(batch_id) is hit:  # a failed render (404) is not kept
             cache.pop(batch_id, None)
         raise
-    body, etag = hit.answer(batch_id, view)
+    return hit
+
+
+@router.get("/{batch_id}", response_model=BatchStatus, dependencies=[Depends(require_read)],
+            responses={304: {"description": "Not Modified: the If-None-Match tag is the current answer's ETag "
+                                            "(no body)"}})
+async def get_batch(request: Request, batch_id: int = BatchId,
+                    view: str = Query(default="full", pattern="^(full|compact)$",
+                                      description="full: everything; compact: what the operator page polls "
+                                      "(docs/design.md section 1, 'Batch status'): a few KiB whatever the batch's "
+                                      "length")):
+    """Live status from the daemon; a batch it no longer holds (ended before a restart) from the db.
+
+    Pollers revalidate instead of downloading: the answer carries a strong `ETag` of its bytes and
+    `Cache-Control: no-cache`; a request whose `If-None-Match` holds the current tag gets 304 with
+    no body (decided from the kept render, without rendering, while it is fresh). `view=compact`
+    carries what the operator page polls, bounded (no list that grows with the batch's length):
+    state, step and the running step's row (`current_step`), progress, lamp, prompt, error, note,
+    times left, counts, the verdict counts (`decision`), the trace (work order, part, revision, lot),
+    and per slot its name in `slots` and its live figures as columns in `slot_live` (state, samples,
+    segments, steps done, waiting for, and `rev`, which moves when the slot's other fields do: read
+    them with GET /api/batches/{id}/slots). The step list is GET /api/batches/{id}/steps.
+    """
+    body, etag = (await _rendered(request, batch_id)).answer(batch_id, view)
     headers = {"ETag": etag, "Cache-Control": "no-cache"}
     if none_match(request.headers.get("if-none-match"), etag):
         return Response(status_code=304, headers=headers)
     return Response(body, media_type="application/json", headers=headers)
+
+
+@router.get("/{batch_id}/slots", response_model=list[SlotStatus], dependencies=[Depends(require_read)])
+async def get_batch_slots(request: Request, batch_id: int = BatchId,
+                          slot: list[str] | None = Query(default=None, max_length=512, description="only these "
+                                                         "slots (repeat the parameter); all when absent; a name the "
+                                                         "batch does not have is left out"),
+                          result: bool = Query(default=True, description="false: leave each slot's `result` out "
+                                               "(the operator page reads it from GET /api/runs/{run_id})")):
+    """The batch's slots as in the full status (GET /api/batches/{id}), in its order: what the
+    operator page fetches of a slot once, and again only when the slot's `rev` in the compact view
+    moves (serial, label, fault, program, verification, verdict), instead of polling it."""
+    model = (await _rendered(request, batch_id)).status
+    wanted = set(slot) if slot else None
+    exclude = None if result else {"result"}
+    picked = [s.model_dump(mode="json", exclude=exclude) for s in model.slots if wanted is None or s.slot in wanted]
+    return Response(pydantic_core.to_json(picked), media_type="application/json")
+
+
+@router.get("/{batch_id}/steps", response_model=list[StepRow], dependencies=[Depends(require_read)])
+async def get_batch_steps(request: Request, batch_id: int = BatchId):
+    """The batch's step list with each step's state and wall durations (`steps` of the full
+    status; empty for a stored batch): the operator page fetches it when the running step changes
+    and polls only the running row (`current_step` of the compact view)."""
+    model = (await _rendered(request, batch_id)).status
+    return Response(pydantic_core.to_json([r.model_dump(mode="json") for r in model.steps]),
+                    media_type="application/json")
 
 
 @router.post("/{batch_id}/abort", response_model=Ack)

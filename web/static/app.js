@@ -1,7 +1,8 @@
 // Operator page: plain JavaScript, no framework, no CDN. Live state comes from server-sent events
-// (/api/events); the authoritative batch state is also polled from /api/batches/{id}. The other
-// parts: cards.js (slot cards, sorting, steps, progress), start.js (start form, retest, abort),
-// prompt.js and orientation.js (the prompt and its picture), attention.js (tone, title flash, mute).
+// (/api/events); the authoritative batch state is also polled, in its compact view, and what is big
+// or seldom changes is fetched once when it changes (status.js). The other parts: cards.js (slot
+// cards, sorting, steps, progress), start.js (start form, retest, abort), prompt.js and
+// orientation.js (the prompt and its picture), attention.js (tone, title flash, mute).
 "use strict";
 
 const S = {
@@ -11,12 +12,15 @@ const S = {
   batchSlots: null,        // slots of the current batch (null: none yet)
   stepCount: null,
   order: [],               // slot names in the station's order
-  slots: new Map(),        // slot -> {slot, serial, state, error, segments, temp_c, acc_g, samples, result, plotUrl}
+  slots: new Map(),        // slot -> {slot, serial, state, error, segments, temp_c, acc_g, samples, result, plotUrl,
+                           //   rev, revBatch: the slot's fields as fetched for that rev of that batch (status.js)}
   prompt: null,
   es: null,
   pollTimer: null,
   finalBatch: true,
   sorting: [],             // [{slot, serial, verdict, grade, tray, reason, attempt}] of the batch
+  steps: [],               // the batch's step list as last fetched (status.js loadSteps), and for which
+  stepsKey: null,          // batch, state and running step
   operator: "",            // the person at the station: memory and sessionStorage only (start.js)
   formOpen: false,         // the start form opened over an ended batch ("New batch")
   lastState: null,         // the batch state last shown: an end seen live calls for attention
@@ -157,80 +161,6 @@ function programVerifyTable(p, v) {
     for (const f of v.flags || []) wrap.append(el("div", { class: "flag" }, f));
   }
   return wrap;
-}
-
-function applyBatch(b, askedAt = Infinity) {
-  $("batch-profile").textContent = b.profile || "";
-  $("batch-state").textContent = b.state;
-  $("batch-state").dataset.state = b.state;
-  $("batch-trace-text").textContent = traceText(b);
-  $("batch-trace").classList.toggle("hidden", !traceText(b));
-  S.stepCount = (b.step && b.step.count) || (Array.isArray(b.steps) && b.steps.length) || S.stepCount;
-  if (b.step && b.step.index !== null && b.step.index !== undefined && b.step.index >= 0) {  // -1: boards still connecting
-    $("batch-step").textContent = `${b.step.index + 1} / ${b.step.count ?? "?"} · ${b.step.name ?? ""}`;
-  }
-  if (b.lamp_on !== undefined) setLamp(b.lamp_on, b.lamp_state);
-  $("batch-error").textContent = b.error || "";  // e.g. "aborted by Ana at 2026-11-23 14:02:05 UTC"
-  $("batch-note").textContent = b.note || "";
-  $("batch-note").classList.toggle("hidden", !b.note);
-  $("batch-elapsed").textContent = clock(b.elapsed_s ?? storedElapsed(b));
-  $("batch-waiting").textContent = b.waiting_for || "–";
-  S.batchSlots = (b.slots || []).map((sl) => sl.slot);
-  const counts = { running: 0, done: 0, faulted: 0 };
-  for (const sl of b.slots || []) {
-    const s = slotState(sl.slot);
-    for (const k of ["serial", "state", "segments", "samples", "sensor", "program", "verification", "steps_done", "label_serial"]) {
-      if (sl[k] !== null && sl[k] !== undefined) s[k] = sl[k];
-    }
-    s.waiting_for = sl.waiting_for || null;
-    if (sl.run_id && sl.run_id !== s.runId) { s.runId = sl.run_id; delete s.plotUrl; delete s.result; }
-    s.plotPath = sl.plot_url || null;
-    const pv = sl.program_verify;  // a stored batch: the run's program_verify row
-    if (pv && !sl.program) {
-      s.program = { programmed: pv.programmed, crc: pv.crc, readback_identical: pv.readback_identical, comp: pv.comp_on,
-        attempts: pv.attempts, error_kind: pv.error_kind };
-      if (pv.verified !== null && pv.verified !== undefined) {
-        s.verification = { passed: pv.verified, e_before_mg: pv.e_before_mg, e_after_mg: pv.e_after_mg, flags: pv.flags };
-      }
-    }
-    for (const k of VERDICT_FIELDS) s[k] = sl[k] ?? null;
-    s.error = sl.error || "";
-    if (sl.state in counts) counts[sl.state] += 1;
-    else if (sl.state === "interrupted") counts.interrupted = (counts.interrupted || 0) + 1;
-    else if (!FINAL.has(sl.state)) counts.running += 1;
-    if (["done", "interrupted", "faulted"].includes(s.state) && !s.plotUrl) loadPlot(sl.slot);
-  }
-  const c = b.counts || counts;  // the station's own count: no DUT runs once the batch ended
-  renderCounts(c, b, FINAL.has(b.state));  // cards.js: names the faulted slots ("1 faulted: s03")
-  S.finalBatch = FINAL.has(b.state);
-  S.retestable = S.finalBatch && (b.slots || []).some((sl) => RETEST_VERDICTS.has(sl.verdict));  // start.js
-  const left = b.time_left || {};
-  $("step-left").textContent = S.finalBatch ? "–" : clock(left.step_wall_s);
-  $("batch-left").textContent = S.finalBatch ? "–" : clock(left.batch_wall_s);
-  for (const id of ["time-left-step", "time-left-batch"]) $(id).classList.toggle("hidden", S.finalBatch);
-  renderSteps(b);
-  renderProgress(b, S.finalBatch);
-  S.sorting = b.sorting || [];
-  renderSorting(b);
-  showControls();
-  if (b.prompt && promptId(b.prompt) !== undefined) showPrompt(b.prompt);
-  else if (!S.prompt || askedAt > S.promptShownAt) hidePrompt();  // a status asked before the prompt came says nothing of it
-  if (S.lastState && !FINAL.has(S.lastState) && S.finalBatch) attention("end");  // seen ending, not an old batch
-  S.lastState = b.state;
-  renderSlots();
-}
-
-async function pollBatch() {
-  if (!S.batchId) return;
-  const id = S.batchId;
-  try {
-    const askedAt = performance.now();
-    const b = await api(`/api/batches/${id}`);
-    if (id === S.batchId) applyBatch(b, askedAt);  // a batch started meanwhile wins
-  } catch (e) {
-    if (e.status === 404) setBatch(null);
-    else message(e.message);
-  }
 }
 
 // ---- live events -----------------------------------------------------------------------------
@@ -410,7 +340,9 @@ function storageText(h) {
 async function pollStorage() {
   try {
     const r = await fetch("/api/health", { cache: "no-store" });
-    const [text, down] = storageText(await r.json());
+    const h = await r.json();
+    showOverload("health", h.intake && h.intake.alarm);  // status.js
+    const [text, down] = storageText(h);
     $("storage").textContent = text;
     $("storage").classList.toggle("down", down);
     $("storage").classList.toggle("hidden", !text);
@@ -432,7 +364,7 @@ async function boot() {
     S.role = me.role;
     $("whoami").replaceChildren(el("span", { class: "who-name", title: `${me.name} (${me.role})` }, `${me.name} (${me.role})`),
       el("button", { type: "button", class: "btn small", id: "sign-out", onclick: signOut }, "Sign out"));
-    const [profiles, slots, batches] = await Promise.all([api("/api/profiles"), api("/api/slots"), api("/api/batches?limit=1")]);
+    const [profiles, slots, batches] = await Promise.all([api("/api/profiles"), api("/api/slots"), api("/api/batches?limit=1&view=compact")]);
     const sel = $("profile");
     sel.replaceChildren(...profiles.map((p) => el("option", { value: p.name }, p.description ? `${p.name} — ${p.description}` : p.name)));
     S.profiles = new Map(profiles.map((p) => [p.name, p]));

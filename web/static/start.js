@@ -110,7 +110,7 @@ function startBody(picks, all) {
 function clearSlotsForNewBatch() {
   for (const s of S.slots.values()) {
     delete s.result; delete s.plotUrl; delete s.temp_c; delete s.acc_g; delete s.tempHist; delete s.program; delete s.verification;
-    delete s.runId; delete s.plotPath; delete s.waiting_for; delete s.label_serial; s.steps_done = 0;
+    delete s.runId; delete s.plotPath; delete s.waiting_for; delete s.label_serial; delete s.rev; s.steps_done = 0;
     for (const k of VERDICT_FIELDS) s[k] = null;
     s.segments = 0; s.samples = 0; s.error = "";
   }
@@ -175,8 +175,10 @@ async function retestFailed() {
   if (!S.batchId || !S.finalBatch) return;
   $("retest").disabled = true;
   try {
-    const [b, slots] = await Promise.all([api(`/api/batches/${S.batchId}`), api("/api/slots")]);
-    const again = (b.slots || []).filter((sl) => RETEST_VERDICTS.has(sl.verdict));
+    // the batch's header and its slots' verdicts (not the whole status: no results, no transitions)
+    const [b, ended, slots] = await Promise.all([api(`/api/batches/${S.batchId}?view=compact`),
+      api(`/api/batches/${S.batchId}/slots?result=false`), api("/api/slots")]);
+    const again = ended.filter((sl) => RETEST_VERDICTS.has(sl.verdict));
     if (!again.length) { message(`Batch ${b.id} has no slot that ended error, fail or marginal.`); return; }
     $("profile").value = b.profile;
     describeProfile();
