@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim.serial_pty import SimSerialBoard
+from drivers.sim.serial_pty import SimSerialBoard, render_sample_frames
 from drivers.sim.slcan_pty import SimCanBoard
 from drivers.sim.station_sim import SimStation
 from contracts.recording import RecordedDut, Recording
@@ -51,6 +51,8 @@ START_GRACE_S = 3.0
 # A board stopped at most this many sample seconds before its recorded program stop sends the
 # recorded samples up to that stop (they were in flight); an earlier stop (a reconnect) does not.
 FLUSH_MAX_S = 1200.0
+FRAME_CHUNK = 4096  # samples of a record rendered as frames at a time
+PRERENDER_MAX_BYTES = 256 << 20  # frames rendered before the replay starts; the rest while it plays
 
 
 @dataclass
@@ -61,6 +63,7 @@ class ReplayPart:
     acc_counts: np.ndarray
     temp_counts: np.ndarray
     seq: np.ndarray
+    start: int  # index in the record of the first sample (a serial board sends its frames rendered ahead)
     flush: bool = False  # sent although the board is stopped: the recorded samples before its stop
 
 
@@ -100,6 +103,9 @@ class ReplayWorld:
         self._hold_at: list[int | None] = [None] * n  # holds set by the director (prompts)
         self._step_hold_at: list[int | None] = [None] * n  # ... at a recorded step start
         self._held = [False] * n  # DUT i did not advance with the world last time: re-anchor before it does
+        # bumped whenever a DUT's next index changes: the director (station/replay/director.py) passes
+        # over the DUTs' holds when it has, not at every poll
+        self.moves = 0
 
     # ---- SimWorld interface ------------------------------------------------------------------
     @property
@@ -187,10 +193,11 @@ class ReplayWorld:
         self._k += n
         t_end = self.time_s
         parts = []
+        moved = False
         for i, d in enumerate(self.duts):
             s = self._start[i]
             a = int(self._next[i])
-            empty = ReplayPart(d.time_s[:0], d.acc_counts[:0], d.temp_counts[:0], self._seq[i][:0])
+            empty = ReplayPart(d.time_s[:0], d.acc_counts[:0], d.temp_counts[:0], self._seq[i][:0], a)
             if s is None or a >= len(d):
                 parts.append(empty)
                 continue
@@ -206,10 +213,13 @@ class ReplayWorld:
             if cap is not None and b >= cap:
                 b = max(a, cap)
                 self._held[i] = True
-            self._next[i] = b
-            parts.append(ReplayPart(d.time_s[a:b], d.acc_counts[a:b], d.temp_counts[a:b], self._seq[i][a:b]))
+            if b != a:
+                self._next[i] = b
+                moved = True
+            parts.append(ReplayPart(d.time_s[a:b], d.acc_counts[a:b], d.temp_counts[a:b], self._seq[i][a:b], a))
             if b > a:
                 self._temp_now[i] = float(d.identity.temp_c(d.temp_counts[b - 1:b])[0])
+        self.moves += moved
         return ReplayChunk(world_t, parts)
 
     def stopped(self, i: int) -> ReplayPart | None:
@@ -226,8 +236,9 @@ class ReplayWorld:
         self._stop_at[i] = None  # the recorded stop happened (here or a little earlier)
         if stop is not None and a < stop and float(self._rel[i][stop] - self._rel[i][a]) <= FLUSH_MAX_S:
             self._next[i] = stop
+            self.moves += 1
             return ReplayPart(d.time_s[a:stop], d.acc_counts[a:stop], d.temp_counts[a:stop], self._seq[i][a:stop],
-                              flush=True)
+                              a, flush=True)
         return None
 
     def note_sent(self, i: int, part: ReplayPart) -> None:
@@ -238,6 +249,53 @@ class ReplayWorld:
 
     def sent_digest(self, i: int) -> tuple[int, int]:
         return self.sent[i], self._crc[i]
+
+    def seq(self, i: int) -> np.ndarray:
+        """The frame sequence number of each of DUT i's recorded samples (RecordedDut.seq_index)."""
+        return self._seq[i]
+
+
+class RenderedRecord:
+    """One serial DUT's record as the design-3.1 frames its board sends, rendered in chunks of
+    FRAME_CHUNK samples (serial_pty.render_sample_frames: vectorised, byte for byte the board's
+    own feed()). A record is sent forward only, in contiguous pieces (ReplayWorld), so a piece is
+    a slice of one or two rendered chunks and a chunk behind the piece is dropped: sending costs no
+    Python work per sample, and the rendered frames held stay bounded however long the record."""
+
+    def __init__(self, d: RecordedDut, seq: np.ndarray) -> None:
+        self._d = d
+        self._seq = np.asarray(seq, dtype=np.int64) & 0xFFFFFFFF
+        self._chunks: dict[int, tuple[bytes, np.ndarray]] = {}
+
+    def _chunk(self, c: int) -> tuple[bytes, np.ndarray]:
+        got = self._chunks.get(c)
+        if got is None:
+            a, b = c * FRAME_CHUNK, min((c + 1) * FRAME_CHUNK, len(self._d))
+            t_us = np.round(np.asarray(self._d.time_s[a:b], dtype=np.float64) * 1e6).astype(np.int64)
+            got = self._chunks[c] = render_sample_frames(self._seq[a:b], t_us, self._d.acc_counts[a:b],
+                                                         self._d.temp_counts[a:b])
+        return got
+
+    def prerender(self, budget_bytes: int) -> int:
+        """Render chunks from the record's start while they fit in budget_bytes; the bytes used."""
+        used = 0
+        for c in range(-(-len(self._d) // FRAME_CHUNK)):
+            if used >= budget_bytes:
+                break
+            used += len(self._chunk(c)[0])
+        return used
+
+    def frames(self, a: int, b: int) -> bytes:
+        """The frames of samples a..b-1 (b > a)."""
+        first, last = a // FRAME_CHUNK, (b - 1) // FRAME_CHUNK
+        for c in [c for c in self._chunks if c < first]:
+            del self._chunks[c]
+        pieces = []
+        for c in range(first, last + 1):
+            data, off = self._chunk(c)
+            base = c * FRAME_CHUNK
+            pieces.append(data[off[max(a, base) - base]:off[min(b, base + FRAME_CHUNK) - base]])
+        return pieces[0] if len(pieces) == 1 else b"".join(pieces)
 
 
 # How the recorded board answered the station's calibration write (db program record's error_kind)
@@ -301,6 +359,13 @@ class ReplayStation(SimStation):
         self.ordered: list[RecordedDut] = serial + can
         world = ReplayWorld(self.ordered)
         world.streaming_of = self._streams
+        # each serial DUT's frames, rendered now (as far as PRERENDER_MAX_BYTES goes) rather than
+        # sample by sample while the daemon is reading: the replay's boards should cost the
+        # daemon's machine as little as the real ones, which cost it nothing
+        self._rendered = {i: RenderedRecord(d, world.seq(i)) for i, d in enumerate(self.ordered) if d.link != "can"}
+        budget = PRERENDER_MAX_BYTES
+        for r in self._rendered.values():
+            budget -= r.prerender(budget)
         self._first_start: float | None = None
         self._unplugged: set[int] = set()
         super().__init__(n_serial=len(serial), n_can=len(can), speed=speed, world=world,
@@ -355,12 +420,19 @@ class ReplayStation(SimStation):
         if getattr(board, "muted", False) or not (board.streaming or part.flush):
             return
         was_streaming, board.streaming = board.streaming, True  # a flush goes out past the STOP
-        mask = 0xFF if isinstance(board, SimCanBoard) else 0xFFFFFFFF
-        # contiguous pieces between recorded gaps: the board skips the lost sequence numbers
-        cuts = np.flatnonzero(np.diff(part.seq) != 1) + 1
-        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(part.seq)]):
-            board.seq = int(part.seq[a]) & mask
-            board.feed(part.time_s[a:b], part.acc_counts[a:b], part.temp_counts[a:b])
+        rendered = self._rendered.get(i)
+        n = len(part.time_s)
+        if rendered is not None and isinstance(board, SimSerialBoard) and board.sends_counts_as_given():
+            # the recorded seq is in the rendered frames: a gap skips its numbers as below
+            board.send_rendered(rendered.frames(part.start, part.start + n), n, float(part.time_s[-1]),
+                                int(part.seq[-1]) + 1)
+        else:
+            mask = 0xFF if isinstance(board, SimCanBoard) else 0xFFFFFFFF
+            # contiguous pieces between recorded gaps: the board skips the lost sequence numbers
+            cuts = np.flatnonzero(np.diff(part.seq) != 1) + 1
+            for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(part.seq)]):
+                board.seq = int(part.seq[a]) & mask
+                board.feed(part.time_s[a:b], part.acc_counts[a:b], part.temp_counts[a:b])
         board.streaming = was_streaming
         self.world.note_sent(i, part)  # type: ignore[attr-defined]
 

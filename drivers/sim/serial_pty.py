@@ -23,6 +23,62 @@ from contracts.types import Identity
 
 OUT_BUFFER_MAX_BYTES = 1 << 20  # a board's USB buffer: beyond this, frames are dropped (seq gap)
 
+_DIGIT_BOUNDS = np.array([10 ** k for k in range(1, 20)], dtype=np.uint64)  # ndigits(m) = 1 + #bounds <= m
+_DIGITS4 = np.frombuffer(b"".join(b"%04d" % k for k in range(10000)), dtype=np.uint8).reshape(10000, 4)
+_HEX = np.frombuffer(b"0123456789ABCDEF", dtype=np.uint8)
+
+
+def _decimal_columns(values: np.ndarray) -> np.ndarray:
+    """(n, width) uint8: each int64 value in decimal ASCII, right-aligned, NUL-padded on the left.
+    NUL is the padding because it is neutral in the frame checksum (XOR) and never part of a frame,
+    so a whole block of frames is one matrix, its checksums one reduce and its bytes one mask."""
+    v = np.asarray(values, dtype=np.int64)
+    neg = v < 0
+    mag = np.where(neg, (~v).astype(np.uint64) + np.uint64(1), v.astype(np.uint64))  # |INT64_MIN| too
+    ndig = np.searchsorted(_DIGIT_BOUNDS, mag, side="right") + 1
+    maxd = int(ndig.max(initial=1))
+    groups = -(-maxd // 4)
+    sign = int(neg.any())
+    out = np.empty((len(v), sign + 4 * groups), dtype=np.uint8)
+    rest = mag
+    for g in range(groups - 1, -1, -1):  # four digits per division: a quarter of the divisions
+        rest, r = np.divmod(rest, np.uint64(10000))
+        out[:, sign + 4 * g: sign + 4 * g + 4] = _DIGITS4[r]
+    out = out[:, 4 * groups - maxd:]
+    lead = out.shape[1] - ndig
+    out[np.arange(out.shape[1])[None, :] < lead[:, None]] = 0
+    if sign:
+        rows = np.flatnonzero(neg)
+        out[rows, lead[rows] - 1] = ord("-")
+    return out
+
+
+def render_sample_frames(seq: np.ndarray, t_us: np.ndarray, acc: np.ndarray,
+                         temp: np.ndarray) -> tuple[bytes, np.ndarray]:
+    """The design-3.1 `D` frames of n samples as one byte string, and the (n + 1,) offsets of each
+    frame in it (frame k = data[off[k]:off[k + 1]]): byte for byte what `sf.SampleFrame.encode`
+    gives sample by sample, computed for the whole block with a few numpy operations. A board that
+    sends thousands of samples per plant tick (a replay at x2000) must not cost the host a Python
+    loop per sample: the boards it stands for cost the daemon's machine nothing."""
+    n = len(t_us)
+    if n == 0:
+        return b"", np.zeros(1, dtype=np.int64)
+    acc = np.asarray(acc, dtype=np.int64).reshape(n, 3)
+    fields = (seq, t_us, acc[:, 0], acc[:, 1], acc[:, 2], temp)
+    comma = np.full((n, 1), ord(","), dtype=np.uint8)
+    cols: list[np.ndarray] = [np.broadcast_to(np.frombuffer(b"$D", dtype=np.uint8), (n, 2))]
+    for f in fields:
+        cols += [comma, _decimal_columns(np.asarray(f, dtype=np.int64))]
+    mat = np.concatenate(cols, axis=1)
+    cs = np.bitwise_xor.reduce(mat[:, 1:], axis=1)  # the body: after '$', NULs change nothing
+    tail = np.empty((n, 4), dtype=np.uint8)
+    tail[:, 0], tail[:, 1], tail[:, 2], tail[:, 3] = ord("*"), _HEX[cs >> 4], _HEX[cs & 15], ord("\n")
+    mat = np.concatenate([mat, tail], axis=1)
+    keep = mat != 0
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(keep.sum(axis=1), out=offsets[1:])
+    return mat[keep].tobytes(), offsets
+
 
 class PtyEndpoint:
     """The device end of a pseudo-terminal: non-blocking, loop-driven, with an output queue.
@@ -333,25 +389,36 @@ class SimSerialBoard:
         t_us_arr = np.round(np.asarray(time_s)[sel] * 1e6).astype(np.int64) + self.t0_us
         if self.clock_mask is not None:
             t_us_arr &= self.clock_mask
-        t_us = t_us_arr.tolist()
         acc_arr = np.asarray(acc_counts)[sel].astype(np.int64) + self._offset_counts
         tc_arr = np.asarray(temp_counts)[sel].astype(np.int64)
         if self.cal.nvm.comp and self.compensates:  # on-board compensation with the board's own temperature
             acc_arr = self.cal.compensate_counts(acc_arr, self.identity.temp_c(tc_arr), self.identity.ug_per_lsb)
             acc_arr = np.clip(acc_arr, -(1 << 31), (1 << 31) - 1)
-        acc = acc_arr.tolist()
-        tc = tc_arr.tolist()
-        parts = []
-        seq = self.seq
-        for k in range(len(t_us)):
-            a = acc[k]
-            body = b"D,%d,%d,%d,%d,%d,%d" % (seq, t_us[k], a[0], a[1], a[2], tc[k])
-            parts.append(b"$%s*%02X\n" % (body, sf.checksum(body)))
-            seq = (seq + 1) & 0xFFFFFFFF
-        self.seq = seq
+        seq = (self.seq + np.arange(len(sel), dtype=np.int64)) & 0xFFFFFFFF
+        data, offsets = render_sample_frames(seq, t_us_arr, acc_arr, tc_arr)
+        self.seq = (int(seq[-1]) + 1) & 0xFFFFFFFF
         if self._corrupt:
-            for raw in parts:
-                self._send(raw)
+            for k in range(len(sel)):
+                self._send(data[offsets[k]:offsets[k + 1]])
         else:
-            self.port.write(b"".join(parts))
-            self.frames_sent += len(parts)
+            self.port.write(data)
+            self.frames_sent += len(sel)
+
+    def sends_counts_as_given(self) -> bool:
+        """True when feed() would put each sample's counts, sample clock and the given seq on the wire
+        unchanged (no decimation, clock offset or wrap, injected fault, other board's offsets or
+        on-board compensation): then a stream rendered ahead (render_sample_frames) may go out with
+        send_rendered() in place of feed(), byte for byte the same."""
+        return (self._decim == 1 and self.t0_us == 0 and self.clock_mask is None and self._restart_at_s is None
+                and not self._corrupt and not self._offset_counts.any()
+                and not (self.cal.nvm.comp and self.compensates))
+
+    def send_rendered(self, frames: bytes, n: int, last_time_s: float, next_seq: int) -> None:
+        """Put n frames rendered ahead on the wire (only while sends_counts_as_given()), as feed()
+        would have: while streaming, not muted, connected; `next_seq` is the seq after the last."""
+        if n == 0 or not self.streaming or self.muted or self.port.closed:
+            return
+        self.sent_until_s = float(last_time_s)
+        self.seq = int(next_seq) & 0xFFFFFFFF
+        self.port.write(frames)
+        self.frames_sent += int(n)

@@ -41,6 +41,7 @@ from contracts.recording import Recording, answer_index
 log = logging.getLogger(__name__)
 
 POLL_S = 0.02
+PASS_MAX_S = 1.0  # wall seconds between passes over the DUTs while nothing moves (their timeouts are seconds)
 HOLD_TIMEOUT_S = 5.0  # wall seconds a hold may wait for what the daemon should do there
 STOP_WAIT_MAX_S = 300.0  # wall seconds a record waits at its program stop for a daemon still on its way there
 STEP_HOLD_MAX_S = 120.0  # wall seconds a record waits at a recorded step start for the daemon to begin that step
@@ -60,10 +61,17 @@ class Director:
 
     # ---- the loop -------------------------------------------------------------------------
     async def run(self) -> None:
-        """Until cancelled (the runner cancels it when the batch has ended)."""
+        """Until cancelled (the runner cancels it when the batch has ended). A pass over every DUT
+        is made when what the holds read has changed (the step the daemon has begun, a record's
+        next index: ReplayWorld.moves), while a DUT waits at its program stop, and at least every
+        PASS_MAX_S otherwise: a poll in which nothing moved costs no work per DUT (the world
+        advances once a clock tick, less often than the director polls, and not at all while it
+        waits for the daemon)."""
         world = self.sim.world
         stop_waits: dict[int, list[float]] = {}
         step_waits: dict[int, tuple[int, int, float]] = {}
+        seen: tuple[int | None, int] | None = None
+        t_pass = 0.0
         while True:
             await asyncio.sleep(POLL_S)
             try:
@@ -72,11 +80,25 @@ class Director:
                 return
             if prompt is not None and prompt["id"] not in self._answered:
                 await self._answer(prompt)
+                seen = None
                 continue
+            now = time.monotonic()
+            state = (self._begun(), int(world.moves))
+            if state == seen and not stop_waits and now - t_pass < PASS_MAX_S:
+                continue
+            seen, t_pass = state, now
             self._let_go_of_stops(world, stop_waits)
             self._hold_at_step_starts(world, step_waits)
             if not self.ended_at_recording_end and self._recording_over(world):
                 await self._end_at_recording_end()
+
+    def _begun(self) -> int | None:
+        """The step the daemon has begun (Station.step_begun); None once the batch is gone."""
+        try:
+            begun: int | None = self.station.step_begun(self.batch_id)
+        except KeyError:
+            return None
+        return begun
 
     # ---- prompts ----------------------------------------------------------------------------
     async def _answer(self, prompt: dict) -> None:
