@@ -57,11 +57,16 @@ _INSERT_CHUNK = insert(_CHUNKS).returning(_CHUNKS.c.id, sort_by_parameter_order=
 _DELETE_CHUNK = delete(_CHUNKS).where(_CHUNKS.c.id == bindparam("chunk"))
 
 
+SMALL_CHUNK_LEVEL = 1  # zlib level of a small chunk: it lives until its run's seal replaces it
+
+
 def chunk_row(run_id: int, seq: int, q: codec.Quantized, lost: int, sealed: bool) -> dict[str, Any]:
-    """The sample_chunk row of q (its data compressed by db/codec.py)."""
+    """The sample_chunk row of q (its data compressed by db/codec.py). A small chunk is compressed
+    fast (it is replaced by the sealed one within seal_samples samples: its size matters little, the
+    writer's CPU time, which shares the GIL with the event loop, does); a sealed one well."""
     return {"run_id": run_id, "seq": seq, "t_first_s": float(q.time[0]) / codec.TIME_SCALE,
             "t_last_s": float(q.time[-1]) / codec.TIME_SCALE, "n": len(q), "lost_samples": int(lost),
-            "sealed": sealed, "data": codec.encode(q)}
+            "sealed": sealed, "data": codec.encode(q) if sealed else codec.encode(q, SMALL_CHUNK_LEVEL)}
 
 
 class SampleChunks:

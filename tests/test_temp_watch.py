@@ -400,3 +400,22 @@ async def test_an_implausible_jump_faults_its_dut_and_does_not_trip_the_lamp(tmp
                 if e.kind == "Alarm":
                     texts.append(e.text)
             assert not any("safety trip" in t for t in texts), texts
+
+
+def test_levels_kept_with_the_history_are_the_levels_of_the_history():
+    """TempWatch keeps each sample's level (the median of LEVEL_N) with its history and computes a
+    block's new samples only: what it keeps must be what the whole history gives (from the first
+    sample with LEVEL_N before it), so the range, rate and trust rules see the same numbers."""
+    from station.daemon.temp_watch import LEVEL_N, TempWatch, _levels
+
+    rng = np.random.default_rng(3)
+    w = TempWatch()
+    t0 = 0.0
+    for _ in range(300):
+        n = int(rng.integers(1, 9))
+        t = t0 + 0.32 * np.arange(1, n + 1)
+        t0 = float(t[-1])
+        w.update(t, 25.0 + np.round(rng.normal(0, 0.3, n), 1), lamp_on=False)
+        ref = _levels(w._c)
+        assert w._lev.size == w._c.size
+        assert np.array_equal(w._lev[LEVEL_N - 1:], ref[LEVEL_N - 1:])

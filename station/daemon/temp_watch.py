@@ -122,6 +122,7 @@ class TempWatch:
     def __init__(self) -> None:
         self._t = np.empty(0)  # recent samples (the last HISTORY_S, at least STUCK_LEVEL_N)
         self._c = np.empty(0)
+        self._lev = np.empty(0)  # _levels of _c, kept with it: only a block's new samples are computed
         self.last_t: float | None = None
         self.finding: TempFinding | None = None
         self.trusted_max_c: float | None = None  # hottest believable reading of the latest block
@@ -178,11 +179,12 @@ class TempWatch:
         self._see_lamp(lamp_on, float(t[0]), plate_temp_c, lag_s)
         n_old = self._t.size
         all_t, all_c = np.concatenate([self._t, t]), np.concatenate([self._c, c])
-        self.trusted_max_c = _trusted_max(all_c, n_old)
-        self.finding = _implausible(all_t, all_c, n_old)
+        lev = np.concatenate([self._lev, _levels_from(all_c, n_old)])
+        self.trusted_max_c = _trusted_max(all_c, n_old, lev)
+        self.finding = _implausible(all_t, all_c, n_old, lev)
         keep = max(int(np.searchsorted(all_t, all_t[-1] - HISTORY_S)), 0)
         keep = min(keep, max(all_t.size - STUCK_LEVEL_N, 0))
-        self._t, self._c = all_t[keep:], all_c[keep:]
+        self._t, self._c, self._lev = all_t[keep:], all_c[keep:], lev[keep:]
         self.last_t = float(t[-1])
         changed = np.flatnonzero(all_c[n_old:] != all_c[n_old - 1:-1]) if n_old else np.flatnonzero(np.diff(c)) + 1
         if changed.size or self._flat_since_t is None:
@@ -260,13 +262,21 @@ def _levels(c: np.ndarray) -> np.ndarray:
     return out
 
 
-def _trusted_max(c: np.ndarray, n_old: int) -> float | None:
+def _levels_from(c: np.ndarray, n_old: int) -> np.ndarray:
+    """_levels(c)[n_old:], computed from the LEVEL_N - 1 samples before n_old on: a block costs its
+    own samples, not the history's (each median is of its own window, so the values are the same)."""
+    a = max(n_old - (LEVEL_N - 1), 0)
+    return _levels(c[a:])[n_old - a:] if a else _levels(c)[n_old:]
+
+
+def _trusted_max(c: np.ndarray, n_old: int, lev: np.ndarray | None = None) -> float | None:
     """The hottest of the new samples (from index n_old) in range and within JUMP_C of the median
     of the (up to LEVEL_N) samples before each: a jump is not believed before it is judged."""
     lo, hi = TEMP_RANGE_C
     k = np.arange(n_old, c.size)
     prior = np.full(k.size, np.nan)  # the median of the LEVEL_N samples before each (fewer at the start)
-    lev = _levels(c)
+    if lev is None:
+        lev = _levels(c)
     full = k >= LEVEL_N
     prior[full] = lev[k[full] - 1]
     for m in np.flatnonzero(~full & (k > 0)):
@@ -276,9 +286,11 @@ def _trusted_max(c: np.ndarray, n_old: int) -> float | None:
     return float(x[ok].max()) if ok.any() else None
 
 
-def _implausible(t: np.ndarray, c: np.ndarray, n_old: int) -> TempFinding | None:
-    """The range and rate rules on the new samples (from index n_old), the earlier ones as history."""
-    lev = _levels(c)
+def _implausible(t: np.ndarray, c: np.ndarray, n_old: int, lev: np.ndarray | None = None) -> TempFinding | None:
+    """The range and rate rules on the new samples (from index n_old), the earlier ones as history.
+    lev: _levels(c), when the caller has it."""
+    if lev is None:
+        lev = _levels(c)
     lo, hi = TEMP_RANGE_C
     k = np.arange(max(n_old, LEVEL_N - 1), c.size)
     if k.size == 0:
