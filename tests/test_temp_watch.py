@@ -227,6 +227,22 @@ def test_out_of_range_and_a_fast_ramp_are_implausible_a_gradual_over_temperature
     assert hottest[-1] == x[-1] > 85.0
 
 
+def test_a_gap_in_the_samples_is_no_jump_but_a_jump_after_it_still_is():
+    """Samples lost (the link's, or the station's backlog): the plate heated 17 C while none came.
+    No rate is measured across the gap, so the sensor is not blamed; a real jump after it still is."""
+    t = np.arange(0.0, 60.0, 1.0 / ODR)
+    t2 = 3000.0 + np.arange(0.0, 60.0, 1.0 / ODR)  # 49 min of samples lost
+    w = TempWatch()
+    assert w.update(t, np.full(t.size, 30.0), lamp_on=True) is None
+    for a in range(0, t2.size, 4):
+        assert w.update(t2[a:a + 4], np.full(min(4, t2.size - a), 47.0), lamp_on=True) is None
+    t3 = t2[-1] + np.arange(1, 40) / ODR
+    found = None
+    for a in range(0, t3.size, 2):
+        found = found or w.update(t3[a:a + 2], np.full(min(2, t3.size - a), 80.0), lamp_on=True)
+    assert found is not None and found.kind == "implausible" and "47 C -> 80 C" in found.reason, found
+
+
 # ---------------------------------------------------------------------------------------- simulator, healthy
 def _sim_run(seed):
     truths = (draw_population(5, seed, sensor="LIS3DSH")

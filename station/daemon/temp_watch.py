@@ -91,6 +91,7 @@ LEVEL_N = 3  # samples whose median is "the reading now" (a single odd sample ne
 RATE_SPAN_S = 5.0  # sample seconds a rate is measured over
 RATE_MAX_C_PER_S = 2.0  # 24x the lamp's fastest slope (0.08 C/s)
 JUMP_C = RATE_MAX_C_PER_S * RATE_SPAN_S  # 10 C within RATE_SPAN_S: implausible
+RATE_GAP_S = 2 * RATE_SPAN_S  # a sample this long before is across a gap: no rate over it
 STUCK_LEVEL_N = 8  # samples whose median is the level a rise is measured from and to
 STUCK_MIN_S = 120.0  # sample seconds after the lamp went on before "stuck" is judged at all
 STUCK_PEER_RISE_C = 5.0  # the peers' median rise that makes a flat DUT stuck
@@ -298,7 +299,10 @@ def _implausible(t: np.ndarray, c: np.ndarray, n_old: int, lev: np.ndarray | Non
     now = lev[k]
     out = (now < lo) | (now > hi)
     j = np.searchsorted(t, t[k] - RATE_SPAN_S, side="right") - 1  # newest sample RATE_SPAN_S earlier
-    then = np.where(j >= LEVEL_N - 1, lev[np.maximum(j, 0)], np.nan)
+    # across a gap in the samples (lost on the link, or to the station's own backlog) there is no
+    # rate: a plate that heated 15 C while no sample came is no jump of the sensor
+    jj = np.maximum(j, 0)
+    then = np.where((j >= LEVEL_N - 1) & (t[k] - t[jj] <= RATE_GAP_S), lev[jj], np.nan)
     with np.errstate(invalid="ignore"):
         jump = np.abs(now - then) > JUMP_C  # NaN (no history that far back): False
     hit = np.flatnonzero(out | jump)
