@@ -100,7 +100,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=21)
     p.add_argument("--plant-waits", action="store_true",
                    help="the simulated plant holds its clock while the daemon is behind (hides an overload); "
-                        "default: it never waits, and the boards' transmit buffers are 4 KiB, as real ones")
+                        "default: it never waits, and each board's transmit buffer holds about 1 s of its sending, as a real one's few KiB do")
     p.add_argument("--cost-us", type=float, default=None,
                    help="timing.intake_cost_us_per_sample for the daemon (a small figure forces a batch the "
                         "station would refuse, to watch the overload alarm)")

@@ -112,7 +112,7 @@ class Timing(_Model):
     fixture_timeout_s: float = Field(default=120.0, gt=0, description="wall seconds for a fixture move")
     read_period_s: float = Field(default=0.1, gt=0, le=5, description="wall seconds between block reads")
     intake_cost_us_per_sample: float = Field(
-        default=12.0, gt=0, le=10_000,
+        default=8.0, gt=0, le=10_000,
         description="the station's CPU microseconds per sample until it has measured its own (while boards "
                     "stream): a batch whose boards demand more samples/s than this PC follows is refused at its "
                     "start (docs/design.md, capacity; station/daemon/intake_monitor.py)")

@@ -7,8 +7,9 @@ READY, and runs until SIGTERM.
 
 --real-plant: the plant never waits for the station (real boards do not; by default the simulated
 plant holds its clock while the daemon is behind, which hides an overloaded station) and each
-serial board's transmit buffer is a real one's few KiB (--tx-buffer), so a station that does not
-read in time loses samples there, as sequence gaps. At SIGTERM, OUT.json.end holds each serial
+serial board's transmit buffer holds about a second of its sending, as a real one's few KiB do at
+its real rate (--tx-buffer), so a station that does not read in time loses samples there, as
+sequence gaps. At SIGTERM, OUT.json.end holds each serial
 slot's bytes the board could not send (the truth of what the station lost).
 """
 
@@ -19,17 +20,23 @@ import asyncio
 import json
 import signal
 
-from drivers.sim import serial_pty
 from drivers.sim.station_sim import SimStation
 from cli.commands.demo import sim_config, truth_by_slot
 
 
 async def main(args: argparse.Namespace) -> None:
-    if args.real_plant:
-        serial_pty.OUT_BUFFER_MAX_BYTES = args.tx_buffer
     async with SimStation(n_serial=args.serial, n_can=args.can, seed=args.seed, speed=args.speed) as sim:
         if args.real_plant:
             sim.backpressure_bytes = 1 << 62
+            # a transmit buffer that holds about a second of what the device sends (a real board's
+            # few KiB at its real rate; the simulated plant delivers in ticks, so less would drop a
+            # tick's burst however fast the station reads), or --tx-buffer bytes per board
+            one_s = sim.world.odr_hz * args.speed
+            for b in sim.serial_boards:
+                b.port.max_out_bytes = args.tx_buffer or max(4096, int(one_s * 44))
+            adapter = getattr(sim, "_adapter", None)
+            if adapter is not None and hasattr(adapter, "port"):
+                adapter.port.max_out_bytes = max(4096, int(one_s * 24 * max(1, args.can)))
         cfg = sim_config(sim, speed=args.speed, db_url="sqlite://")
         truths = {
             slot: {"serial": t.serial, "tdb_mg_per_c": [float(x) for x in t.tdb_mg_per_c],
@@ -57,5 +64,6 @@ if __name__ == "__main__":
     p.add_argument("--speed", type=float, default=120.0)
     p.add_argument("--seed", type=int, default=8)
     p.add_argument("--real-plant", action="store_true", help="the plant never waits; small board buffers")
-    p.add_argument("--tx-buffer", type=int, default=4096, help="a serial board's transmit buffer with --real-plant")
+    p.add_argument("--tx-buffer", type=int, default=0,
+                   help="a serial board's transmit buffer with --real-plant (default: about 1 s of its sending)")
     asyncio.run(main(p.parse_args()))

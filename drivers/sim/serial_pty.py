@@ -99,6 +99,7 @@ class PtyEndpoint:
         self._writer_on = False
         self.closed = False
         self.bytes_dropped = 0
+        self.max_out_bytes = OUT_BUFFER_MAX_BYTES  # this device's transmit buffer
         self.last_drain = 0.0  # loop time the host last took bytes (a live reader)
 
     def start(self) -> None:
@@ -121,7 +122,7 @@ class PtyEndpoint:
         if self.closed:
             return
         if self._out:
-            if len(self._out) + len(data) > OUT_BUFFER_MAX_BYTES:
+            if len(self._out) + len(data) > self.max_out_bytes:
                 self.bytes_dropped += len(data)
                 return
             self._out += data

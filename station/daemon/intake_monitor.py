@@ -116,7 +116,7 @@ def _rate(v: float) -> str:
 class IntakeMonitor:
     """How far behind its boards the station runs, what it lost, what it can follow (module doc)."""
 
-    def __init__(self, speed: float = 1.0, cost_us_per_sample: float = 12.0,
+    def __init__(self, speed: float = 1.0, cost_us_per_sample: float = 8.0,
                  cpu_clock: Callable[[], float] = time.process_time) -> None:
         self.speed = float(speed)
         self.cpu_clock = cpu_clock
