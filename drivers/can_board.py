@@ -20,6 +20,8 @@ import numpy as np
 
 from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats
 from drivers.protocol import can_frames as cf
+from drivers.protocol.slcan_lines import FrameRun, drop_partial_line, is_line_noise, pop_merged
+from drivers.protocol.slcan_lines import split_frame_runs, split_frames
 from drivers.protocol.stream_timeline import SeqTracker
 from drivers.sample_buffer import MAX_PENDING_SAMPLES as MAX_PENDING_SAMPLES, Row, SampleBuffer
 from contracts.types import Identity, SampleBlock
@@ -27,39 +29,10 @@ from contracts.types import Identity, SampleBlock
 MAX_UNREADABLE_IN_A_ROW = 1000  # then it is not noise but a broken adapter: fail the bus
 
 
-def _is_line_noise(exc: BaseException) -> bool:
-    """A garbled line from the adapter, not a failed link.
-
-    python-can's slcan parser raises on a corrupt line: ValueError/IndexError from int() or
-    bytes.fromhex, or CanOperationError wrapping the UnicodeDecodeError of a non-ASCII byte.
-    One such line once failed the whole bus (every CAN board of the plate); OSError and pyserial's
-    SerialException (an OSError) still mean the port is gone."""
-    if isinstance(exc, (ValueError, IndexError)):
-        return True
-    return isinstance(exc, can.CanOperationError) and isinstance(exc.__cause__, (ValueError, IndexError))
-
-
-def _drop_partial_line(bus) -> None:
-    """python-can's slcan keeps an undecodable line in its buffer (the decode fails before the
-    clear), so every later line would fail too: drop it."""
-    buf = getattr(bus, "_buffer", None)
-    if isinstance(buf, bytearray):
-        buf.clear()
-
-
 def _columns(rows: list[Row]) -> tuple[np.ndarray, np.ndarray]:
     """A CAN row's time is already in seconds (the extended sample index / ODR)."""
     arr = np.array(rows, dtype=np.float64)
     return arr[:, 0], arr[:, 1:]
-
-
-def _sensor_from_ug(ug_per_lsb: float) -> str:
-    """The CAN identity has no sensor field: the known boards differ by sensitivity."""
-    if abs(ug_per_lsb - 60.0) < 0.5:
-        return "LIS3DSH"
-    if abs(ug_per_lsb - 3.9) < 0.05 or abs(ug_per_lsb - 62.4) < 0.05:
-        return "ADXL355"
-    return "unknown"
 
 
 class CanBus:
@@ -76,7 +49,9 @@ class CanBus:
         self.bus_kwargs = bus_kwargs
         self.bus: can.BusABC | None = None
         self._boards: dict[int, CanBoard] = {}
-        self._inbox: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._inbox: collections.deque[tuple[int, bytes] | FrameRun] = collections.deque()
+        self._frames_queued = 0  # into the inbox (the reader thread); frames_rx: out of it (the loop)
+        self.bulk = True  # runs of clean sample frames in bulk (numpy); False: frame by frame
         self._wake_pending = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -114,8 +89,7 @@ class CanBus:
             self._thread.start()
 
     def _reader(self) -> None:
-        bus = self.bus
-        port = getattr(bus, "serialPortOrig", None) if self.interface == "slcan" else None
+        port = getattr(self.bus, "serialPortOrig", None) if self.interface == "slcan" else None
         if port is not None and hasattr(port, "in_waiting"):
             self._read_slcan_bulk(port)
         else:
@@ -125,8 +99,6 @@ class CanBus:
         """The slcan adapter's port read in bulk: whatever it holds in one call, lines split by
         drivers/protocol/slcan_lines.py (python-can reads it a byte per call: ~40 % of the daemon's
         CPU with 16 CAN boards). Writes still go through python-can (`bus.send`)."""
-        from drivers.protocol.slcan_lines import split_frames
-
         loop = self._loop
         assert loop is not None
         buf = bytearray()
@@ -148,31 +120,36 @@ class CanBus:
             if not chunk:
                 continue
             buf += chunk
-            frames, garbled = split_frames(buf)
-            self.frames_unreadable += garbled
+            frames, garbled = self._ingest(buf)
             noise_in_a_row = 0 if frames else noise_in_a_row + garbled
             if noise_in_a_row >= MAX_UNREADABLE_IN_A_ROW:
-                loop.call_soon_threadsafe(self._fail, f"CAN bus {self.channel} failed: "
-                                          f"{noise_in_a_row} unreadable adapter lines in a row")
+                loop.call_soon_threadsafe(self._fail, f"CAN bus {self.channel} failed: {noise_in_a_row} "
+                                          "unreadable adapter lines in a row")
                 return
-            if frames:
-                self._inbox.extend(frames)
-                if not self._wake(loop):
-                    return
+            if frames and not self._wake(loop):
+                return
+
+    def _ingest(self, buf: bytearray) -> tuple[int, int]:
+        """The complete slcan lines of `buf` into the inbox (clean runs as one FrameRun each in bulk)."""
+        items, garbled = split_frame_runs(buf) if self.bulk else split_frames(buf)
+        self.frames_unreadable += garbled
+        n = sum(len(it) if isinstance(it, FrameRun) else 1 for it in items)
+        self._inbox.extend(items)
+        self._frames_queued += n
+        return n, garbled
 
     def _read_python_can(self) -> None:
         bus, loop = self.bus, self._loop
         assert bus is not None and loop is not None
-        inbox = self._inbox
         noise_in_a_row = 0
         while self._running:
             try:
                 msg = bus.recv(0.1)
             except Exception as exc:  # noqa: BLE001 - line noise (counted) or the bus is gone
-                if self._running and _is_line_noise(exc) and noise_in_a_row < MAX_UNREADABLE_IN_A_ROW:
+                if self._running and is_line_noise(exc) and noise_in_a_row < MAX_UNREADABLE_IN_A_ROW:
                     noise_in_a_row += 1
                     self.frames_unreadable += 1
-                    _drop_partial_line(bus)
+                    drop_partial_line(bus)
                     continue
                 if self._running:
                     loop.call_soon_threadsafe(self._fail, f"CAN bus {self.channel} failed: {exc}")
@@ -180,7 +157,8 @@ class CanBus:
             noise_in_a_row = 0
             if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
                 continue
-            inbox.append((msg.arbitration_id, bytes(msg.data)))
+            self._inbox.append((msg.arbitration_id, bytes(msg.data)))
+            self._frames_queued += 1
             if not self._wake(loop):
                 return
 
@@ -198,19 +176,39 @@ class CanBus:
     def _drain(self) -> None:
         self._wake_pending = False
         self.last_rx_wall = time.monotonic()
-        inbox = self._inbox
         touched: set[CanBoard] = set()
-        while inbox:
-            arb_id, data = inbox.popleft()
-            self.frames_rx += 1
-            board = self._boards.get(arb_id & 0x7F)
-            if board is None:
-                self.frames_foreign += 1
-                continue
-            board._on_frame(arb_id & 0x780, data)
-            touched.add(board)
+        while self._inbox:  # runs (FrameRun) and single frames, in arrival order
+            item = pop_merged(self._inbox)
+            if isinstance(item, FrameRun):
+                self._dispatch_run(item, touched)
+            else:
+                self._dispatch(item[0], item[1], touched)
         for board in touched:
             board._flush()
+
+    def _dispatch(self, arb_id: int, data: bytes, touched: set["CanBoard"]) -> None:
+        """One frame to its board by node id (the one definition; the bulk path's fallback)."""
+        self.frames_rx += 1
+        board = self._boards.get(arb_id & 0x7F)
+        if board is None:
+            self.frames_foreign += 1
+            return
+        board._on_frame(arb_id & 0x780, data)
+        touched.add(board)
+
+    def _dispatch_run(self, run: FrameRun, touched: set["CanBoard"]) -> None:
+        """A FrameRun as `_dispatch` would take it frame by frame, but each board's sample frames
+        a run at a time (cf.route_run: the order that matters is kept)."""
+        for step in cf.route_run(run.ids, run.data):
+            if isinstance(step, int):
+                self._dispatch(*run.frame(step), touched)
+                continue
+            self.frames_rx += len(step.seq)
+            if (board := self._boards.get(step.node)) is None:
+                self.frames_foreign += len(step.seq)
+                continue
+            board._on_samples(step.data, step.counts, step.seq)
+            touched.add(board)
 
     def _fail(self, message: str) -> None:
         if self.error is None:
@@ -310,6 +308,22 @@ class CanBoard(BoardDriver):
         self._error = None
 
     # ---- frames (called in the loop by CanBus._drain) --------------------------------------
+    def _on_samples(self, data: np.ndarray, counts: np.ndarray, seq: np.ndarray) -> None:
+        """Sample frames (n, 8) uint8 (cf.decode_samples) in order as `_on_frame` takes them, a stretch that
+        goes on (cf.seq_stretches; ODR known) at once with numpy, the rest through `_on_frame` (the one definition)."""
+        for a, b, clean in cf.seq_stretches(seq, self._seq.last):  # each _on_frame sets _seq.last
+            odr = self._odr_hz or (self.identity.odr_hz if self.identity else 0.0)
+            if not (clean and odr and self.bus.bulk):
+                for k in range(a, b):
+                    self._on_frame(cf.SAMPLE_BASE, data[k].tobytes())
+                continue
+            index = self._seq.index + np.arange(1, b - a + 1, dtype=np.int64)
+            t = self._time_base_s + (index - self._index_base) / odr  # as _on_frame, to the bit
+            self._seq.index, self._seq.last = int(index[-1]), int(seq[b - 1])
+            self.stats.frames_ok += b - a
+            self._held.add_columns(t, counts[a:b])
+            self.last_sample_t = float(t[-1])
+
     def _on_frame(self, func: int, data: bytes) -> None:
         if func == cf.SAMPLE_BASE:
             try:
@@ -350,12 +364,8 @@ class CanBoard(BoardDriver):
                 return
             self.stats.frames_ok += 1
             if done and self._ident_fut is not None and not self._ident_fut.done():
-                a = self._ident
                 try:
-                    ug = float(f"{a.ug_per_lsb:.7g}")
-                    odr = float(f"{a.odr_hz:.7g}")
-                    ident = Identity(serial=a.serial, sensor=self.sensor or _sensor_from_ug(ug), fw="",
-                                     ug_per_lsb=ug, t_lsb_per_c=1.0, t_lsb_at_25c=0.0, odr_hz=odr)
+                    ident = self._ident.identity(self.sensor)
                 except ValueError:  # NaN/zero sensitivity or ODR: refuse, identify() asks again
                     self.stats.frames_malformed += 1
                     self._ident = cf.IdentityAssembler()
@@ -423,7 +433,7 @@ class CanBoard(BoardDriver):
         """Its queue, and its share of the frames the bus's reader took in and the loop has not
         dispatched yet (one adapter's inbox for every board on it)."""
         boards = max(1, len(self.bus._boards))
-        return len(self._held) + len(self.bus._inbox) // boards
+        return len(self._held) + max(0, self.bus._frames_queued - self.bus.frames_rx) // boards
 
     def discard_held(self) -> int:
         return self._held.discard()
@@ -461,13 +471,9 @@ class CanBoard(BoardDriver):
         frames = [cf.encode_cal_field(k, v) for k, v in enumerate(vals)] + [cf.encode_cal_commit(crc32_f32(vals))]
         async with self._cal_lock:
             st = await self._cal_status(frames, "CAL_COMMIT")
-        if st.status == cf.CAL_CRC_MISMATCH:
-            raise CalibrationError("crc_mismatch", f"CAN node {self.node_id}: the board's CRC of the received fields "
-                                   f"does not match the commit CRC (nothing stored)")
-        if st.status == cf.CAL_WRITE_FAILED:
-            raise CalibrationError("refused", f"CAN node {self.node_id}: write failed")
-        if st.status != cf.CAL_STORED:
-            raise CalibrationError("refused", f"CAN node {self.node_id}: unknown commit status {st.status}")
+        refusal = cf.commit_refusal(st.status)
+        if refusal is not None:
+            raise CalibrationError(refusal[0], f"CAN node {self.node_id}: {refusal[1]}")
         return st.crc
 
     async def read_thermal(self) -> CalReadback:

@@ -22,6 +22,10 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+import numpy as np
+
+from contracts.types import Identity
+
 SAMPLE_BASE = 0x180
 IDENT_BASE = 0x580
 CMD_BASE = 0x600
@@ -80,6 +84,96 @@ def decode_sample(data: bytes) -> CanSample:
     if len(data) != 8:
         raise ValueError(f"sample frame must be 8 bytes, got {len(data)}")
     return CanSample(*_SAMPLE.unpack(bytes(data)))
+
+
+# _SAMPLE as a numpy record: many sample frames decoded at once (the CAN bus's bulk intake)
+_SAMPLE_DTYPE = np.dtype([("ax", "<i2"), ("ay", "<i2"), ("az", "<i2"), ("t", "i1"), ("seq", "u1")])
+assert _SAMPLE_DTYPE.itemsize == _SAMPLE.size == 8 and _SAMPLE.format == "<hhhbB"
+
+
+def decode_samples(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sample payloads (n, 8) uint8 -> (raw counts (n, 4) int64: ax ay az t, seq (n,) int64).
+
+    Why: `decode_sample` per frame (a struct unpack into a dataclass) was most of a CAN board's
+    cost per sample; this reads a whole run with the same field layout (`_SAMPLE_DTYPE`)."""
+    rec = np.ascontiguousarray(data, dtype=np.uint8).reshape(-1).view(_SAMPLE_DTYPE)
+    counts = np.empty((len(rec), 4), dtype=np.int64)
+    for k, name in enumerate(("ax", "ay", "az", "t")):
+        counts[:, k] = rec[name]
+    return counts, rec["seq"].astype(np.int64)
+
+
+MIN_GROUP = 8  # fewer sample frames of one node in a run: frame by frame (numpy's cost per call)
+
+
+@dataclass(frozen=True)
+class SampleGroup:
+    """Consecutive sample frames of one node out of a run: payloads (n, 8) uint8, raw counts
+    (n, 4) int64 (ax ay az t) and seq (n,) int64, as `decode_samples` gives them."""
+
+    node: int
+    data: np.ndarray
+    counts: np.ndarray
+    seq: np.ndarray
+
+
+def route_run(ids: np.ndarray, data: np.ndarray, min_group: int | None = None) -> list[int | SampleGroup]:
+    """A run of frames (ids (n,), payloads (n, 8)) in the order to hand them on: an int k is frame
+    k on its own (not a sample frame: a reply, a command echo); a SampleGroup is consecutive sample
+    frames of one node id, in order, between two such frames (a reply is handled after the samples
+    before it and before those after it; different nodes' samples do not affect each other). A
+    node's group under `min_group` (MIN_GROUP) frames comes as single frames (in its place, in order).
+    Why: the bus hands each board its samples a run at a time, not a frame at a time."""
+    min_group = MIN_GROUP if min_group is None else max(1, min_group)
+    is_sample = (ids & 0x780) == SAMPLE_BASE
+    if len(ids) < min_group or np.bincount(ids[is_sample] & 0x7F, minlength=1).max(initial=0) < min_group:
+        return list(range(len(ids)))  # no group can be big enough: skip the sorting
+    counts, seq = decode_samples(data)
+    out: list[int | SampleGroup] = []
+    a = 0
+    for b in [*np.flatnonzero(~is_sample).tolist(), len(ids)]:
+        if b > a:
+            nodes = ids[a:b] & 0x7F
+            order = np.argsort(nodes, kind="stable")
+            for sel in np.split(order, np.flatnonzero(np.diff(nodes[order])) + 1):
+                if len(sel) >= min_group:
+                    k = a + sel
+                    out.append(SampleGroup(int(nodes[sel[0]]), data[k], counts[k], seq[k]))
+                else:
+                    out.extend((a + sel).tolist())
+        if b < len(ids):
+            out.append(b)
+        a = b + 1
+    return out
+
+
+def seq_stretches(seq: np.ndarray, last: int | None) -> list[tuple[int, int, bool]]:
+    """(start, stop, clean) covering a board's sample seqs (uint8) in order: clean stretches
+    simply go on, every seq one more (mod 256) than the one before (the first: than `last`, the
+    tracker's); the frames in between (the first ever, a gap, a duplicate, a step back) come one
+    per stretch, not clean. Why: a clean stretch can be taken at once (no loss, no resync)."""
+    n = len(seq)
+    prev = np.empty(n, dtype=np.int64)
+    prev[0] = -1 if last is None else last
+    prev[1:] = seq[:-1]
+    out: list[tuple[int, int, bool]] = []
+    a = 0
+    for b in np.flatnonzero(((seq - prev) % 256 != 1) | (prev < 0)).tolist() + [n]:
+        if b > a:
+            out.append((a, b, True))
+        if b < n:
+            out.append((b, b + 1, False))
+        a = b + 1
+    return out
+
+
+def sensor_from_ug(ug_per_lsb: float) -> str:
+    """The CAN identity has no sensor field: the known boards differ by sensitivity."""
+    if abs(ug_per_lsb - 60.0) < 0.5:
+        return "LIS3DSH"
+    if abs(ug_per_lsb - 3.9) < 0.05 or abs(ug_per_lsb - 62.4) < 0.05:
+        return "ADXL355"
+    return "unknown"
 
 
 def encode_command(cmd: int, odr_hz: float | None = None) -> bytes:
@@ -158,6 +252,15 @@ class IdentityAssembler:
     def serial(self) -> str:
         raw = (self.serial_a or b"") + (self.serial_b or b"")
         return raw.split(b"\0", 1)[0].decode("ascii", errors="replace")
+
+    def identity(self, sensor: str | None) -> Identity:
+        """The complete identity as the station's Identity (sensor: from configuration, else guessed
+        from the sensitivity). ValueError for a NaN/zero sensitivity or ODR (Identity refuses it)."""
+        assert self.ug_per_lsb is not None and self.odr_hz is not None
+        ug = float(f"{self.ug_per_lsb:.7g}")
+        odr = float(f"{self.odr_hz:.7g}")
+        return Identity(serial=self.serial, sensor=sensor or sensor_from_ug(ug), fw="",
+                        ug_per_lsb=ug, t_lsb_per_c=1.0, t_lsb_at_25c=0.0, odr_hz=odr)
 
 
 def float32(value: float) -> float:
@@ -239,6 +342,18 @@ class CalStatus:
     @property
     def text(self) -> str:
         return CAL_STATUS_TEXT.get(self.status, f"status {self.status}")
+
+
+def commit_refusal(status: int) -> tuple[str, str] | None:
+    """Why a CAL_COMMIT status is not "stored": (CalibrationError kind, text); None when stored.
+    One table of the board's answers, so the driver only adds its node to the text."""
+    if status == CAL_STORED:
+        return None
+    if status == CAL_CRC_MISMATCH:
+        return "crc_mismatch", "the board's CRC of the received fields does not match the commit CRC (nothing stored)"
+    if status == CAL_WRITE_FAILED:
+        return "refused", "write failed"
+    return "refused", f"unknown commit status {status}"
 
 
 def decode_cal_reply(data: bytes) -> tuple[int, CalStatus | float]:
