@@ -251,9 +251,27 @@ def check_log(log: "DutLog", source: str = "<log>") -> None:
     chk.finish(log.meta)
 
 
-def read_log(path: str | Path) -> DutLog:
+# What DutLog.lamp, .position and .ref_dir hold a file's optional columns in: `read_log(path,
+# keep_optional=...)` names the ones a command uses; the others are still read and checked, not kept
+# (a 200 MB log's ref_x/y/z are 24 bytes a row, ~60 MB, that `station calibrate` never looks at).
+OPTIONAL_FIELDS = frozenset({"lamp", "position", "ref_dir"})
+
+
+def _kept(keep_optional: Iterable[str] | None) -> frozenset[str]:
+    if keep_optional is None:
+        return OPTIONAL_FIELDS
+    keep = frozenset(keep_optional)
+    unknown = keep - OPTIONAL_FIELDS
+    if unknown:
+        raise ValueError(f"keep_optional: unknown field(s) {sorted(unknown)} (known: {sorted(OPTIONAL_FIELDS)})")
+    return keep
+
+
+def read_log(path: str | Path, keep_optional: Iterable[str] | None = None) -> DutLog:
     """Read a log file; raises StationError with one clear line for any user mistake, including a
-    log whose numbers cannot be right (check_log). The file is read a few MB at a time."""
+    log whose numbers cannot be right (check_log). The file is read a few MB at a time.
+    keep_optional: the DutLog fields among lamp, position, ref_dir to keep when the file has their
+    columns (None: all); the others are read and checked all the same, then left as None."""
     p = Path(path)
     if not p.exists():
         raise StationError(f"{p}: no such file")
@@ -261,7 +279,7 @@ def read_log(path: str | Path) -> DutLog:
         raise StationError(f"{p}: is a directory, expected a CSV log file")
     try:  # utf-8-sig: a leading BOM (a spreadsheet's "CSV UTF-8") is skipped
         with open(p, encoding="utf-8-sig", errors="surrogateescape") as f:
-            return _parse(_blocks_of_file(f, str(p)), str(p), size=p.stat().st_size)
+            return _parse(_blocks_of_file(f, str(p)), str(p), size=p.stat().st_size, keep=_kept(keep_optional))
     except (OSError, UnicodeDecodeError) as exc:
         raise StationError(f"{p}: cannot read ({exc})") from None
 
@@ -274,7 +292,7 @@ def _is_meta(line: str) -> bool:
     return line.startswith("#") or not line.strip()
 
 
-def _parse(blocks: Iterator[list[str]], source: str, size: int) -> DutLog:
+def _parse(blocks: Iterator[list[str]], source: str, size: int, keep: frozenset[str] = OPTIONAL_FIELDS) -> DutLog:
     head = _Header(blocks, _is_meta)
     meta = head.meta
     if head.line is None:
@@ -294,7 +312,8 @@ def _parse(blocks: Iterator[list[str]], source: str, size: int) -> DutLog:
         if chk is None:  # capacity from the first block's bytes per row
             per_row = max(1.0, sum(map(len, rows)) / len(rows))
             chk = LogChecker(source, capacity=int(size / per_row * 1.02) + 1024,
-                             lamp="lamp" in col, position="position" in col, ref=has_ref)
+                             lamp="lamp" in col and "lamp" in keep, position="position" in col and "position" in keep,
+                             ref=has_ref and "ref_dir" in keep)
         chk.add(data[:, col["time_s"]], data[:, acc_cols], data[:, col["temp_c"]],
                 data[:, col["lamp"]] if "lamp" in col else None,
                 data[:, col["position"]] if "position" in col else None,
@@ -346,4 +365,5 @@ def write_log(path: str | Path, log: DutLog) -> None:
     tmp.replace(p)
 
 
-__all__ = ["DutLog", "read_log", "parse_log", "check_log", "format_log", "write_log", "REQUIRED_COLUMNS"]
+__all__ = ["DutLog", "read_log", "parse_log", "check_log", "format_log", "write_log", "REQUIRED_COLUMNS",
+           "OPTIONAL_FIELDS"]

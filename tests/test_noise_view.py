@@ -237,7 +237,8 @@ def test_no_static_segment_in_a_log_that_never_settles():
     d = prepare(_log([(0, 20.0, 60.0, 2400), (1, 60.0, 20.0, 2400)]))  # 1 C/min throughout
     s = static_segment(d)
     assert not s["found"] and s["note"].startswith("no static segment in this log")
-    rep = SimpleNamespace(data=[d], model=SimpleNamespace(resid=[d.acc_mg - d.acc_mg.mean(axis=0)]))
+    resid = d.acc_mg - d.acc_mg.mean(axis=0)
+    rep = SimpleNamespace(data=[d], model=SimpleNamespace(resid=[resid], resid_axis=lambda k, i: resid[:, i]))
     nv = noise_view(rep, 0)
     assert nv["statement"].startswith("SYN1: no static segment in this log")
     assert all(e["static"] is None and e["comparison"] is None for e in nv["axes"].values())

@@ -61,8 +61,10 @@ def format_table(res: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from station.science.thermal_calibration import calibrate  # scipy: imported by the command, not by --help
 
-    log = read_any_log(args.log, args)
-    res = calibrate(log)
+    # bounded memory on a long log (issue 40): only the columns the calibration reads are kept (not
+    # lamp, not ref_x/y/z), and the log, read for this call alone, is compacted to its placed rows
+    # in place rather than copied
+    res = calibrate(read_any_log(args.log, args, keep_optional=("position",)), consume_log=True)
     if args.json:
         json.dump(res, sys.stdout, indent=2)
         sys.stdout.write("\n")

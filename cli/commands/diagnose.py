@@ -183,8 +183,8 @@ def run(args: argparse.Namespace) -> int:
     serials = [lg.serial for lg in logs]
     if len(set(serials)) != len(serials):
         raise StationError(f"the same DUT serial appears twice among the logs ({', '.join(serials)})")
-    with _ranking_cache(args):
-        report = diagnose(logs, add=add, candidates=candidates, basis=args.basis)
+    with _ranking_cache(args):  # the logs are read for this call alone: prepared in place (bounded memory)
+        report = diagnose(logs, add=add, candidates=candidates, basis=args.basis, consume_logs=True)
     doc = report.to_json()
     doc["noise"] = {d.serial: report.noise(k) for k, d in enumerate(report.data)}
     if args.plots:
@@ -225,7 +225,8 @@ def _read(path: str, args: argparse.Namespace):
     checked before any science (cli.commands.log_import.read_any_log)."""
     from cli.commands.log_import import read_any_log
 
-    return read_any_log(path, args)
+    # only the columns the diagnosis reads (issue 40: ref_x/y/z and lamp are not kept)
+    return read_any_log(path, args, keep_optional=("position",))
 
 
 def _save_models(report, path: Path) -> list[Path]:

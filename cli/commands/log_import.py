@@ -27,6 +27,7 @@ Pure parsing (text in, DutLog out), a few MB at a time; every user mistake is on
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +38,7 @@ from contracts.log_checks import (  # G0_M_S2: part of this module's surface (m/
     check_meta,
     g_divisor,
 )
-from contracts.logfile import DutLog, _blocks_of_file, _blocks_of_text, _Header, _parse_rows
+from contracts.logfile import DutLog, _blocks_of_file, _blocks_of_text, _Header, _kept, _parse_rows
 from contracts.types import StationError
 
 TIME_SCALE = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
@@ -114,7 +115,8 @@ def parse_import(text: str, source: str = "<log>", columns: str | dict | None = 
 
 
 def _import(blocks, source: str, size: int, columns=None, accel_units: str = "g", time_units: str = "s",
-            counts_per_g: float | None = None, delimiter: str | None = None, temp_units: str = "C") -> DutLog:
+            counts_per_g: float | None = None, delimiter: str | None = None, temp_units: str = "C",
+            keep_optional: Iterable[str] | None = None) -> DutLog:
     _check_options(accel_units, time_units, temp_units, counts_per_g)
     kelvin = str(temp_units).upper() == "K"
     head = _Header(blocks, _is_meta)
@@ -145,6 +147,7 @@ def _import(blocks, source: str, size: int, columns=None, accel_units: str = "g"
     names = {k: header[idx[k]] for k in ("time", "ax", "ay", "az", "temp", "lamp", "position") if k in idx}
     req = [idx[key] for key in KEYS]
     acc_cols = [idx["ax"], idx["ay"], idx["az"]]
+    keep = _kept(keep_optional)
     chk: LogChecker | None = None
     parsed = 0
     for rows, nos in head.rows():
@@ -156,7 +159,8 @@ def _import(blocks, source: str, size: int, columns=None, accel_units: str = "g"
         if chk is None:  # capacity from the first block's bytes per row
             per_row = max(1.0, sum(map(len, rows)) / len(rows))
             chk = LogChecker(source, names, capacity=int(size / per_row * 1.02) + 1024,
-                             lamp="lamp" in idx, position="position" in idx, ref=has_ref,
+                             lamp="lamp" in idx and "lamp" in keep, position="position" in idx and "position" in keep,
+                             ref=has_ref and "ref_dir" in keep,
                              accel_units=accel_units, counts_per_g=counts_per_g)
         temp = data[:, idx["temp"]]
         if kelvin:
@@ -220,19 +224,22 @@ def add_import_arguments(parser) -> None:
     parser.add_argument("--delimiter", default=None, help="field delimiter of an imported log (default: sniffed)")
 
 
-def read_any_log(path: str, args=None) -> DutLog:
+def read_any_log(path: str, args=None, keep_optional: Iterable[str] | None = None) -> DutLog:
     """A station log (design 5.1), or with any import option (args from add_import_arguments) a
     log read by import_log; a log without the station's columns is imported with the column names
-    recognised. Both are checked before any science (contracts.log_checks.LogChecker)."""
+    recognised. Both are checked before any science (contracts.log_checks.LogChecker).
+    keep_optional: the optional fields (lamp, position, ref_dir) the command uses (None: all); the
+    others are checked and not kept, so a long log costs the command only the columns it reads."""
     from contracts.logfile import read_log
 
     opts = {k: getattr(args, k, None) for k in IMPORT_OPTIONS}
     kw = dict(columns=opts["columns"], accel_units=opts["accel_units"] or "g", time_units=opts["time_units"] or "s",
-              counts_per_g=opts["counts_per_g"], delimiter=opts["delimiter"], temp_units=opts["temp_units"] or "C")
+              counts_per_g=opts["counts_per_g"], delimiter=opts["delimiter"], temp_units=opts["temp_units"] or "C",
+              keep_optional=keep_optional)
     if any(v is not None for v in opts.values()):
         return import_log(path, **kw)
     try:
-        return read_log(path)
+        return read_log(path, keep_optional)
     except StationError as exc:
         if "missing column" not in str(exc):
             raise

@@ -140,7 +140,10 @@ def format_text(res: SfemRecordResult, serial: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    log = read_any_log(args.log, args)
+    # bounded memory on a long log (issue 40): only the columns the fit reads are kept (no lamp;
+    # no ref_x/y/z for --norm-only), and the arrays, read for this call alone, are compacted to the
+    # placed rows in place (fit_sfem_record consume) rather than copied
+    log = read_any_log(args.log, args, keep_optional=("position",) if args.norm_only else ("position", "ref_dir"))
     if len(log) == 0:
         raise StationError(f"{args.log}: no data rows")
     placed = log.position is not None and bool((np.asarray(log.position) >= 0).any())
@@ -156,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
         log.time_s, log.acc_g, log.temp_c,
         None if args.norm_only else log.ref_dir, log.position,
         norm_only=args.norm_only, ref_sigma_deg=args.ref_sigma_deg, config=cfg, temp_gap_c=args.temp_gap_c,
-        t_ref_c=args.t_ref_c,
+        t_ref_c=args.t_ref_c, consume=True,
     )  # fmt: skip
     if args.json:
         out = {"serial": log.serial, "sensor": log.meta.get("sensor", ""), **res.to_json()}

@@ -48,6 +48,7 @@ class _Design:
         self._names: list[list[str]] | None = None
         self._acc0_key: bytes | None = None
         self._acc0_cols: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros((0, 3)),) * 3
+        self._temp_smooth: np.ndarray | None = None  # the per-sample one, made once per design
 
     def temp_seen(self, nl: dict[str, dict[str, float]], block: bool = False) -> np.ndarray:
         d = self.d
@@ -61,7 +62,9 @@ class _Design:
     def context(self, nl, acc0_sample_g: np.ndarray) -> Context:
         """Per-sample context: predictions and compensation, sample by sample."""
         d = self.d
-        return Context(time_s=d.time_s, temp_c=d.temp_c, temp_smooth_c=d.temp_smooth_c,
+        if self._temp_smooth is None:
+            self._temp_smooth = d.temp_smooth_c
+        return Context(time_s=d.time_s, temp_c=d.temp_c, temp_smooth_c=self._temp_smooth,
                        dt_c=self.temp_seen(nl) - T_REF_C, acc0_g=acc0_sample_g,
                        t_power_on_s=d.t_power_on_s, cache=d.cache)
 

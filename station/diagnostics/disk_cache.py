@@ -50,7 +50,7 @@ import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -136,7 +136,7 @@ def log_digest(lg: Any) -> str:
             continue
         a = np.ascontiguousarray(arr)
         h.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
-        h.update(a.tobytes())
+        h.update(a)  # its bytes (C order), without a copy of them
     h.update(json.dumps(sorted((str(k), str(v)) for k, v in lg.meta.items())).encode())
     return h.hexdigest()
 
@@ -286,9 +286,8 @@ def load(logs: list[Any], names: list[str], basis: str, seg: Any, kind: type) ->
         size = path.stat().st_size
         if size > MAX_TOTAL_BYTES:
             return None
-        with open(path, "rb") as f:
-            blob = f.read()
-        obj = _decode(blob, key)
+        with open(path, "rb") as f:  # read as a stream: a long log's ranking is hundreds of MB
+            obj = _read(f, key)
         if not isinstance(obj, kind):
             raise ValueError(f"holds a {type(obj).__name__}, not a {kind.__name__}")
         data = getattr(obj, "data", None)
@@ -304,20 +303,43 @@ def load(logs: list[Any], names: list[str], basis: str, seg: Any, kind: type) ->
         return None
 
 
-def _decode(blob: bytes, key: dict) -> Any:
-    if not blob.startswith(MAGIC):
+COPY_BYTES = 1 << 20  # a cache file is hashed, copied and read this much at a time
+
+
+def _read(f: BinaryIO, key: dict) -> Any:
+    """The object of a cache file open at its start: the header checked, then the payload's length
+    and SHA-256 (a pass over it a MB at a time), and only then unpickled, from the file (no copy of
+    the payload in memory beside the object it makes)."""
+    head = f.read(len(MAGIC) + MAX_HEADER_BYTES + 1)
+    if not head.startswith(MAGIC):
         raise ValueError("not a diagnose cache file")
-    end = blob.find(b"\n", len(MAGIC), len(MAGIC) + MAX_HEADER_BYTES)
+    end = head.find(b"\n", len(MAGIC), len(MAGIC) + MAX_HEADER_BYTES)
     if end < 0:
         raise ValueError("no header")
-    header = json.loads(blob[len(MAGIC):end])
+    header = json.loads(head[len(MAGIC):end])
     if header.get("format") != FORMAT or header.get("key") != key:
         raise ValueError("another format or question")
-    payload = memoryview(blob)[end + 1:]
-    if len(payload) != header.get("payload_bytes") or \
-            hashlib.sha256(payload).hexdigest() != header.get("payload_sha256"):
+    f.seek(end + 1)
+    digest, n = hashlib.sha256(), 0
+    while chunk := f.read(COPY_BYTES):
+        digest.update(chunk)
+        n += len(chunk)
+    if n != header.get("payload_bytes") or digest.hexdigest() != header.get("payload_sha256"):
         raise ValueError("truncated or corrupted")
-    return pickle.loads(payload)
+    f.seek(end + 1)
+    return pickle.load(f)
+
+
+class _Hashing:
+    """A file writer that hashes and counts what it writes (the payload, written as pickled)."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self.f, self.digest, self.n = f, hashlib.sha256(), 0
+
+    def write(self, b: bytes) -> int:
+        self.digest.update(b)
+        self.n += len(memoryview(b).cast("B"))
+        return self.f.write(b)
 
 
 def store(obj: Any, logs: list[Any], names: list[str], basis: str, seg: Any) -> Path | None:
@@ -329,26 +351,35 @@ def store(obj: Any, logs: list[Any], names: list[str], basis: str, seg: Any) -> 
     path, key = found
     _forget()
     tmp: str | None = None
+    body: str | None = None
     try:
         path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         if not _trusted_dir(path.parent):  # a file there would never be read
             return None
-        payload = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-        header = json.dumps({"format": FORMAT, "key": key, "payload_bytes": len(payload),
-                             "payload_sha256": hashlib.sha256(payload).hexdigest()}, sort_keys=True).encode()
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=SUFFIX, dir=path.parent)
-        with os.fdopen(fd, "wb") as f:
-            f.write(MAGIC + header + b"\n")
-            f.write(payload)
+        # the payload is pickled straight into a file (hashed as it goes), then copied behind the
+        # header, a MB at a time: never the whole pickle in memory beside the object
+        fd, body = tempfile.mkstemp(prefix=".tmp-", suffix=".body", dir=path.parent)
+        with os.fdopen(fd, "w+b") as pf:
+            w = _Hashing(pf)
+            pickle.dump(obj, w, protocol=pickle.HIGHEST_PROTOCOL)
+            header = json.dumps({"format": FORMAT, "key": key, "payload_bytes": w.n,
+                                 "payload_sha256": w.digest.hexdigest()}, sort_keys=True).encode()
+            fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=SUFFIX, dir=path.parent)
+            with os.fdopen(fd, "wb") as f:
+                f.write(MAGIC + header + b"\n")
+                pf.seek(0)
+                while chunk := pf.read(COPY_BYTES):
+                    f.write(chunk)
         os.replace(tmp, path)
         tmp = None
     except Exception as exc:  # noqa: BLE001 - a cache that cannot be written is no cache, never an error
         log.debug("diagnose cache: not written to %s (%s: %s)", path, type(exc).__name__, exc)
         return None
     finally:
-        if tmp is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
+        for leftover in (tmp, body):
+            if leftover is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(leftover)
     _evict(path.parent, keep=path)
     return path
 

@@ -147,6 +147,7 @@ class Hysteresis(BuiltinEffect):
     # objective is smooth in the width for the local refine
     WIDTH_GRID_C = np.geomspace(0.2, 40.0, 121)
     TABLE_BYTES = 16 << 20  # all widths in one pass when the table fits (the 10 s fit blocks)
+    CACHE_BYTES = 8 << 20  # else the states of the widths used last, up to this
 
     def _state(self, ctx, shape: str, k: int) -> np.ndarray:
         n = ctx.temp_smooth_c.shape[0]
@@ -156,10 +157,19 @@ class Hysteresis(BuiltinEffect):
             if table is None:
                 table = ctx.cache[("hyst_table", shape)] = hysteresis_state(ctx.temp_smooth_c, ctx.time_s, g, shape)
             return table[:, k]
+        # one width at a time (a long log), the recent ones kept up to CACHE_BYTES: a cache that kept
+        # every width of every shape grew to 230 MB on a 200 MB log (issue 40); a state evicted is
+        # computed again, the same numbers
         key = ("hyst_z", shape, k)
+        order = ctx.cache.setdefault(("hyst_z_order",), [])
         z = ctx.cache.get(key)
         if z is None:
             z = ctx.cache[key] = hysteresis_state(ctx.temp_smooth_c, ctx.time_s, float(g[k]), shape)
+        else:
+            order.remove(key)
+        order.append(key)
+        while len(order) > 1 and len(order) * n * 8 > self.CACHE_BYTES:
+            del ctx.cache[order.pop(0)]
         return z
 
     def _z(self, ctx, shape: str, width_c: float) -> np.ndarray:

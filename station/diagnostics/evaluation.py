@@ -14,19 +14,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from station.diagnostics.fit import DutFit, block_rms, fit_dut, heldout_blocks, predict_blocks, predict_dut
+from station.diagnostics.fit import DutFit, block_rms, fit_dut, heldout_blocks, predict_blocks, predict_dut, predict_dut_axis
 from station.diagnostics.noise_gls import gls_sigma
 from station.diagnostics.segmentation import DutData
 
 
 @dataclass
 class ModelEval:
-    """A fitted model structure over all DUTs, with its in-sample and held-out residuals on the fit
-    blocks (every figure is computed there); the per-sample residual is computed when asked for."""
+    """A fitted model structure over all DUTs, with its held-out residual on the fit blocks (every
+    figure is computed there); the in-sample ones, on the blocks and per sample, are computed when
+    asked for (a long log's blocks: 2 MB a model and DUT not kept for each of the ranking's models)."""
 
     effects: list[str]
     fits: list[DutFit]
-    resid_block: list[np.ndarray]  # per DUT (n_blocks, 3) mg, in-sample
     heldout_block: list[np.ndarray]  # per DUT (n_blocks, 3) mg, held-out
     data: list[DutData] = field(repr=False, default_factory=list)
     rms_mg: float = 0.0
@@ -38,11 +38,27 @@ class ModelEval:
     _sigma_done: bool = field(repr=False, default=False)
 
     @property
+    def resid_block(self) -> list[np.ndarray]:
+        """Per DUT (n_blocks, 3) mg, in-sample: measured block means - the model's, made when asked
+        for (the few comparisons that read it) rather than kept for every model the ranking fits."""
+        return [d.y_block - predict_blocks(d, f) for d, f in zip(self.data, self.fits)]
+
+    @property
     def resid(self) -> list[np.ndarray]:
         """Per DUT (n, 3) mg: measured - model, sample by sample (plots, saved models)."""
-        if self._resid is None:
-            self._resid = [d.acc_mg - predict_dut(d, f) for d, f in zip(self.data, self.fits)]
+        if self._resid is None:  # measured - model, written over the prediction (one (n, 3) array a DUT)
+            self._resid = [np.subtract(d.acc_mg, p, out=p) for d, f in zip(self.data, self.fits)
+                           for p in (predict_dut(d, f),)]
         return self._resid
+
+    def resid_axis(self, k: int, axis: int) -> np.ndarray:
+        """(n,) DUT k's residual on one axis (measured - model, mg): the cached per-sample residual's
+        column when there is one, else made for that axis alone (the noise view reads a column at a
+        time: a long log's (n, 3) residual is not kept for it)."""
+        if self._resid is not None:
+            return self._resid[k][:, axis]
+        d = self.data[k]
+        return np.subtract(d.acc_mg[:, axis], predict_dut_axis(d, self.fits[k], axis))
 
     def with_sigma(self) -> "ModelEval":
         """Parameter sigmas from the GLS fit under the residual's noise model (for reported models)."""
@@ -75,7 +91,7 @@ def evaluate(data: list[DutData], effects: list[str], basis: str, n_folds: int,
         fits.append(f)
         res.append(d.y_block - predict_blocks(d, f))
         held.append(f.heldout_block if f.heldout_block is not None else heldout_blocks(d, effects, f))
-    m = ModelEval(effects=list(effects), fits=fits, resid_block=res, heldout_block=held, data=data)
+    m = ModelEval(effects=list(effects), fits=fits, heldout_block=held, data=data)
     m.rms_mg = _pooled_rms(data, res, basis)
     m.heldout_rms_mg = _pooled_rms(data, held, basis)
     m.rms_sample_mg = _pooled_rms(data, res, "sample")

@@ -34,6 +34,8 @@ from station.diagnostics.effects import Effect, get_effect
 from station.diagnostics.fold_support import unsupported
 from station.diagnostics.rms import block_rms, window_rms
 from station.diagnostics.segmentation import DutData, train_mask
+from station.science.chunked import pieces
+from contracts.types import T_REF_C
 
 
 @dataclass
@@ -68,7 +70,8 @@ def _solve(A: np.ndarray, yw: np.ndarray, want_cov: bool = True):
     cov = np.full((A.shape[1], A.shape[1]), np.nan)
     if live.any():
         scale = norm[live]
-        As = A[:, live] / scale  # (the mask's copy is column-major: every product below depends on it)
+        As = A[:, live]  # (the mask's copy is column-major: every product below depends on it)
+        As /= scale
         G = As.T @ As
         try:
             c, info = dpotrf(G, lower=0, clean=0, overwrite_a=0)
@@ -96,7 +99,8 @@ def _solve(A: np.ndarray, yw: np.ndarray, want_cov: bool = True):
 def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray, passes: int = 3,
            want_cov: bool = True):
     """Linear solve with the Acc0 fixed-point iteration; returns betas, covs, acc0, residuals,
-    the last pass's (training-block) design per axis and the parameter names."""
+    the number of columns of the last pass's design per axis and the parameter names (the designs
+    themselves are not kept: three of them are 40 MB on a 200 MB log's blocks)."""
     d = design.d
     P = len(d.pos_labels)
     acc0 = acc0_init.copy()
@@ -105,7 +109,7 @@ def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray,
     sw = np.sqrt(d.block_count if rows is None else d.block_count[rows])
     yw_all = (d.y_block if rows is None else d.y_block[rows]) * sw[:, None]
     names = design.names()
-    mats: list[np.ndarray] = []
+    mats: list[int] = []
     for _ in range(passes):
         full = design.block_parts(nl, acc0)
         parts = full if rows is None else full.rows(rows)
@@ -122,12 +126,12 @@ def _inner(design: _Design, nl, train_blocks: np.ndarray, acc0_init: np.ndarray,
                 w_i = weak[i] | unsupported(full.matrix(i), rows, P, X_train=Xb)
                 if w_i.any():
                     Xb[:, P + 2:][:, w_i] = 0.0
-            A = Xb * sw[:, None]
+            A = np.multiply(Xb, sw[:, None], out=Xb)  # Xb * sw in place: the design is not needed after
             yw = yw_all[:, i]
             beta, cov, live = _solve(A, yw, want_cov=want_cov)
             betas.append(beta)
             covs.append(cov)
-            mats.append(Xb)
+            mats.append(Xb.shape[1])
             res.append(yw - A @ beta)
             present = live[:P]
             new_acc0[present, i] = beta[:P][present]
@@ -364,7 +368,7 @@ def _finish(d: DutData, effect_names: list[str], design: _Design, nl: dict, nl_s
     tau = np.array([_tau_int(x) for x in rk]) if want_sigma else np.ones(3)
     sig = []
     for i in range(3):
-        ncol = mats[i].shape[1]
+        ncol = mats[i]
         s2 = ssr[i] / max(1.0, nb - ncol) * tau[i]
         sig.append(np.sqrt(np.maximum(np.diag(covs[i]), 0.0) * s2))
     for name in nl_sigma:
@@ -393,10 +397,35 @@ def _tau_int(x: np.ndarray) -> float:
     return float(min(max(tau, 1.0), n))
 
 
+def _predict_baseline(d: DutData, fit: DutFit, axes: tuple[int, ...]) -> np.ndarray:
+    """The baseline's prediction (n, len(axes)) in mg, sample by sample, a piece at a time (no
+    per-sample temporaries of the whole log); NaN for orientations the fit never saw."""
+    P = len(d.pos_labels)
+    pred = np.empty((d.n, len(axes)))
+    acc0 = np.nan_to_num(fit.acc0_g)
+    for a, b in pieces([(0, d.n)]):
+        pos = d.pos[a:b]
+        a0_p, dt_c = acc0[pos], d.temp_c[a:b] - T_REF_C
+        for j, i in enumerate(axes):
+            bi = fit.beta[i]
+            pred[a:b, j] = 1000.0 * bi[:P][pos] + dt_c * (bi[P] + bi[P + 1] * a0_p[:, i] * 1e-3)
+        pred[a:b][np.isnan(fit.acc0_g[pos]).any(axis=1)] = np.nan
+    return pred
+
+
+def predict_dut_axis(d: DutData, fit: DutFit, axis: int) -> np.ndarray:
+    """predict_dut(d, fit)[:, axis], for the baseline without the other two axes."""
+    if not fit.effects:
+        return _predict_baseline(d, fit, (axis,))[:, 0]
+    return predict_dut(d, fit)[:, axis].copy()
+
+
 def predict_dut(d: DutData, fit: DutFit) -> np.ndarray:
     """Model prediction per sample (n, 3) in mg; NaN for orientations the fit never saw."""
     design = _Design(d, [get_effect(n) for n in fit.effects])
     P = len(d.pos_labels)
+    if not design.effects:
+        return _predict_baseline(d, fit, (0, 1, 2))
     a0 = np.nan_to_num(fit.acc0_g)[d.pos]  # (n, 3)
     ctx = design.context(fit.nl, a0)
     pred = np.empty((d.n, 3))
@@ -461,4 +490,4 @@ def heldout_blocks(d: DutData, effect_names: list[str], full: DutFit, max_nfev: 
     return out
 
 
-__all__ = ["DutFit", "fit_dut", "predict_dut", "predict_blocks", "window_rms", "block_rms", "heldout_blocks"]
+__all__ = ["DutFit", "fit_dut", "predict_dut", "predict_dut_axis", "predict_blocks", "window_rms", "block_rms", "heldout_blocks"]

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from station.science.chunked import median_step_s, pieces
 from station.diagnostics.design import _Design, tdsf_identifiable
 from station.diagnostics.effects import get_effect
 from station.diagnostics.evaluation import ModelEval
@@ -129,17 +130,21 @@ def ramp_rates(d: DutData) -> list[float]:
     t, T = d.time_s, d.temp_smooth_c
     if t.size < 10:
         return []
-    dt = float(np.median(np.diff(t)))
+    dt = median_step_s(t)
     h = max(1, int(round(150.0 / dt)))
     if T.size <= 2 * h:
         return []
-    rate = np.abs(T[2 * h:] - T[:-2 * h]) / (t[2 * h:] - t[:-2 * h]) * 60.0
-    ramp = rate[rate > 0.25]
-    if ramp.size < 0.02 * rate.size or ramp.size == 0:
-        return []
     edges = np.arange(-2.0, 5.01, 0.5)
-    hist, _ = np.histogram(np.log2(ramp), bins=edges)
-    frac = hist / ramp.size
+    hist = np.zeros(edges.size - 1, dtype=np.int64)
+    n_rate, n_ramp = T.size - 2 * h, 0
+    for a, b in pieces([(0, n_rate)]):  # the rates a piece at a time: the counts add up
+        rate = np.abs(T[a + 2 * h:b + 2 * h] - T[a:b]) / (t[a + 2 * h:b + 2 * h] - t[a:b]) * 60.0
+        ramp = rate[rate > 0.25]
+        n_ramp += ramp.size
+        hist += np.histogram(np.log2(ramp), bins=edges)[0]
+    if n_ramp < 0.02 * n_rate or n_ramp == 0:
+        return []
+    frac = hist / n_ramp
     centers = 2.0 ** (0.5 * (edges[:-1] + edges[1:]))
     return [round(float(c), 3) for c, f in zip(centers, frac) if f >= 0.12]
 

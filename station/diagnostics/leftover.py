@@ -42,6 +42,7 @@ from station.diagnostics.fold_support import unsupported
 from station.diagnostics.noise_gls import NoiseFilter, _runs_of_blocks, ar_fit
 from station.diagnostics.report_values import _r
 from station.diagnostics.segmentation import DutData, train_mask
+from station.science.chunked import keep_rows
 from contracts.types import AXES
 
 N_DRAWS = 48
@@ -82,16 +83,37 @@ class AxisLeftover:
         return (self.ratio >= LEFTOVER_RATIO and self.heldout_rms_mg > self.expected_hi_rms_mg) or bool(self.structured)
 
 
+SIM_ROWS = 4096  # blocks of a piece whose draws are made at once (_simulate)
+
+
 def _simulate(nf: NoiseFilter, n: int, pieces: list[np.ndarray], rng: np.random.Generator, k: int) -> np.ndarray:
-    """k draws (n, k) of the fitted noise: AR(p) innovations through the local level (IMA(1,1))."""
+    """k draws (n, k) of the fitted noise: AR(p) innovations through the local level (IMA(1,1)).
+
+    Each piece is drawn SIM_ROWS rows at a time, the filters' states carried from one to the next:
+    the same stream of normals and the same recursions as the whole piece at once (a long log's
+    piece of 80 000 blocks held five arrays of 30 MB)."""
     out = np.zeros((n, k))
+    a_ar = np.concatenate([[1.0], -nf.phi])
     for idx in pieces:
         m = idx.size
         burn = 4 * max(nf.phi.size, 1)
-        w = rng.standard_normal((m + burn, k)) * nf.sigma
-        u = lfilter([1.0], np.concatenate([[1.0], -nf.phi]), w, axis=0) if nf.phi.size else w
-        y = lfilter([1.0, -nf.theta], [1.0, -1.0], u[burn:], axis=0)
-        out[idx] = y - y[:1]
+        zi_u = np.zeros((a_ar.size - 1, k))
+        zi_y = np.zeros((1, k))
+        first: np.ndarray | None = None
+        for row in range(0, m + burn, SIM_ROWS):
+            w = rng.standard_normal((min(SIM_ROWS, m + burn - row), k)) * nf.sigma
+            if nf.phi.size:
+                u, zi_u = lfilter([1.0], a_ar, w, axis=0, zi=zi_u)
+            else:
+                u = w
+            lo = max(burn - row, 0)  # the burn-in rows only settle the AR filter
+            if lo >= u.shape[0]:
+                continue
+            y, zi_y = lfilter([1.0, -nf.theta], [1.0, -1.0], u[lo:], axis=0, zi=zi_y)
+            if first is None:
+                first = y[:1].copy()
+            j = row + lo - burn
+            out[idx[j:j + y.shape[0]]] = y - first
     return out
 
 
@@ -118,7 +140,8 @@ def _explained(x: np.ndarray, w: np.ndarray, g: np.ndarray) -> np.ndarray:
     means = np.stack([np.bincount(g, weights=w * x[:, j], minlength=ng) for j in range(x.shape[1])], axis=1)
     means = np.divide(means, wsum[:, None], out=np.zeros_like(means), where=wsum[:, None] > 0)
     mu = (w @ x) / w.sum()
-    sst = w @ (x - mu) ** 2
+    dev = x - mu
+    sst = w @ np.square(dev, out=dev)  # (x - mu) ** 2 in one buffer
     ssb = wsum @ (means - mu) ** 2
     n, groups = x.shape[0], int(np.count_nonzero(wsum))
     adj = (sst - ssb) / max(n - groups, 1) / np.maximum(sst / max(n - 1, 1), 1e-300)
@@ -138,9 +161,12 @@ def _window_ms(d: DutData, r: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 def _heldout(d: DutData, X: np.ndarray, Y: np.ndarray, P: int) -> np.ndarray:
     """Held-out residual of every column of Y (n_blocks, k) under the design X, linear refit per
-    fold on its training blocks (the ranking's folds and guards)."""
-    out = np.full_like(Y, np.nan)
+    fold on its training blocks (the ranking's folds and guards). Written over Y (returned): every
+    fold's refit is made first, from the draws as they are, then each fold's held-out rows (the
+    folds' test rows do not overlap) are replaced by their residual, the others by NaN: no second
+    array of the draws' size (48 columns of a long log's blocks)."""
     sw = np.sqrt(d.block_count)
+    refits: list[tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]] = []  # (test rows, live, coef, unseen)
     for k in range(d.n_folds):
         test = d.block_fold == k
         train = train_mask(d, k)
@@ -154,17 +180,25 @@ def _heldout(d: DutData, X: np.ndarray, Y: np.ndarray, P: int) -> np.ndarray:
             live[P + 2:] &= np.abs(X[train][:, P + 2:]).max(axis=0) >= 1e-2 * full_max
             live[P + 2:] &= ~unsupported(X, np.flatnonzero(train), P)  # the fit's rule (fold_support.py)
         A = X[train][:, live] * sw[train, None]
-        coef, *_ = np.linalg.lstsq(A, Y[train] * sw[train, None], rcond=None)
-        r = Y[test] - X[test][:, live] @ coef
+        B = Y[train]
+        B *= sw[train, None]  # Y[train] * sw, in its own copy
+        coef, *_ = np.linalg.lstsq(A, B, rcond=None)
+        del A, B
         # orientations with no training block: their offset comes from the held-out leg itself
         unseen = [p for p in range(P) if not (train & (d.block_pos == p)).any()]
+        refits.append((test, live, coef, unseen))
+    covered = np.zeros(Y.shape[0], dtype=bool)
+    for test, live, coef, unseen in refits:
+        r = Y[test] - X[test][:, live] @ coef
         tp = d.block_pos[test]
         for p in unseen:
             sel = tp == p
             if sel.any():
                 r[sel] -= np.average(r[sel], axis=0, weights=d.block_count[test][sel])
-        out[test] = r
-    return out
+        Y[test] = r
+        covered |= test
+    Y[~covered] = np.nan
+    return Y
 
 
 def dut_leftover(d: DutData, fit: DutFit, heldout_block: np.ndarray, seed: int = 0) -> dict[str, AxisLeftover]:
@@ -193,10 +227,12 @@ def dut_leftover(d: DutData, fit: DutFit, heldout_block: np.ndarray, seed: int =
         ms = float(_window_ms(d, h, okd)[0])
         views = {}
         structured = []
+        draws_ok = keep_rows(okd, draws)[0]  # the compared rows, moved to the front of the draws (no copy)
+        del draws
         for name, g in groups.items():
             gg = np.unique(g[okd], return_inverse=True)[1]
             real = float(_explained(h[okd], w[okd], gg)[0])
-            noise = _explained(draws[okd], w[okd], gg)
+            noise = _explained(draws_ok, w[okd], gg)
             views[name] = real - float(np.mean(noise))
             if name in COVARIATE_VIEWS and views[name] >= VIEW_MIN_EXCESS and real > float(np.max(noise)):
                 structured.append(name)

@@ -37,7 +37,7 @@ def block_resid(d: DutData, r: np.ndarray) -> np.ndarray:
 def n_eff_axes(d: DutData, r: np.ndarray) -> np.ndarray:
     """Effective number of independent block means per axis (autocorrelation within runs)."""
     rb = block_resid(d, r)
-    run_b = d.run[d.block_starts]
+    run_b = d.block_run
     out = np.zeros(3)
     for i in range(3):
         taus, counts = [], []

@@ -38,6 +38,7 @@ import math
 
 import numpy as np
 
+from station.science.chunked import median_step_s
 from station.diagnostics.allan import (  # noqa: F401  (allan, noise_terms: re-exported, the noise view's API)
     MIN_PIECE, AllanCurve, _fmt_tau, _list, _num, allan, allan_pieces, noise_terms,
 )
@@ -218,9 +219,10 @@ def compare_residual_to_sensor(resid_curve: AllanCurve, static_curve: AllanCurve
 def _block_arrays(d):
     bs = np.asarray(d.block_starts, dtype=np.int64)
     be = np.concatenate([bs[1:], [d.n]])
-    tmin = np.minimum.reduceat(d.temp_smooth_c, bs)
-    tmax = np.maximum.reduceat(d.temp_smooth_c, bs)
-    return bs, be, d.time_s[bs], d.time_s[be - 1], tmin, tmax, np.asarray(d.run)[bs]
+    ts = d.temp_smooth_c
+    tmin = np.minimum.reduceat(ts, bs)
+    tmax = np.maximum.reduceat(ts, bs)
+    return bs, be, d.time_s[bs], d.time_s[be - 1], tmin, tmax, np.asarray(d.block_run)
 
 
 def _run_ranges(run_b: np.ndarray) -> list[tuple[int, int]]:
@@ -271,7 +273,7 @@ def static_segment(d) -> dict:
     n = d.n
     if n < MIN_PIECE:
         return {"found": False, "note": "no static segment in this log (too few samples)"}
-    dt = float(np.median(np.diff(d.time_s)))
+    dt = median_step_s(d.time_s)
     bs, be, t0, t1, tmin, tmax, run_b = _block_arrays(d)
     runs = _run_ranges(run_b)
     best = (0.0, 0, 0)
@@ -320,12 +322,11 @@ def static_segment(d) -> dict:
 
 def _finite_ranges(d, x: np.ndarray) -> list[tuple[int, int]]:
     """(a, b) sample ranges of x (n,) that are NaN-free and inside one constant-orientation run."""
-    run = np.asarray(d.run)
-    cut = np.flatnonzero(np.diff(run) != 0) + 1
-    ok = np.isfinite(x).astype(np.int8)
+    run_b = np.asarray(d.block_run)  # a run changes only where a block starts
+    cut = np.asarray(d.block_starts)[np.flatnonzero(np.diff(run_b) != 0) + 1]
     out = []
-    for a, b in zip(np.concatenate([[0], cut]), np.concatenate([cut, [run.size]])):
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok[a:b], [0]])))
+    for a, b in zip(np.concatenate([[0], cut]), np.concatenate([cut, [d.n]])):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], np.isfinite(x[a:b]).astype(np.int8), [0]])))
         out += [(a + p, a + q) for p, q in zip(edges[::2], edges[1::2]) if q - p >= MIN_PIECE]
     return out
 
@@ -342,12 +343,12 @@ def temperature_input_noise(d, model_mg: np.ndarray, axis: int, window_s: float 
     Returns the pieces (as residual_pieces) and the overall c."""
     from station.diagnostics.effects import smooth_temperature
 
-    e_all = d.temp_c - d.temp_smooth_c
     pieces, num, den = [], 0.0, 0.0
+    ts = d.temp_smooth_c
     for a, b in _finite_ranges(d, model_mg[:, axis]):
         m = model_mg[a:b, axis]
         hp = m - smooth_temperature(m, d.time_s[a:b], window_s)
-        e = e_all[a:b]
+        e = d.temp_c[a:b] - ts[a:b]
         ee = float(e @ e)
         c = float(hp @ e) / ee if ee > 0 else 0.0
         num += float(hp @ e)
@@ -371,14 +372,15 @@ def noise_view(report, k: int = 0) -> dict:
     constant-orientation runs) against the sensor's static segment, per axis, with the sensor's noise
     terms, the model's own input noise and statements in words; JSON-safe."""
     d = report.data[k]
-    resid = np.asarray(report.model.resid[k], dtype=np.float64)
-    model = d.acc_mg - resid
-    rate = 1.0 / float(np.median(np.diff(d.time_s)))
+    rate = 1.0 / median_step_s(d.time_s)
     seg = static_segment(d)
     axes = {}
-    for i, ax in enumerate(AXES):
-        rc = allan_pieces(residual_pieces(d, resid, i), rate)
-        mpieces, coef = temperature_input_noise(d, model, i)
+    for i, ax in enumerate(AXES):  # one axis at a time: its residual and model, not the (n, 3) ones
+        resid_i = np.asarray(report.model.resid_axis(k, i), dtype=np.float64)[:, None]
+        rc = allan_pieces(residual_pieces(d, resid_i, 0), rate)
+        model_i = (d.acc_mg[:, i] - resid_i[:, 0])[:, None]
+        del resid_i
+        mpieces, coef = temperature_input_noise(d, model_i, 0)
         mc = allan_pieces(mpieces, rate)
         entry: dict = {"residual": rc.to_json(), "residual_terms": noise_terms(rc), "model_noise": mc.to_json(),
                        "model_temperature_coef_mg_per_c": _num(coef)}

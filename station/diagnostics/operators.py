@@ -12,6 +12,8 @@ import math
 import numpy as np
 from scipy.signal import lfilter
 
+from station.science.chunked import PIECE, median_step_s
+
 
 
 
@@ -25,7 +27,7 @@ def lag_filter(x: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
     if x.size == 0:
         return x.copy()
-    dt = max(float(np.median(np.diff(time_s))) if x.size > 1 else 1.0, 1e-9)
+    dt = max(median_step_s(time_s) if x.size > 1 else 1.0, 1e-9)
     tau = max(tau_s, 1e-9)
     a = math.exp(-dt / tau)
     b0 = 1.0 - (tau / dt) * (1.0 - a)
@@ -35,18 +37,37 @@ def lag_filter(x: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
 
 
 def smooth_temperature(temp_c: np.ndarray, time_s: np.ndarray, window_s: float = 60.0) -> np.ndarray:
-    """Zero-phase moving average: removes the 1 C quantization staircase and its dither, no lag."""
+    """Zero-phase moving average: removes the 1 C quantization staircase and its dither, no lag.
+
+    The running sum is taken a piece at a time, carried from piece to piece in the order one
+    np.cumsum over the padded record adds (issue 40: the same bits, and the output is the one array
+    of the record's length it makes)."""
     n = temp_c.shape[0]
     if n < 3:
         return temp_c.astype(np.float64).copy()
-    dt = float(np.median(np.diff(time_s)))
+    dt = median_step_s(time_s)
     w = max(1, int(round(window_s / max(dt, 1e-9))))
     if w <= 1:
         return temp_c.astype(np.float64).copy()
     half = w // 2
-    padded = np.concatenate([np.full(half, temp_c[0]), temp_c, np.full(w - half - 1, temp_c[-1])])
-    c = np.concatenate([[0.0], np.cumsum(padded, dtype=np.float64)])
-    return (c[w:] - c[:-w]) / w
+    x = np.asarray(temp_c, dtype=np.float64)
+    first, last = x[0], x[-1]
+
+    def padded(a: int, b: int) -> np.ndarray:
+        """Samples [a, b) of [first] * half + temp_c + [last] * (w - half - 1)."""
+        lo, hi = max(a, half), min(b, half + n)
+        mid = x[lo - half:hi - half] if hi > lo else x[:0]
+        return np.concatenate([np.full(max(min(b, half) - a, 0), first), mid,
+                               np.full(max(b - max(a, half + n), 0), last)])
+
+    out = np.empty(n)
+    carry = np.zeros(1)  # c[a]: the running sum before padded sample a
+    for a in range(0, n, PIECE):  # outputs a..b-1 need c[a..b-1+w]
+        b = min(a + PIECE, n)
+        c = np.cumsum(np.concatenate([carry, padded(a, b + w - 1)]), dtype=np.float64)
+        out[a:b] = (c[w:] - c[:-w]) / w
+        carry = c[b - a:b - a + 1]
+    return out
 
 
 def hysteresis_state(temp_c: np.ndarray, time_s: np.ndarray, width_c, shape: str = "smooth",
@@ -63,7 +84,7 @@ def hysteresis_state(temp_c: np.ndarray, time_s: np.ndarray, width_c, shape: str
     n = temp_c.shape[0]
     if n == 0:
         return np.zeros((0,) if np.ndim(width_c) == 0 else (0, widths.size))
-    dt = float(np.median(np.diff(time_s))) if n > 1 else grid_s
+    dt = median_step_s(time_s) if n > 1 else grid_s
     step = max(1, int(round(grid_s / max(dt, 1e-9))))
     idx = np.arange(0, n, step)
     if idx[-1] != n - 1:

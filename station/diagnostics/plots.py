@@ -103,7 +103,7 @@ def _wmean(d, x: np.ndarray) -> np.ndarray:
     x2 = x.reshape(d.n, -1)
     ok = ~np.isnan(x2).any(axis=1)
     w = d.window[ok]
-    cnt = np.bincount(w, minlength=int(d.window.max()) + 1).astype(float)
+    cnt = np.bincount(w, minlength=int(d.block_window.max()) + 1).astype(float)
     out = np.stack([np.bincount(w, weights=x2[ok, k], minlength=cnt.size) for k in range(x2.shape[1])], axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = out / cnt[:, None]

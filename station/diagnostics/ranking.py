@@ -187,7 +187,7 @@ def _log_key(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation
     for lg in logs:
         for arr in (lg.time_s, lg.acc_g, lg.temp_c, lg.position, lg.lamp):
             if arr is not None:
-                h.update(np.ascontiguousarray(arr).tobytes())
+                h.update(np.ascontiguousarray(arr))  # the array's bytes, without a copy of them
         h.update(repr(sorted((k, str(v)) for k, v in lg.meta.items())).encode())
     effs = tuple((n, type(REGISTRY[n]).__qualname__, id(REGISTRY[n])) for n in names)
     return h.hexdigest(), effs, basis, repr(seg)
@@ -195,12 +195,15 @@ def _log_key(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation
 
 def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candidates: list[str] | None = None,
              effects_file: str | None = None, basis: str = "window", seg: Segmentation | None = None,
-             ) -> DiagnosisReport:
+             consume_logs: bool = False) -> DiagnosisReport:
     """Fit the baseline, rank candidate effects, refit with `add`; one DUT or a batch together.
 
     basis: "sample" (RMS of every sample's residual) or "window" (RMS of 1-minute means).
     The ranked state of the last few logs is kept in memory (keyed by the logs' content and the
     candidate set), so asking again with other `add` effects refits only the new models.
+    consume_logs: the logs' arrays may be overwritten while they are prepared (segmentation.prepare
+    consume): `station diagnose` reads them for this call alone, and a long log then costs no second
+    copy of itself. The logs are not to be used afterwards.
     """
     if effects_file:
         load_effects_file(effects_file)
@@ -221,7 +224,7 @@ def diagnose(logs: list[DutLog] | list[str], add: list[str] | tuple = (), candid
 
         ranked = disk_cache.load(logs, names, basis, seg, Ranked)
         if ranked is None:
-            ranked = _rank(logs, names, basis, seg)
+            ranked = _rank(logs, names, basis, seg, consume_logs)
             disk_cache.store(ranked, logs, names, basis, seg)
         _RANKED[key] = ranked
         while len(_RANKED) > RANKED_CACHE_SIZE:
@@ -238,10 +241,11 @@ def with_added(report: DiagnosisReport, add: list[str]) -> DiagnosisReport:
     return _report(report.ranked, list(dict.fromkeys(add)))
 
 
-def _rank(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation) -> Ranked:
-    data = [prepare(lg, seg) for lg in logs]
+def _rank(logs: list[DutLog], names: list[str], basis: str, seg: Segmentation, consume: bool = False) -> Ranked:
+    data = [prepare(lg, seg, consume) for lg in logs]
     for d in data:
-        span = float(np.max(d.temp_smooth_c) - np.min(d.temp_smooth_c))
+        ts = d.temp_smooth_c
+        span = float(np.max(ts) - np.min(ts))
         if span < MIN_TEMP_SPAN_C:
             raise StationError(f"{d.serial}: the temperature spans only {span:.1f} C; the thermal model needs "
                                f"at least {MIN_TEMP_SPAN_C:g} C (a ramp or temperature plateaus)")

@@ -46,16 +46,23 @@ Details:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
+
 import numpy as np
 
 from station.science.bias_wander import (LAG_SIGMA_S, NO_WANDER, WANDER_BY_SENSOR, BiasWander,  # noqa: F401 (re-exported)
                                          characterise_bias_wander,
                                          wander_for)
+from station.science.chunked import (PIECE, diffs, median_into, median_step_s, pairwise_sum, pieces, rows_sum,
+                                     split_bounds, values)
 from station.science.drift_coefficients import InsufficientData, build_result
 from station.science.gate_trace import GateTrace, trace_gate
 from station.science.part_noise import PartNoise, measure_part_noise
 from station.science.streaming_config import StreamingConfig
 from contracts.types import ThermalResult
+
+
+ONE_PASS_SAMPLES = 1 << 18  # an orientation's regression in one piece up to this (~20 MB of temporaries)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -68,41 +75,67 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(starts.tolist(), ends.tolist()))
 
 
+def robust_sigma_g(acc_g: np.ndarray, trace: GateTrace, mask: np.ndarray) -> np.ndarray:
+    """(3,) 1.4826 x the median absolute deviation of raw - filtered acceleration over the masked
+    samples, per axis: one axis at a time in one buffer of the masked count (the same medians as of
+    the (n, 3) residual, without it)."""
+    acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
+    out = np.empty(3)
+    buf = np.empty(int(np.count_nonzero(mask)))
+    for k in range(3):
+        w = 0
+        for a, b in trace.spans():
+            r = (acc[a:b, k] - trace.acc_filt_between(a, b)[:, k])[mask[a:b]]
+            buf[w:w + r.shape[0]] = r
+            w += r.shape[0]
+        buf -= median_into(buf)
+        np.abs(buf, out=buf)
+        out[k] = 1.4826 * median_into(buf)
+    return out
+
+
 def usable_mask(acc_g: np.ndarray, trace: GateTrace, still_sigma: float = 8.0, floor_g: float = 2e-4) -> np.ndarray:
     """Thermally stable (gate open) and mechanically still samples."""
+    acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
     stable = trace.stable
-    resid = acc_g - trace.acc_filt_g
-    if stable.sum() >= 10:
-        r = resid[stable]
-        sigma = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+    if np.count_nonzero(stable) >= 10:
+        sigma = robust_sigma_g(acc, trace, stable)
     else:
         sigma = np.zeros(3)
     tol = np.maximum(still_sigma * sigma, floor_g)
-    still = np.all(np.abs(resid) < tol, axis=1)
-    return stable & still
+    use = np.empty(stable.shape[0], dtype=bool)
+    for a, b in trace.spans():  # still: |raw - filtered| under tol on every axis
+        use[a:b] = stable[a:b] & np.all(np.abs(acc[a:b] - trace.acc_filt_between(a, b)) < tol, axis=1)
+    return use
 
 
 def white_density_ug_per_sqrt_hz(time_s, acc_g, trace: GateTrace, use: np.ndarray, alpha: float) -> float:
     """White noise density (mean over axes) of the usable samples: robust sigma of raw - filtered,
     corrected for the filter (var(e) = var_w 2 (1 - a)/(2 - a)), over sqrt(ODR / 2)."""
     t = np.asarray(time_s, dtype=np.float64)
-    if use.sum() < 50 or t.size < 2 or not np.median(np.diff(t)) > 0:
+    if np.count_nonzero(use) < 50 or t.size < 2:
         return float("nan")
-    r = (np.asarray(acc_g) - trace.acc_filt_g)[use]
-    sg = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+    dt = median_step_s(t)
+    if not dt > 0:
+        return float("nan")
+    sg = robust_sigma_g(acc_g, trace, use)
     sg = sg / math.sqrt(2.0 * (1.0 - alpha) / (2.0 - alpha))
-    return float(np.mean(sg)) / math.sqrt(0.5 / float(np.median(np.diff(t)))) * 1e6
+    return float(np.mean(sg)) / math.sqrt(0.5 / dt) * 1e6
 
 
 def temperature_quantum_c(temp_c) -> float:
     """Step of the temperature reading (LIS3DSH 1 C, ADXL355 ~0.11 C); 0 for a continuous reading."""
-    lv = np.unique(np.asarray(temp_c, dtype=np.float64))
+    return _quantum_of_levels(np.unique(np.asarray(temp_c, dtype=np.float64)), np.asarray(temp_c).size)
+
+
+def _quantum_of_levels(lv: np.ndarray, n: int) -> float:
+    """temperature_quantum_c from the distinct readings lv (sorted) of n samples."""
     if lv.size < 2:
         return 0.0
     d = np.diff(lv)
     d = d[d > 1e-9]
     q = float(d.min()) if d.size else 0.0
-    if q < 1e-3 or lv.size > 0.25 * np.asarray(temp_c).size:
+    if q < 1e-3 or lv.size > 0.25 * n:
         return 0.0
     return q
 
@@ -110,10 +143,10 @@ def temperature_quantum_c(temp_c) -> float:
 def temperature_dither_c(temp_c, runs, quantum_c: float) -> float:
     """Reading noise before quantisation: var(first differences)/2 = s^2 + q^2/12 within runs."""
     temp = np.asarray(temp_c, dtype=np.float64)
-    d = np.concatenate([np.diff(temp[s:e]) for s, e in runs]) if runs else np.empty(0)
-    if d.size < 10:
+    d = diffs(temp, runs)  # the runs' differences, a piece at a time
+    if d.n < 10:
         return 0.0
-    return math.sqrt(max(0.5 * float(np.mean(d * d)) - quantum_c ** 2 / 12.0, 0.0))
+    return math.sqrt(max(0.5 * (pairwise_sum(lambda a, b: d.piece(a, b) ** 2, d.n) / d.n) - quantum_c ** 2 / 12.0, 0.0))
 
 
 def quantiser_amplitudes_c(quantum_c: float, dither_c: float, n_harm: int = 5) -> np.ndarray:
@@ -125,22 +158,52 @@ def quantiser_amplitudes_c(quantum_c: float, dither_c: float, n_harm: int = 5) -
     return quantum_c / (math.pi * k) * np.exp(-2.0 * math.pi ** 2 * k * k * dither_c ** 2 / quantum_c ** 2)
 
 
-def block_features(time_s, temp_filt_c, quantum_c: float, blocks, n_harm: int = 5):
-    """Per block: mean time (s), temperature rate (C/s, of the filtered reading) and the mean phasor
-    exp(2 pi i k T/q) of the filtered temperature for k = 1..n_harm (quantiser phase)."""
+def block_features(time_s, temp_filt_c: np.ndarray | Callable[[int, int], np.ndarray], quantum_c: float,
+                   blocks: Sequence[tuple[int, int]], n_harm: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per block [start, end) of samples: mean time (s), temperature rate (C/s, of the filtered
+    reading) and the mean phasor exp(2 pi i k T/q) of the filtered temperature for k = 1..n_harm
+    (quantiser phase). temp_filt_c: the filtered temperature, an array or a function (a, b) ->
+    its samples [a, b) (GateTrace.temp_filt_between: the trace keeps no copy of it).
+
+    Chunked (issue 40): the blocks are taken in groups of consecutive blocks spanning at most
+    PIECE samples; the group's filtered temperature and its phasors (n_harm complex values a
+    sample) exist for that group only, and each block's figures are those of its own samples,
+    with the same operations as one block at a time (tests/test_long_logs.py)."""
     t = np.asarray(time_s, dtype=np.float64)
-    tf = np.asarray(temp_filt_c, dtype=np.float64)
-    bt, bg, ph = [], [], []
+    temp_of: Callable[[int, int], np.ndarray]
+    if callable(temp_filt_c):
+        temp_of = temp_filt_c
+    else:
+        tf_all = np.asarray(temp_filt_c, dtype=np.float64)
+        temp_of = lambda a, b: tf_all[a:b]  # noqa: E731
     k = np.arange(1, n_harm + 1)
-    for blk in blocks:
-        tb = t[blk]
-        bt.append(tb.mean())
-        bg.append(float(np.polyfit(tb - tb.mean(), tf[blk], 1)[0]) if blk.size >= 3 and np.ptp(tb) > 0 else 0.0)
+    nb = len(blocks)
+    bt, bg = np.empty(nb), np.empty(nb)
+    ph = np.zeros((nb, n_harm), dtype=complex)
+    i = 0
+    while i < nb:
+        j, lo = i + 1, blocks[i][0]  # a group: consecutive blocks, in order, within PIECE samples
+        while j < nb and blocks[j][0] >= blocks[j - 1][1] and blocks[j][1] - lo <= PIECE:
+            j += 1
+        hi = blocks[j - 1][1]
+        tf = temp_of(lo, hi)
         if quantum_c > 0:
-            ph.append(np.exp(2j * np.pi * np.outer(tf[blk], k) / quantum_c).mean(axis=0))
-        else:
-            ph.append(np.zeros(n_harm, dtype=complex))
-    return np.array(bt), np.array(bg), np.array(ph).reshape(len(bt), n_harm)
+            phase = np.exp(2j * np.pi * np.outer(tf, k) / quantum_c)
+        for m in range(i, j):
+            a, b = blocks[m]
+            tb = t[a:b]
+            bt[m] = tb.mean()
+            bg[m] = float(np.polyfit(tb - tb.mean(), tf[a - lo:b - lo], 1)[0]) if b - a >= 3 and np.ptp(tb) > 0 else 0.0
+            if quantum_c > 0:
+                ph[m] = phase[a - lo:b - lo].mean(axis=0)
+        i = j
+    return bt, bg, ph
+
+
+def _levels(temp: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """np.unique(temp[mask]), a chunk at a time (the union of each chunk's distinct values)."""
+    parts = [np.unique(temp[a:b][mask[a:b]]) for a, b in pieces([(0, temp.shape[0])])]
+    return np.unique(np.concatenate(parts)) if parts else np.empty(0)
 
 
 def budget_inputs(time_s, acc_g, temp_c, trace: GateTrace, use: np.ndarray, alpha: float,
@@ -152,7 +215,7 @@ def budget_inputs(time_s, acc_g, temp_c, trace: GateTrace, use: np.ndarray, alph
     noise)`, the class whose level `offline_fit` then measures on the part ("auto") or keeps."""
     temp = np.asarray(temp_c, dtype=np.float64)
     runs = [(s, e) for s, e in _runs(use) if e - s >= 2]
-    quantum = temperature_quantum_c(temp[use]) if use.any() else 0.0
+    quantum = _quantum_of_levels(_levels(temp, use), int(np.count_nonzero(use))) if use.any() else 0.0
     dither = temperature_dither_c(temp, runs, quantum)
     if wander is None:
         wander = NO_WANDER
@@ -221,9 +284,9 @@ def offline_fit(
     still_runs: list[tuple[int, int]] = []
     chord_x: dict[int, float] = {}
     n_runs = 0
+    by_orientation = runs_by_orientation(use, trace.orientation)
     for o in np.unique(trace.orientation):
-        mask = use & (trace.orientation == o)
-        runs = [(s, e) for s, e in _runs(mask) if e - s >= 2]
+        runs = [(s, e) for s, e in by_orientation.get(int(o), []) if e - s >= 2]
         n = sum(e - s for s, e in runs)
         if n < max(cfg.average_samples, 10):
             continue
@@ -231,11 +294,11 @@ def offline_fit(
         bx, by, bn, blocks = [], [], [], []
         for s, e in runs:
             nb = max(1, int(round((e - s) / block_samples)))
-            for blk in np.array_split(np.arange(s, e), nb):
-                bx.append(temp[blk].mean())
-                by.append(acc[blk].mean(axis=0))
-                bn.append(blk.shape[0])
-                blocks.append(blk)
+            for a, b in split_bounds(s, e, nb):
+                bx.append(temp[a:b].mean())
+                by.append(acc[a:b].mean(axis=0))
+                bn.append(b - a)
+                blocks.append((a, b))
         bx, by, bn = np.array(bx), np.array(by), np.array(bn, dtype=np.float64)
         if np.ptp(bx) < span_needed:
             continue
@@ -245,23 +308,7 @@ def offline_fit(
                 "the plate was turned before a segment could be logged"
             )
         n_runs += len(runs)
-        idx = np.concatenate([np.arange(s, e) for s, e in runs])
-        x = temp[idx] - cfg.t_ref_c
-        y = acc[idx]
-        xm = x.mean()
-        ym = y.mean(axis=0)
-        xc = x - xm
-        sxx = float(xc @ xc)
-        sxy = xc @ (y - ym)
-        chord_x[int(o)] = float(xc @ (x * x)) / sxx  # what the slope makes of a curvature c2: c2 * this
-        if eiv_correction:
-            dtemp = np.concatenate([np.diff(temp[s:e]) for s, e in runs])
-            var_noise = 0.5 * float(np.mean(dtemp * dtemp)) if dtemp.size else 0.0
-            sxx_true = sxx - x.shape[0] * var_noise
-            if sxx_true > 0.5 * sxx:  # only a small correction is trusted
-                sxx = sxx_true
-        td = sxy / sxx  # eq. 3 as a regression slope, g/C
-        acc0 = ym - td * xm  # eq. 4: the line at T = t_ref
+        td, acc0, chord_x[int(o)] = _regression(temp, acc, runs, cfg.t_ref_c, eiv_correction)
         still_runs.extend(runs)
         # batch-means slope uncertainty
         m = bx.shape[0]
@@ -287,7 +334,7 @@ def offline_fit(
     noise = part_noise_of(t, acc, sorted(still_runs), cls, wander)
     for o, (var_fit, w_slope, blocks, td) in pending.items():
         # what batch means cannot see: the slope's own weights on the block means
-        bt, bg, ph = block_features(t, trace.temp_filt_c, quantum, blocks)
+        bt, bg, ph = block_features(t, trace.temp_filt_between, quantum, blocks)
         terms = combination_budget(w_slope, bt, bg, ph, td, noise.wander, amps, lag_sigma_s)
         terms["fit"] = var_fit
         budget[o] = terms
@@ -303,6 +350,60 @@ def offline_fit(
     res.wander = noise.wander  # the part's: the residual report of the same record uses it too
     res.part_noise = noise
     return res
+
+
+def runs_by_orientation(use: np.ndarray, orientation: np.ndarray) -> dict[int, list[tuple[int, int]]]:
+    """Per orientation, the [start, end) runs where `use` holds: `_runs(use & (orientation == o))`
+    for every o at once (each run of `use` cut where the orientation changes), in one pass."""
+    change = np.flatnonzero(orientation[1:] != orientation[:-1]) + 1
+    out: dict[int, list[tuple[int, int]]] = {}
+    for s, e in _runs(use):
+        k = int(np.searchsorted(change, s, side="right"))
+        while s < e:
+            cut = int(change[k]) if k < change.shape[0] and change[k] < e else e
+            out.setdefault(int(orientation[s]), []).append((s, cut))
+            s, k = cut, k + 1
+    return out
+
+
+def _regression(temp: np.ndarray, acc: np.ndarray, runs: list[tuple[int, int]], t_ref_c: float,
+                eiv_correction: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """(TD g/C, Acc0 g, chord_x C) of one orientation's samples: acceleration = Acc0 + TD (T - t_ref)
+    by least squares, the slope's errors-in-variables correction (module doc), and what the slope
+    makes of a curvature c2 (c2 * chord_x). An orientation of up to ONE_PASS_SAMPLES samples (every
+    orientation of a 10 h log at 3.125 Hz) is computed in one piece, as it always was, the same bits;
+    a longer one (a long log) in pieces, the same to float rounding (the sums' order differs)."""
+    n = sum(e - s for s, e in runs)
+    if n <= ONE_PASS_SAMPLES:
+        idx = np.concatenate([np.arange(s, e) for s, e in runs])
+        x = temp[idx] - t_ref_c
+        y = acc[idx]
+        xm = x.mean()
+        ym = y.mean(axis=0)
+        xc = x - xm
+        sxx = float(xc @ xc)
+        sxy = xc @ (y - ym)
+        chord = float(xc @ (x * x)) / sxx
+    else:
+        v = values(temp, runs)
+        xm = pairwise_sum(lambda a, b: v.piece(a, b) - t_ref_c, n) / n
+        ym = rows_sum((acc[a:b] for a, b in pieces(runs)), 3) / n
+        sxx, sxy, sxxx = 0.0, np.zeros(3), 0.0
+        for a, b in pieces(runs):
+            x = temp[a:b] - t_ref_c
+            xc = x - xm
+            sxx += float(xc @ xc)
+            sxy += xc @ (acc[a:b] - ym)
+            sxxx += float(xc @ (x * x))
+        chord = sxxx / sxx
+    if eiv_correction:
+        d = diffs(temp, runs)  # the reading's noise: var(first differences) / 2 within runs
+        var_noise = 0.5 * (pairwise_sum(lambda a, b: d.piece(a, b) ** 2, d.n) / d.n) if d.n else 0.0
+        sxx_true = sxx - n * var_noise
+        if sxx_true > 0.5 * sxx:  # only a small correction is trusted
+            sxx = sxx_true
+    td = sxy / sxx  # eq. 3 as a regression slope, g/C
+    return td, ym - td * xm, chord  # eq. 4: the line at T = t_ref
 
 
 def part_noise_of(time_s, acc_g, runs, class_wander: BiasWander, wander: BiasWander | str | None) -> PartNoise:

@@ -35,6 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from station.science.bias_wander import BiasWander
+from station.science.chunked import diffs, median_into, rows_sum
 
 MIN_STILL_SAMPLES = 500  # fewer still samples: the class constant as it is
 SCALE_RANGE = (0.1, 10.0)  # a part is credited with no less than a tenth, no more than ten times its class
@@ -72,11 +73,12 @@ def measure_part_noise(time_s, acc_g, runs: list[tuple[int, int]], class_wander:
     n_still = sum(e - s for s, e in runs)
     if not runs or n_still < MIN_STILL_SAMPLES or not class_wander.white_ug_per_sqrt_hz > 0:
         return PartNoise(class_wander, class_wander, 1.0, n_still, nan3, "class")
-    dt = float(np.median(np.concatenate([np.diff(t[s:e]) for s, e in runs])))
+    dts = diffs(t, runs)  # the runs' differences a piece at a time: bounded memory, numpy's own figures
+    dt = median_into(dts.fill(np.empty(dts.n)))
     if not dt > 0:
         return PartNoise(class_wander, class_wander, 1.0, n_still, nan3, "class")
-    d1 = np.concatenate([np.diff(a[s:e], axis=0) for s, e in runs])
-    var_w = 0.5 * np.mean(d1 * d1, axis=0)  # mean square, not a MAD: the counts' LSB steps bias a MAD
+    d1 = diffs(a, runs)
+    var_w = 0.5 * (rows_sum((d * d for d in d1.chunks()), 3) / d1.n)  # mean square, not a MAD: the counts' LSB steps bias a MAD
     white = np.sqrt(var_w) / math.sqrt(0.5 / dt) * 1e6  # (3,) ug/sqrt(Hz)
     scale = float(np.clip(float(np.mean(white)) / class_wander.white_ug_per_sqrt_hz, *SCALE_RANGE))
     part = replace(class_wander, name=f"{class_wander.name} x{scale:.2f} (measured white noise)",

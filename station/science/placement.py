@@ -33,6 +33,7 @@ import numpy as np
 from contracts.positions import FACING_MAX_ANGLE_DEG, GRAVITY_DIRECTIONS, POSITION_NAMES
 
 PLACEMENT_SETTLE_S = 5.0  # sample seconds a DUT must face a position, without a break, to be placed there
+_ROWS_PER_CHUNK = 1 << 16  # samples whose direction cosines are held at once (direction_ids)
 
 
 def _unique_directions() -> tuple[np.ndarray, np.ndarray]:
@@ -60,13 +61,19 @@ def direction_ids(acc_g: np.ndarray, max_angle_deg: float = FACING_MAX_ANGLE_DEG
     """Per sample, the id of the named direction its gravity points at within max_angle_deg, or -1
     (between positions, or a reading that is not 1 g of gravity alone)."""
     acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
-    if acc.shape[0] == 0:
-        return np.empty(0, dtype=np.int64)
-    norm = np.linalg.norm(acc, axis=1)
-    cos = (acc @ _DIRS.T) / np.where(norm > 0, norm, np.inf)[:, None]
-    best = np.argmax(cos, axis=1)
-    ok = cos[np.arange(acc.shape[0]), best] >= math.cos(math.radians(max_angle_deg))
-    return np.where(ok, best, -1)
+    n = acc.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    limit = math.cos(math.radians(max_angle_deg))
+    # in chunks: the cosines against every named direction are 20 float64 per sample (a 200 MB log
+    # held 1.3 GB of them at once); each row's figures are the same whatever the chunk
+    for a in range(0, n, _ROWS_PER_CHUNK):
+        part = acc[a:a + _ROWS_PER_CHUNK]
+        norm = np.linalg.norm(part, axis=1)
+        cos = (part @ _DIRS.T) / np.where(norm > 0, norm, np.inf)[:, None]
+        best = np.argmax(cos, axis=1)
+        ok = cos[np.arange(part.shape[0]), best] >= limit
+        out[a:a + part.shape[0]] = np.where(ok, best, -1)
+    return out
 
 
 def direction_id(position: int) -> int:
@@ -95,8 +102,22 @@ class Placement:
     _last_t_s: float | None = None
 
     def update(self, time_s: np.ndarray, acc_g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per sample: the direction id it faces (-1: none) and whether the DUT is settled there."""
+        """Per sample: the direction id it faces (-1: none) and whether the DUT is settled there.
+        A long record is walked in chunks (the state carries between them exactly as between two
+        calls), so its temporaries stay a chunk's, whatever the record's length."""
         t = np.asarray(time_s, dtype=np.float64).reshape(-1)
+        acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
+        n = t.shape[0]
+        if n <= _ROWS_PER_CHUNK:
+            return self._update(t, acc)
+        ids = np.empty(n, dtype=np.int64)
+        settled = np.empty(n, dtype=bool)
+        for a in range(0, n, _ROWS_PER_CHUNK):
+            b = min(a + _ROWS_PER_CHUNK, n)
+            ids[a:b], settled[a:b] = self._update(t[a:b], acc[a:b])
+        return ids, settled
+
+    def _update(self, t: np.ndarray, acc_g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ids = direction_ids(acc_g, self.max_angle_deg)
         n = t.shape[0]
         if n == 0:
@@ -173,13 +194,24 @@ def sequence_labels(time_s: np.ndarray, acc_g: np.ndarray, positions: list[int],
 
 
 def settled_labels(time_s: np.ndarray, acc_g: np.ndarray, position: np.ndarray,
-                   settle_s: float = PLACEMENT_SETTLE_S) -> np.ndarray:
+                   settle_s: float = PLACEMENT_SETTLE_S, out: np.ndarray | None = None) -> np.ndarray:
     """A record's own position labels kept only where its samples agree: settled at the labelled
     position (a log whose producer labelled by the button, or switched the label at a turn, keeps
-    the turn and the settling out of the fit as the station would). A label of -1 stays -1."""
+    the turn and the settling out of the fit as the station would). A label of -1 stays -1.
+    out: where the labels go (int64, may be the position column itself: each piece is read before
+    it is written); a new array by default."""
     pos = np.asarray(position, dtype=np.int64).reshape(-1)
-    ids, settled = Placement(settle_s=settle_s).update(time_s, acc_g)
-    ok = pos >= 0
-    want = np.full(pos.shape[0], -2, dtype=np.int64)
-    want[ok] = _CANON[np.clip(pos[ok], 0, len(_CANON) - 1)]
-    return np.where(ok & settled & (ids == want) & (pos < len(_CANON)), pos, -1)
+    t = np.asarray(time_s, dtype=np.float64).reshape(-1)
+    acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
+    walk = Placement(settle_s=settle_s)
+    if out is None:
+        out = np.empty(pos.shape[0], dtype=np.int64)
+    for a in range(0, pos.shape[0], _ROWS_PER_CHUNK):  # a chunk at a time: the temporaries stay small
+        b = a + _ROWS_PER_CHUNK
+        p = pos[a:b]
+        ids, settled = walk.update(t[a:b], acc[a:b])
+        ok = p >= 0
+        want = np.full(p.shape[0], -2, dtype=np.int64)
+        want[ok] = _CANON[np.clip(p[ok], 0, len(_CANON) - 1)]
+        out[a:b] = np.where(ok & settled & (ids == want) & (p < len(_CANON)), p, -1)
+    return out

@@ -36,8 +36,9 @@ import math
 
 import numpy as np
 
-from station.science.offline_fit import (LAG_SIGMA_S, BiasWander, _runs, block_features, budget_inputs,
-                                         combination_budget, usable_mask)
+from station.science.chunked import median_step_s, split_bounds
+from station.science.offline_fit import (LAG_SIGMA_S, BiasWander, block_features, budget_inputs,
+                                         combination_budget, robust_sigma_g, runs_by_orientation, usable_mask)
 from station.science.gate_trace import GateTrace, trace_gate
 from station.science.streaming_config import StreamingConfig
 from station.science.thermal_model import FULL_SCALE_MG, compensate
@@ -131,25 +132,25 @@ def residual_report(
     use = usable_mask(acc, trace)
     tdb = np.asarray(tdb_mg_per_c, dtype=np.float64)
     tdsf = np.asarray(tdsf_ppm_per_c, dtype=np.float64)
-    comp = compensate(acc, temp, tdb, tdsf)
     rng = float(operating_range_c)
     quantum, _, amps, wander = budget_inputs(t, acc, temp, trace, use, cfg.alpha_acc, sensor, wander)
 
     per_gravity: dict[tuple[int, float], list[tuple[float, float]]] = {}
     ramp_ss = np.zeros(3)
     ramp_n = 0
+    by_orientation = runs_by_orientation(use, trace.orientation)
     for o in np.unique(trace.orientation):
-        runs = [(s, e) for s, e in _runs(use & (trace.orientation == o)) if e - s >= 2]
+        runs = [(s, e) for s, e in by_orientation.get(int(o), []) if e - s >= 2]
         if not runs:
             continue
         bx, by, bn, blocks = [], [], [], []
         for s, e in runs:
             nb = max(1, int(round((e - s) / block_samples)))
-            for blk in np.array_split(np.arange(s, e), nb):
-                bx.append(temp[blk].mean() - T_REF_C)
-                by.append(comp[blk].mean(axis=0))
-                bn.append(float(blk.size))
-                blocks.append(blk)
+            for a, b in split_bounds(s, e, nb):
+                bx.append(temp[a:b].mean() - T_REF_C)
+                by.append(compensate(acc[a:b], temp[a:b], tdb, tdsf).mean(axis=0))  # the block's samples only
+                bn.append(float(b - a))
+                blocks.append((a, b))
         bx, by, bn = np.array(bx), np.array(by), np.array(bn)
         if bx.size >= 2:
             ramp_ss += np.sum((by - by.mean(axis=0)) ** 2, axis=0)
@@ -169,7 +170,7 @@ def residual_report(
             w_c2 = (cov_unit @ XtW)[2]
             # wander / quantiser / lag through the curvature's own weights on the block means; a
             # temperature error moves the compensated output by the slope compensation removed
-            bt, bg, ph = block_features(t, trace.temp_filt_c, quantum, blocks)
+            bt, bg, ph = block_features(t, trace.temp_filt_between, quantum, blocks)
             sens = tdb * 1e-3 + tdsf * 1e-6 * by.mean(axis=0)
             terms = combination_budget(w_c2, bt, bg, ph, sens, wander, amps, lag_sigma_s)
             sig = np.sqrt(var_c2 + sum(terms.values()))
@@ -183,12 +184,11 @@ def residual_report(
     c2, c2_sig, e_curv_mg, e_curv_sig_mg = _combine_curvatures(per_gravity, rng)
     ramp_rms = np.sqrt(ramp_ss / ramp_n) * 1e3 if ramp_n else np.full(3, np.nan)
     # noise density
-    dt = np.diff(t)
-    odr = float(1.0 / np.median(dt)) if dt.size and np.median(dt) > 0 else float("nan")
+    dt_med = median_step_s(t) if t.size > 1 else float("nan")
+    odr = float(1.0 / dt_med) if dt_med > 0 else float("nan")
     noise = np.full(3, np.nan)
-    if use.sum() >= 50 and math.isfinite(odr):
-        r = (acc - trace.acc_filt_g)[use]
-        sigma_g = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+    if np.count_nonzero(use) >= 50 and math.isfinite(odr):
+        sigma_g = robust_sigma_g(acc, trace, use)
         # raw - filtered with alpha: var = var_w * (1 - alpha/(2 - alpha))^... ~ var_w * 2/(2 - alpha)
         # for white noise: e = x - y, y_n = a x_n + (1-a) y_{n-1}; var(e) = var_w * 2 (1-a)/(2-a)
         a = cfg.alpha_acc

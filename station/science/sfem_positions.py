@@ -10,10 +10,12 @@ tested on their own.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from station.science.chunked import median_into, median_step_s, pairwise_sum, pieces, rows_mean_std, values
 from station.science.static_detect import StaticDetectConfig, detect_static_intervals
 
 
@@ -63,20 +65,39 @@ def temperature_steps(temps_c: np.ndarray, gap_c: float = 3.0) -> np.ndarray:
 
 
 def _temperature_trend(time_s: np.ndarray, temp_c: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Centred moving mean of the temperature and its rate (C/min) from the two half-window means."""
+    """Centred moving mean of the temperature and its rate (C/min) from the two half-window means.
+    The cumulative sum is the record's one buffer; the rest is computed a piece at a time."""
     n = len(temp_c)
-    dt = float(np.median(np.diff(time_s))) if n > 1 else 1.0
+    dt = median_step_s(time_s) if n > 1 else 1.0
     dt = dt if dt > 0 else 1.0
     h = max(2, int(round(window_s / dt / 2)))
-    c = np.concatenate([[0.0], np.cumsum(temp_c - temp_c[0])])
-    i = np.arange(n)
-    lo, mid, hi = np.clip(i - h, 0, n), i, np.clip(i + h, 0, n)
-    left = (c[mid] - c[lo]) / np.maximum(mid - lo, 1)
-    right = (c[hi] - c[mid]) / np.maximum(hi - mid, 1)
-    smooth = (c[hi] - c[lo]) / np.maximum(hi - lo, 1) + temp_c[0]
-    span_s = 0.5 * ((mid - lo) + (hi - mid)) * dt
-    rate = np.where((mid - lo > 0) & (hi - mid > 0), (right - left) / np.maximum(span_s, 1e-12) * 60.0, 0.0)
+    c = np.empty(n + 1)
+    c[0] = 0.0
+    for a, b in pieces([(0, n)]):  # np.cumsum(temp_c - temp_c[0]), its running sum carried
+        x = temp_c[a:b] - temp_c[0]
+        c[a + 1:b + 1] = np.cumsum(x) if a == 0 else np.cumsum(np.concatenate([c[a:a + 1], x]))[1:]
+    smooth, rate = np.empty(n), np.empty(n)
+    for a, b in pieces([(0, n)]):
+        i = np.arange(a, b)
+        lo, mid, hi = np.clip(i - h, 0, n), i, np.clip(i + h, 0, n)
+        left = (c[mid] - c[lo]) / np.maximum(mid - lo, 1)
+        right = (c[hi] - c[mid]) / np.maximum(hi - mid, 1)
+        smooth[a:b] = (c[hi] - c[lo]) / np.maximum(hi - lo, 1) + temp_c[0]
+        span_s = 0.5 * ((mid - lo) + (hi - mid)) * dt
+        rate[a:b] = np.where((mid - lo > 0) & (hi - mid > 0), (right - left) / np.maximum(span_s, 1e-12) * 60.0, 0.0)
     return smooth, rate
+
+
+def _label_runs(s: int, e: int, cols: list[Callable[[int, int], np.ndarray]]) -> list[tuple[int, int]]:
+    """_runs of rows s..e-1 of the label columns side by side (each col(a, b) gives rows [a, b) as
+    (m, k)), a piece at a time: no (n, k) label array of the whole record."""
+    edges = [s]
+    for a, b in pieces([(s, e)]):
+        hi = min(b + 1, e)  # one row further: the change between this piece and the next
+        lab = np.concatenate([col(a, hi) for col in cols], axis=1)
+        edges.extend((a + np.flatnonzero(np.any(lab[1:] != lab[:-1], axis=1)) + 1).tolist())
+    edges.append(e)
+    return list(zip(edges[:-1], edges[1:])) if e > s else []
 
 
 def group_static_positions(
@@ -119,54 +140,53 @@ def group_static_positions(
     n = a.shape[0]
     temps = np.zeros(n) if temp_c is None else np.asarray(temp_c, dtype=np.float64).reshape(-1)
     refs = None if ref_dir is None else np.asarray(ref_dir, dtype=np.float64).reshape(-1, 3)
-    pos = None if position is None else np.asarray(position).reshape(-1).astype(np.int64)
-    intervals = detect_static_intervals(time_s, a * acc_g_per_raw, cfg)
-    label_cols = []
-    if pos is not None:
-        label_cols.append(pos[:, None].astype(np.float64))
-    if refs is not None:
-        label_cols.append(np.round(refs, 6))
-    labels = np.concatenate(label_cols, axis=1) if label_cols else None
+    pos = None if position is None else np.asarray(position, dtype=np.int64).reshape(-1)  # no copy of an int64 column
+    intervals = detect_static_intervals(time_s, a if acc_g_per_raw == 1.0 else a * acc_g_per_raw, cfg)
     settled = np.ones(n, dtype=bool)
     ts = temps
     if temp_c is not None and time_s is not None and n > 2:
         ts, rate = _temperature_trend(np.asarray(time_s, dtype=np.float64).reshape(-1), temps, temp_window_s)
         settled = np.abs(rate) <= max_temp_rate_c_per_min
-    split_cols = [settled[:, None].astype(np.float64)]
-    if labels is not None:
-        split_cols.append(labels)
-    split = np.concatenate(split_cols, axis=1)
-    pieces: list[tuple[int, int]] = []
-    for iv in intervals:
-        for s, e in _runs(split[iv.start : iv.stop]):
-            if e - s >= cfg.min_samples and settled[iv.start + s]:
-                pieces.append((iv.start + s, iv.start + e))
+        del rate
+    # an interval is cut wherever the soak, the position or the reference changes (label columns
+    # side by side, built a piece at a time: bounded memory on a long log)
+    cols: list[Callable[[int, int], np.ndarray]] = [lambda i, j: settled[i:j, None].astype(np.float64)]
+    if pos is not None:
+        cols.append(lambda i, j: pos[i:j, None].astype(np.float64))
     if refs is not None:
-        pieces = [(s, e) for s, e in pieces if np.all(np.isfinite(refs[s])) and np.linalg.norm(refs[s]) > 0.5]
-    if not pieces:
+        cols.append(lambda i, j: np.round(refs[i:j], 6))
+    cuts: list[tuple[int, int]] = []
+    for iv in intervals:
+        for s, e in _label_runs(iv.start, iv.stop, cols):
+            if e - s >= cfg.min_samples and settled[s]:
+                cuts.append((s, e))
+    if refs is not None:
+        cuts = [(s, e) for s, e in cuts if np.all(np.isfinite(refs[s])) and np.linalg.norm(refs[s]) > 0.5]
+    if not cuts:
         return []
-    piece_temp = np.array([ts[s:e].mean() for s, e in pieces])
+    piece_temp = np.array([ts[s:e].mean() for s, e in cuts])
     steps = temperature_steps(piece_temp, temp_gap_c)
     if temp_c is not None:  # keep only samples near their step's temperature
         kept, kept_steps = [], []
         for step in range(int(steps.max()) + 1):
-            mine = [pc for pc, st in zip(pieces, steps) if st == step]
-            med = float(np.median(np.concatenate([ts[s:e] for s, e in mine])))
-            near = np.abs(ts - med) <= temp_tol_c
+            mine = [pc for pc, st in zip(cuts, steps) if st == step]
+            ts_mine = values(ts, mine)
+            med = median_into(ts_mine.fill(np.empty(ts_mine.n)))
             for s0, e0 in mine:
-                for s, e in _runs(near[s0:e0]):
-                    if e - s >= cfg.min_samples and near[s0 + s]:
+                near = np.abs(ts[s0:e0] - med) <= temp_tol_c
+                for s, e in _runs(near):
+                    if e - s >= cfg.min_samples and near[s]:
                         kept.append((s0 + s, s0 + e))
                         kept_steps.append(step)
         if not kept:
             return []
-        pieces, steps = kept, np.array(kept_steps)
+        cuts, steps = kept, np.array(kept_steps)
     out: list[PositionSet] = []
     cos_merge = math.cos(math.radians(merge_angle_deg))
     for step in range(int(steps.max()) + 1):
         groups: list[list[tuple[int, int]]] = []
         keys: list[object] = []
-        for (s, e), st in zip(pieces, steps):
+        for (s, e), st in zip(cuts, steps):
             if st != step:
                 continue
             if pos is not None and pos[s] >= 0:
@@ -199,17 +219,19 @@ def group_static_positions(
                     s, e = max(spans, key=lambda se: se[1] - se[0])
                     groups[gi] = [(max(s, e - cap), e)]
         means, noise, counts, tmeans, rlist, plist = [], [], [], [], [], []
-        for spans in groups:
-            idx = np.concatenate([np.arange(s, e) for s, e in spans])
-            seg = a[idx]
-            means.append(seg.mean(axis=0))
-            std_g = seg.std(axis=0, ddof=1) * acc_g_per_raw
-            noise.append(float(np.sqrt(np.mean(std_g**2)) / math.sqrt(len(idx))))
-            counts.append(len(idx))
-            tmeans.append(float(temps[idx].mean()))
+        for g in groups:  # each position's samples, read span by span (numpy's own figures, no copy)
+            m = sum(e - s for s, e in g)
+            mean, std = rows_mean_std(lambda: (a[i:j] for i, j in pieces(g)), m)
+            means.append(mean)
+            std_g = std * acc_g_per_raw
+            noise.append(float(np.sqrt(np.mean(std_g**2)) / math.sqrt(m)))
+            counts.append(m)
+            tv = values(temps, g)
+            tmeans.append(float(pairwise_sum(tv.piece, m) / m))
             if refs is not None:
-                rlist.append(np.median(refs[idx], axis=0))
-            plist.append(int(pos[spans[0][0]]) if pos is not None else -1)
+                buf = np.empty(m)
+                rlist.append(np.array([median_into(values(refs[:, k], g).fill(buf)) for k in range(3)]))
+            plist.append(int(pos[g[0][0]]) if pos is not None else -1)
         out.append(
             PositionSet(
                 mean=np.array(means),

@@ -27,6 +27,7 @@ import numpy as np
 from contracts.positions import GRAVITY_DIRECTIONS
 from contracts.sfem_result import SfemResult, SfemStepResult
 from contracts.types import T_REF_C
+from station.science.chunked import keep_rows
 from station.science.placement import settled_labels
 from station.science.sfem import DEFAULT_REF_SIGMA_DEG, MIN_POSITIONS_NORM_ONLY, MIN_POSITIONS_REFERENCE, fit_sfem
 from station.science.sfem_goodness import goodness_of_fit, reference_scatter_deg
@@ -62,29 +63,41 @@ class SfemRecordResult:
 
 def placed_rows(
     time_s: np.ndarray | None, acc: np.ndarray, temp_c: np.ndarray | None, ref_dir: np.ndarray | None,
-    position: np.ndarray | None, acc_g_per_raw: float = 1.0,
+    position: np.ndarray | None, acc_g_per_raw: float = 1.0, in_place: bool = False,
 ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
     """The rows the SFEM fits (module doc): placed samples only when the record says where it was
-    placed, with reference directions from the positions when it has none of its own."""
+    placed, with reference directions from the positions when it has none of its own.
+    in_place: the placed rows are moved to the front of the given arrays (float64, int64 for the
+    position), which are returned cut to them: no copy of a long log (the arrays are spent)."""
     a = np.asarray(acc, dtype=np.float64).reshape(-1, 3)
     if position is None:
         return time_s, a, temp_c, ref_dir, None
-    pos = np.asarray(position).reshape(-1).astype(np.int64)
+    pos = np.asarray(position).reshape(-1).astype(np.int64, copy=not in_place)
     if not (pos >= 0).any():
         return time_s, a, temp_c, ref_dir, pos
     if time_s is not None:
-        pos = settled_labels(np.asarray(time_s, dtype=np.float64), a * acc_g_per_raw, pos)
+        settled_labels(np.asarray(time_s, dtype=np.float64), a if acc_g_per_raw == 1.0 else a * acc_g_per_raw, pos,
+                       out=pos)  # the labels over the column (ours: a copy unless in_place): one array, not two
     keep = pos >= 0
-    t = None if time_s is None else np.asarray(time_s, dtype=np.float64)[keep]
-    tc = None if temp_c is None else np.asarray(temp_c, dtype=np.float64)[keep]
-    pos = pos[keep]
-    if ref_dir is not None:
-        ref = np.asarray(ref_dir, dtype=np.float64).reshape(-1, 3)[keep]
+    if in_place:
+        cols = [x for x in (time_s, temp_c, ref_dir) if x is not None]
+        kept = keep_rows(keep, a, pos, *[np.asarray(x, dtype=np.float64) for x in cols])
+        a, pos, rest = kept[0], kept[1], iter(kept[2:])
+        t = None if time_s is None else next(rest)
+        tc = None if temp_c is None else next(rest)
+        given_ref = None if ref_dir is None else next(rest).reshape(-1, 3)
+    else:
+        t = None if time_s is None else np.asarray(time_s, dtype=np.float64)[keep]
+        tc = None if temp_c is None else np.asarray(temp_c, dtype=np.float64)[keep]
+        given_ref = None if ref_dir is None else np.asarray(ref_dir, dtype=np.float64).reshape(-1, 3)[keep]
+        a, pos = a[keep], pos[keep]
+    if given_ref is not None:
+        ref = given_ref
     elif pos.size and (pos < len(GRAVITY_DIRECTIONS)).all():
         ref = GRAVITY_DIRECTIONS[pos]
     else:
         ref = None
-    return t, a[keep], tc, ref, pos
+    return t, a, tc, ref, pos
 
 
 def fit_step(ps: PositionSet, acc: np.ndarray, norm_only: bool, ref_sigma_deg: float | None,
@@ -130,15 +143,19 @@ def fit_sfem_record(
     acc_g_per_raw: float = 1.0,
     temp_gap_c: float = 3.0,
     t_ref_c: float = T_REF_C,
+    consume: bool = False,
 ) -> SfemRecordResult:
     """Placed rows -> static positions per temperature step -> fit_step per step -> cubic model.
 
     norm_only ignores ref_dir; otherwise reference directions are required (ref_dir, or a position
     column). ref_sigma_deg: the fixture's direction error where a step cannot measure it (None: the
     documented default). Steps with too few positions are skipped (listed in skipped_steps); no
-    usable step raises SfemInsufficientData.
+    usable step raises SfemInsufficientData. consume: the given arrays may be overwritten (their
+    placed rows moved to the front, placed_rows in_place): `station sfem` reads a log for this call
+    alone, and a long log then costs no second copy of its placed rows.
     """
-    time_s, acc, temp_c, ref_dir, position = placed_rows(time_s, acc, temp_c, ref_dir, position, acc_g_per_raw)
+    time_s, acc, temp_c, ref_dir, position = placed_rows(time_s, acc, temp_c, ref_dir, position, acc_g_per_raw,
+                                                         in_place=consume)
     if not norm_only and ref_dir is None:
         raise SfemInsufficientData("no reference directions (ref_x, ref_y, ref_z, or a position column): give them "
                                    "or use a norm-only fit")

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from station.science.chunked import PIECE, diffs, median_into, pieces, rows_mean_std
+
 
 @dataclass(frozen=True)
 class StaticDetectConfig:
@@ -57,12 +59,18 @@ class StaticInterval:
 
 
 def robust_noise_g(acc_g: np.ndarray, floor_g: float = 1e-4) -> np.ndarray:
-    """Per-axis white-noise sigma from the median absolute first difference (motion-insensitive)."""
+    """Per-axis white-noise sigma from the median absolute first difference (motion-insensitive).
+    One axis at a time in one buffer (the same medians as of the (n - 1, 3) differences)."""
     acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
     if acc.shape[0] < 3:
         return np.full(3, floor_g)
-    d = np.diff(acc, axis=0)
-    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    mad = np.empty(3)
+    buf = np.empty(acc.shape[0] - 1)
+    for k in range(3):
+        diffs(acc[:, k], [(0, acc.shape[0])]).fill(buf)
+        buf -= median_into(buf)
+        np.abs(buf, out=buf)
+        mad[k] = median_into(buf)
     return np.maximum(1.4826 * mad / np.sqrt(2.0), floor_g)
 
 
@@ -72,7 +80,11 @@ def _window_sums(x: np.ndarray, w: int) -> np.ndarray:
 
 
 def static_mask(acc_g: np.ndarray, config: StaticDetectConfig | None = None) -> np.ndarray:
-    """Boolean (n,) mask of static samples (before the minimum-length rule)."""
+    """Boolean (n,) mask of static samples (before the minimum-length rule).
+
+    A piece of windows at a time (issue 40): each piece's running sums start from the sums carried
+    from the piece before, added in the same order as one cumulative sum over the record, so every
+    window's figures are the same bits while only a piece of them exists at once."""
     cfg = config or StaticDetectConfig()
     acc = np.asarray(acc_g, dtype=np.float64).reshape(-1, 3)
     n = acc.shape[0]
@@ -82,24 +94,35 @@ def static_mask(acc_g: np.ndarray, config: StaticDetectConfig | None = None) -> 
     if n < w:
         return np.zeros(n, dtype=bool)
     sigma = robust_noise_g(acc, cfg.noise_floor_g)
-    centred = acc - acc.mean(axis=0)  # cumulative sums stay well conditioned
-    s1 = _window_sums(centred, w)
-    s2 = _window_sums(centred**2, w)
-    mean = s1 / w
-    var = np.maximum(s2 / w - mean**2, 0.0) * w / (w - 1)
-    quiet = np.all(np.sqrt(var) <= cfg.std_factor * sigma, axis=1)
+    centre = acc.mean(axis=0)  # cumulative sums of the centred data stay well conditioned
     h = w // 2
-    first = _window_sums(centred, h)[: n - w + 1] / h  # first half of the window starting at k
-    second = _window_sums(centred, h)[w - h : n - h + 1] / h
     grad_limit = cfg.gradient_factor * sigma * np.sqrt(2.0 / h)
-    quiet &= np.all(np.abs(second - first) <= grad_limit, axis=1)
+    n_win = n - w + 1
+    quiet = np.empty(n_win, dtype=bool)
+    carry1 = carry2 = np.zeros((1, 3))
+    for a in range(0, n_win, PIECE):  # windows starting at a..b-1 need the sums c[a..b-1+w]
+        b = min(a + PIECE, n_win)
+        centred = acc[a:b + w - 1] - centre
+        c1 = np.cumsum(np.concatenate([carry1, centred]), axis=0)
+        c2 = np.cumsum(np.concatenate([carry2, centred ** 2]), axis=0)
+        carry1, carry2 = c1[b - a:b - a + 1], c2[b - a:b - a + 1]
+        mean = (c1[w:] - c1[:-w]) / w
+        var = np.maximum((c2[w:] - c2[:-w]) / w - mean ** 2, 0.0) * w / (w - 1)
+        q = np.all(np.sqrt(var) <= cfg.std_factor * sigma, axis=1)
+        first = (c1[h:h + b - a] - c1[:b - a]) / h  # first half of the window starting at k
+        second = (c1[w:] - c1[w - h:w - h + b - a]) / h
+        quiet[a:b] = q & np.all(np.abs(second - first) <= grad_limit, axis=1)
     # sample i is static when all windows k in [i-w+1, i] (those that exist) are quiet
-    loud = (~quiet).astype(np.int64)
-    c = np.concatenate([[0], np.cumsum(loud)])
-    i = np.arange(n)
-    k_lo = np.clip(i - w + 1, 0, n - w + 1)
-    k_hi = np.clip(i + 1, 0, n - w + 1)
-    return (c[k_hi] - c[k_lo]) == 0
+    out = np.empty(n, dtype=bool)
+    for a in range(0, n, PIECE):
+        b = min(a + PIECE, n)
+        lo = max(a - w + 1, 0)  # windows that can cover samples a..b-1: lo..min(b, n_win)-1
+        loud = np.concatenate([[0], np.cumsum(~quiet[lo:min(b, n_win)], dtype=np.int64)])
+        i = np.arange(a, b)
+        k_lo = np.clip(i - w + 1, 0, n_win) - lo
+        k_hi = np.clip(i + 1, 0, n_win) - lo
+        out[a:b] = (loud[k_hi] - loud[k_lo]) == 0
+    return out
 
 
 def detect_static_intervals(
@@ -127,13 +150,13 @@ def detect_static_intervals(
     for start, stop in zip(edges[::2], edges[1::2]):
         if stop - start < cfg.min_samples:
             continue
-        seg = acc[start:stop]
+        mean_g, std_g = rows_mean_std(lambda: (acc[a:b] for a, b in pieces([(int(start), int(stop))])), int(stop - start))
         out.append(
             StaticInterval(
                 start=int(start),
                 stop=int(stop),
-                mean_g=seg.mean(axis=0),
-                std_g=seg.std(axis=0, ddof=1),
+                mean_g=mean_g,
+                std_g=std_g,
                 t_start_s=float(t[start]),
                 t_end_s=float(t[stop - 1]),
             )
