@@ -24,13 +24,28 @@ from test_daemon_e2e import wait_for
 from drivers.modbus_devices import ModbusLampRelay, ModbusLink
 from station.config import parse_config
 from station.daemon import intake
-from station.daemon.intake_monitor import IntakeMonitor
+from station.daemon.intake_monitor import READS_PER_S, IntakeMonitor, read_pace_s
 from station.daemon.storage import open_database
 from station.daemon.supervisor import Station
 
 ROOT = Path(__file__).resolve().parents[1]
 
 SPEED = 100.0
+
+
+def test_many_links_are_each_read_less_often_so_the_loop_stays_free():
+    """Up to 25 links keep the configured period; beyond, all links together read 250 times a
+    second (the loop's cost is per read: design 2.2), and the pace follows the pumps that run."""
+    assert read_pace_s(0.1, 1) == 0.1 and read_pace_s(0.1, 25) == 0.1
+    assert read_pace_s(0.1, 64) == pytest.approx(64 / READS_PER_S) == pytest.approx(0.256)
+    assert read_pace_s(0.5, 64) == 0.5  # a longer configured period is kept
+    mon = IntakeMonitor()
+    for k in range(64):
+        mon.pumping.add(f"s{k}")
+    assert 64 / mon.pace_s(0.1) == pytest.approx(READS_PER_S)  # reads per second, all links
+    for k in range(48):
+        mon.pumping.discard(f"s{k}")
+    assert mon.pace_s(0.1) == 0.1
 
 
 def test_the_monitor_tells_the_stations_loss_from_the_links():

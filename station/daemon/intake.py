@@ -1,7 +1,8 @@
 """The data path of one running DUT: read its link, take each sample block in, feed the calibrator.
 
 `pump` is one task per DUT: it reads blocks at a steady pace (big enough that the calibrator's
-batch update is cheap) until the batch releases its DUTs, and turns every link problem into a
+batch update is cheap; each link less often when many share the loop: intake_monitor.read_pace_s)
+until the batch releases its DUTs, and turns every link problem into a
 fault of this DUT alone, with the reason the operator reads: link lost, no samples for N s, only
 garbage (bad frames, no good one), a driver bug. "No samples" counts only the time the board had
 the chance to send: not while the station itself has stopped the streams to program the boards,
@@ -66,12 +67,12 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
     bad0 = stats.frames_bad_checksum + stats.frames_malformed + stats.bytes_skipped
     ok0 = stats.frames_ok
     read_timeout_s = max(period, 0.25)
-    cap_s = listen_cap_s(period)
     silent_s = 0.0  # wall seconds this board had the chance to send and sent nothing
     t_prev = time.monotonic()
     queue0 = stats.samples_lost_queue
     t_read_prev = t_read_last = t_prev  # when this pump's previous and latest reads returned
     st.monitor.forget(d.slot)  # a new run: its link's lag is learned again
+    st.monitor.pumping.add(d.slot)
     try:
         while d.live and not st.releasing(seq.batch_id):
             t_read = time.monotonic()
@@ -89,10 +90,11 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
                 await slot.close_driver()
                 return
             now = time.monotonic()
-            chance_s, t_prev = min(now - t_prev, cap_s), now
+            pace = st.monitor.pace_s(period)  # longer with many links (intake_monitor.read_pace_s)
+            chance_s, t_prev = min(now - t_prev, listen_cap_s(pace)), now
             t_read_prev, t_read_last = t_read_last, now
             if len(block):
-                queue0 = _note_lag(st.monitor, d, drv, block, queue0, now, now - t_read_prev - period)
+                queue0 = _note_lag(st.monitor, d, drv, block, queue0, now, now - t_read_prev - pace)
                 try:
                     ingest(st, seq, d, block)
                 except Exception as exc:  # noqa: BLE001 - same: this slot only, with a reason
@@ -123,10 +125,11 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
                 st.fault_dut(seq, d, breaks[0].reason)
                 return
             # Pace the reads so that blocks are big enough to be cheap (update_batch).
-            rest = period - (time.monotonic() - t_read)
+            rest = pace - (time.monotonic() - t_read)
             if rest > 0:
                 await asyncio.sleep(rest)
     finally:
+        st.monitor.pumping.discard(d.slot)
         d.link_stats = stats.as_dict()
 
 
