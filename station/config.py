@@ -110,7 +110,10 @@ class Timing(_Model):
                                    "(not while the program step has the streams stopped; a held-up loop counts as one read)")
     identify_timeout_s: float = Field(default=3.0, gt=0)
     fixture_timeout_s: float = Field(default=120.0, gt=0, description="wall seconds for a fixture move")
-    read_period_s: float = Field(default=0.1, gt=0, le=5, description="wall seconds between block reads of a link, at least: with more than 25 links each is read less often, 250 reads/s in all (design 2.2)")
+    read_period_s: float = Field(default=0.1, gt=0, le=5, description="wall seconds between block reads of a link, at least (design 2.2, read pace)")
+    reads_per_s: float = Field(default=250.0, gt=0, description="block reads a second of all links together beyond which "
+                               "links whose reads are small are read less often (design 2.2, read pace): a read costs the "
+                               "event loop the same whatever it carries")
     intake_cost_us_per_sample: float = Field(
         default=8.0, gt=0, le=10_000,
         description="the station's CPU microseconds per sample until it has measured its own (while boards "

@@ -24,7 +24,7 @@ from test_daemon_e2e import wait_for
 from drivers.modbus_devices import ModbusLampRelay, ModbusLink
 from station.config import parse_config
 from station.daemon import intake
-from station.daemon.intake_monitor import READS_PER_S, IntakeMonitor, read_pace_s
+from station.daemon.intake_monitor import BIG_READ_SAMPLES, READS_PER_S, IntakeMonitor, read_pace_s
 from station.daemon.storage import open_database
 from station.daemon.supervisor import Station
 
@@ -34,10 +34,15 @@ SPEED = 100.0
 
 
 def test_many_links_are_each_read_less_often_so_the_loop_stays_free():
-    """Up to 25 links keep the configured period; beyond, all links together read 250 times a
-    second (the loop's cost is per read: design 2.2), and the pace follows the pumps that run."""
+    """Up to 25 links keep the configured period; beyond, links whose reads are small are read so
+    that all together read 250 times a second (the loop's cost is per read: design 2.2); a link
+    whose reads are big already keeps the period; the pace follows the pumps that run."""
     assert read_pace_s(0.1, 1) == 0.1 and read_pace_s(0.1, 25) == 0.1
     assert read_pace_s(0.1, 64) == pytest.approx(64 / READS_PER_S) == pytest.approx(0.256)
+    x60 = 3.125 * 60  # a board's samples per wall second at x60: 19 a read at 0.1 s
+    assert read_pace_s(0.1, 64, x60) == pytest.approx(0.256)
+    big = BIG_READ_SAMPLES / 0.1  # a fast board (or a replay): its reads are big at 0.1 s
+    assert read_pace_s(0.1, 64, big) == 0.1 and read_pace_s(0.1, 64, 0.99 * big) == pytest.approx(0.256)
     assert read_pace_s(0.5, 64) == 0.5  # a longer configured period is kept
     mon = IntakeMonitor()
     for k in range(64):
@@ -46,6 +51,13 @@ def test_many_links_are_each_read_less_often_so_the_loop_stays_free():
     for k in range(48):
         mon.pumping.discard(f"s{k}")
     assert mon.pace_s(0.1) == 0.1
+    from station.config import Timing
+    from station.replay.runner import REPLAY_READS_PER_S
+
+    assert Timing().reads_per_s == READS_PER_S  # the station's budget, configurable
+    replay = IntakeMonitor(reads_per_s=REPLAY_READS_PER_S)  # a replay's world waits on the station
+    replay.pumping.update(f"s{k}" for k in range(64))
+    assert replay.pace_s(0.1, x60) == 0.1
 
 
 def test_the_monitor_tells_the_stations_loss_from_the_links():

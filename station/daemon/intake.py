@@ -73,6 +73,7 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
     t_read_prev = t_read_last = t_prev  # when this pump's previous and latest reads returned
     st.monitor.forget(d.slot)  # a new run: its link's lag is learned again
     st.monitor.pumping.add(d.slot)
+    rate = 0.0  # samples per wall second this link has been sending (the read pace's input)
     try:
         while d.live and not st.releasing(seq.batch_id):
             t_read = time.monotonic()
@@ -90,7 +91,10 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
                 await slot.close_driver()
                 return
             now = time.monotonic()
-            pace = st.monitor.pace_s(period)  # longer with many links (intake_monitor.read_pace_s)
+            if len(block):  # smoothed: one short or long read does not flip the pace
+                rate = len(block) / max(now - t_read_last, 1e-3) if rate == 0.0 else \
+                    0.8 * rate + 0.2 * len(block) / max(now - t_read_last, 1e-3)
+            pace = st.monitor.pace_s(period, rate)  # small reads of many links: spaced out (read_pace_s)
             chance_s, t_prev = min(now - t_prev, listen_cap_s(pace)), now
             t_read_prev, t_read_last = t_read_last, now
             if len(block):

@@ -113,19 +113,30 @@ def _rate(v: float) -> str:
     return f"{v:.0f}"
 
 
-READS_PER_S = 250.0  # block reads a second, all links together, before each link reads less often
+READS_PER_S = 250.0  # block reads a second, all links together, before small reads are spaced out
+# A read this big is not spaced out: its fixed cost (~0.75 ms) is then under half what its samples
+# cost (~7 us each), so a longer wait would save little and delay what the station sees.
+BIG_READ_SAMPLES = 256
 
 
-def read_pace_s(read_period_s: float, links: int, reads_per_s: float = READS_PER_S) -> float:
+def read_pace_s(read_period_s: float, links: int, samples_per_s: float = 0.0,
+                reads_per_s: float = READS_PER_S) -> float:
     """Wall seconds between one link's block reads: the configured period, or longer when the
-    station's links together would read more than `reads_per_s` times a second.
+    station's links together would read more than `reads_per_s` times a second and this link's
+    reads are small (fewer than BIG_READ_SAMPLES samples at the configured period).
 
     Why: a read costs the event loop about 0.5-1 ms whatever it carries (the calibrator's update,
-    the temperature watch, the writer's hand-off, the events), so the number of reads, not the
-    samples, sets how busy the loop is and how long a request waits for it. Measured with 64 DUTs
-    at x60 (benchmarks/web_load.py): 640 reads/s kept the loop ~55 % busy and its lag p99 at
-    9-11 ms; 256 reads/s (0.25 s each) put the lag p99 at 3.5 ms and the page's p99 under 5 ms,
-    the same samples taken. A station of up to 25 links keeps the configured 0.1 s."""
+    the temperature watch, the writer's hand-off, the events), so many small reads, not the
+    samples, set how busy the loop is and how long a request waits for it. Measured with 64 DUTs
+    at x60 (benchmarks/web_load.py, 19 samples a read at 0.1 s): 640 reads/s kept the loop ~55 %
+    busy and its lag p99 at 9-11 ms; 256 reads/s (0.25 s each) put the lag p99 at 3.5-3.8 ms and
+    the page's p99 near 5 ms and the CPU per sample at x240 from ~14 to ~12 us, the same samples
+    taken. Big reads are cheap per sample already: spacing them out would only delay what the
+    station sees. A station of up to 25 links keeps the period; a replay, whose world waits on
+    the station, is configured never to space its reads (station/replay/runner.py: spaced out, a
+    replay of 64 DUTs took 13.9 s instead of 9.3)."""
+    if samples_per_s * read_period_s >= BIG_READ_SAMPLES:
+        return read_period_s
     return max(read_period_s, links / reads_per_s)
 
 
@@ -133,7 +144,8 @@ class IntakeMonitor:
     """How far behind its boards the station runs, what it lost, what it can follow (module doc)."""
 
     def __init__(self, speed: float = 1.0, cost_us_per_sample: float = 8.0,
-                 cpu_clock: Callable[[], float] = time.process_time) -> None:
+                 cpu_clock: Callable[[], float] = time.process_time, reads_per_s: float = READS_PER_S) -> None:
+        self.reads_per_s = float(reads_per_s)
         self.speed = float(speed)
         self.cpu_clock = cpu_clock
         self.default_cost_us = float(cost_us_per_sample)
@@ -212,9 +224,9 @@ class IntakeMonitor:
         lag = self.links.get(slot)
         return lag.behind_s if lag is not None else 0.0
 
-    def pace_s(self, read_period_s: float) -> float:
-        """How often each link is read now (read_pace_s over the pumps that run)."""
-        return read_pace_s(read_period_s, len(self.pumping))
+    def pace_s(self, read_period_s: float, samples_per_s: float = 0.0) -> float:
+        """How often a link sending samples_per_s is read now (read_pace_s over the pumps that run)."""
+        return read_pace_s(read_period_s, len(self.pumping), samples_per_s, self.reads_per_s)
 
     def forget(self, slot: str) -> None:
         """The slot's run ended (or a new one starts on a new timeline): its lag is learned again.

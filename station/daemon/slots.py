@@ -100,7 +100,7 @@ class SlotBank:
         self.calibrator_factory = calibrator_factory
         self.lamp: LampGuard | None = None  # the station's, set when it starts (the pumps report to it)
         # how far behind its boards the station runs, what it lost, what it can follow
-        self.monitor = IntakeMonitor(timing.speed, timing.intake_cost_us_per_sample)
+        self.monitor = IntakeMonitor(timing.speed, timing.intake_cost_us_per_sample, reads_per_s=timing.reads_per_s)
         self._pumps: dict[int, dict[str, asyncio.Task[None]]] = {}
         self._releasing: set[int] = set()
 

@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 # Sections of a station config that decide the outcome; links, tokens and names are the replay's own.
 OUTCOME_SECTIONS = ("limits", "profiles", "products")
 REPLAY_MIN_STALL_TIMEOUT_S = 60.0  # wall seconds of listening before a replayed board counts as silent
+REPLAY_READS_PER_S = 1e6  # reads a second before a replay spaces out small reads: never, in practice
 TIMING_KEYS = ("stall_timeout_s", "identify_timeout_s", "fixture_timeout_s", "read_period_s", "plate_again_after_s")
 
 
@@ -68,6 +69,9 @@ def replay_config(recording: Recording, sim: Any, opts: ReplayOptions) -> dict:
     timing["stall_timeout_s"] = max(float(timing.get("stall_timeout_s", 10.0)), REPLAY_MIN_STALL_TIMEOUT_S)
     timing.update({k: v for k, v in ((opts.overrides or {}).get("timing") or {}).items() if k in TIMING_KEYS})
     timing["speed"] = opts.speed
+    # A replay's world waits on the station (it moves the plate when the station asks), so every
+    # delay of a read is replay time: each link is read at its period, never spaced out (design 2.2)
+    timing["reads_per_s"] = REPLAY_READS_PER_S
     slots: list[dict] = []
     ports = iter(sim.serial_ports)
     nodes = iter(sim.can_node_ids)
