@@ -23,6 +23,9 @@ from contracts.types import StationError
 GRACEFUL_SHUTDOWN_S = 2
 
 
+LISTEN_QUEUE = 1024  # connections the kernel holds before the station accepts them (capped by net.core.somaxconn)
+
+
 async def serve_web(station: Any, host: str, port: int, *, app: Any = None, sock: socket.socket | None = None,
                     header_timeout_s: float | None = None, keep_alive_s: float | None = None,
                     max_connections: int | None = None, access_log: bool = False) -> tuple[Any, asyncio.Task[None]]:
@@ -86,6 +89,13 @@ async def serve_web(station: Any, host: str, port: int, *, app: Any = None, sock
         if own_sock:
             listen.close()
         raise StationError(f"cannot serve HTTP on {host}:{port}: {err or 'server exited'}")
+    # The kernel's queue of connections not yet accepted is deeper than one accept batch: asyncio set
+    # it to the batch when it started serving, and a flood of half-open connections (a slowloris, a
+    # misbehaving client) then fills it whenever the loop is busy, so the kernel drops the next SYN
+    # and a health probe or the kiosk waits for TCP's 1 s retransmission. Queued connections hold no
+    # file of ours: the open sockets stay bounded by the cap plus one batch (web/http_guard.py).
+    with contextlib.suppress(OSError):
+        listen.listen(LISTEN_QUEUE)
     server.http_guard = guard  # type: ignore[attr-defined]  # its counters, for tests and diagnostics
     return server, task
 
