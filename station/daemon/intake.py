@@ -92,8 +92,8 @@ async def pump(st: IntakeHost, seq: Sequencer, d: DutRun, slot: Link) -> None:
                 return
             now = time.monotonic()
             if len(block):  # smoothed: one short or long read does not flip the pace
-                rate = len(block) / max(now - t_read_last, 1e-3) if rate == 0.0 else \
-                    0.8 * rate + 0.2 * len(block) / max(now - t_read_last, 1e-3)
+                sent = len(block) / max(now - t_read_last, 1e-3)
+                rate = sent if rate == 0.0 else 0.8 * rate + 0.2 * sent
             pace = st.monitor.pace_s(period, rate)  # small reads of many links: spaced out (read_pace_s)
             chance_s, t_prev = min(now - t_prev, listen_cap_s(pace)), now
             t_read_prev, t_read_last = t_read_last, now
