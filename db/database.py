@@ -191,6 +191,7 @@ class Database(Schema):
     def create_run(
         self, batch_id: int, slot: str, serial: str, sensor: str = "", identity: dict[str, object] | None = None,
         state: str = "identified", *, counts_as_attempt: bool = True, measured_by: MeasuredBy | None = None,
+        route_check: str | None = None, route_reason: str = "",
     ) -> int:
         """A new run of `serial` in (batch_id, slot), numbered as the serial's next attempt. Safe with
         several stations on one database: the DUT row is insert-or-get and row-locked while the
@@ -201,16 +202,20 @@ class Database(Schema):
         is not the board's serial: station/daemon/slots.py stops it before any data). It is stored
         with attempt 0 (NO_ATTEMPT) so the MES and the history see which board was there, and it
         is no attempt of `serial`: never counted in its attempt numbers, attempts or yields.
-        measured_by: the software, firmware and holder that measure the run (None: not known)."""
+        measured_by: the software, firmware and holder that measure the run (None: not known).
+        route_check / route_reason: the MES's route check of the part (allowed, refused, unanswered;
+        None: none was asked) and its words."""
         return retry_collisions(lambda: self._create_run(batch_id, slot, serial, sensor, identity, state,
-                                                         counts_as_attempt, measured_by or MeasuredBy()),
+                                                         counts_as_attempt, measured_by or MeasuredBy(),
+                                                         route_check, route_reason),
                                 f"create run of {serial}", on_retry=self._count_retry)
 
     def _count_retry(self) -> None:
         self.collision_retries += 1
 
     def _create_run(self, batch_id: int, slot: str, serial: str, sensor: str, identity: dict[str, object] | None,
-                    state: str, counts_as_attempt: bool = True, measured_by: MeasuredBy = MeasuredBy()) -> int:
+                    state: str, counts_as_attempt: bool = True, measured_by: MeasuredBy = MeasuredBy(),
+                    route_check: str | None = None, route_reason: str = "") -> int:
         with self.session() as s:
             dut = self.upsert_dut(s, serial, sensor)
             # a serial seen again is a retest: its attempt number counts every earlier run of real
@@ -226,7 +231,8 @@ class Database(Schema):
                 attempt = NO_ATTEMPT
             labels = s.scalar(select(Batch.labels).where(Batch.id == batch_id)) or {}
             run = DutRun(batch_id=batch_id, station=self.station, slot=slot, dut_id=dut.id, state=state, identity=dict(identity or {}),
-                         attempt=attempt, label_serial=labels.get(slot) or None, **measured_by.columns())
+                         attempt=attempt, label_serial=labels.get(slot) or None, **measured_by.columns(),
+                         route_check=route_check, route_reason=route_reason)
             s.add(run)
             s.flush()
             return run.id

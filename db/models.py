@@ -30,7 +30,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 # The revision of the newest schema this code knows (db/migrations/versions/).
-SCHEMA_REVISION = "0010"
+SCHEMA_REVISION = "0011"
 # dut_run.attempt of a run that never tested its part (the label scanned for the slot is not the
 # board's serial: stopped at connect, before any data). Stored and judged error, so the MES sees which
 # board was there, but no attempt of the board's serial: attempt numbers, attempts and yields skip it.
@@ -188,6 +188,12 @@ class DutRun(Base):
     software_version: Mapped[str | None] = mapped_column(String(64))
     firmware_version: Mapped[str | None] = mapped_column(String(64))
     holder: Mapped[str | None] = mapped_column(String(16))
+    # the MES's route check before the part was tested (migration 0011, design 5.4): allowed, refused
+    # or unanswered (None: no route check configured, or a run from before 0011), with the MES's
+    # words or what went wrong; a refused part was never tested (attempt 0), an unanswered one was
+    # tested only by the site's policy 'proceed_and_flag'
+    route_check: Mapped[str | None] = mapped_column(String(16))
+    route_reason: Mapped[str] = mapped_column(Text, default="", server_default="")
 
     batch: Mapped[Batch] = relationship(back_populates="runs")
     dut: Mapped[Dut] = relationship(back_populates="runs")

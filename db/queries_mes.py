@@ -67,6 +67,9 @@ def results_since(db: Database, since: int = 0, limit: int = 100, since_time: da
                 "ended_at": iso(r.ended_at),
                 **trace_json(b, with_labels=False),
                 "label_serial": r.label_serial,
+                # tested without the MES's yes ('unanswered', policy proceed_and_flag) is the MES's to know
+                "route_check": r.route_check,
+                "route_reason": r.route_reason or "",
                 **record_verdict_json(h, r.attempt),
             }
             item.update(run_results(s, r.id))

@@ -162,6 +162,9 @@ def run_json(r: DutRun, serial: str, n_segments: int | None = None) -> JsonAnswe
         "software_version": r.software_version,
         "firmware_version": r.firmware_version,
         "holder": r.holder,
+        # the MES's route check (None: none asked, or a run from before migration 0011)
+        "route_check": r.route_check,
+        "route_reason": r.route_reason or "",
         **verdict_json(r),
     }
     if n_segments is not None:

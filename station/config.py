@@ -130,9 +130,43 @@ class Token(_Model):
     name: str = ""
 
 
+class RouteCheck(_Model):
+    """The MES's pre-test route check ([mes.route_check], design 5.4): "may this serial be tested at
+    this operation now?", asked per DUT once its identity and label are known and before the lamp
+    heats. A "no" stops that slot with the MES's reason; `when_unanswered` is the site's policy when
+    the MES gives no usable answer (down, slow, an error, an answer it cannot read)."""
+
+    url: str = Field(min_length=1, max_length=2048, description="the MES's route check; may hold {serial}, "
+                     "{label_serial}, {operation}, {station}, {slot}, {work_order}, {part_number}, {lot} "
+                     "(URL-quoted)")
+    method: Literal["GET", "POST"] = Field(default="GET", description="POST sends the same fields as a JSON body")
+    timeout_s: float = Field(default=5.0, gt=0, le=120, description="one call's timeout, wall s (the whole answer)")
+    operation: str = Field(default="thermal-calibration", min_length=1, max_length=64,
+                           description="this station's operation as the MES routes it")
+    headers: dict[str, str] = Field(default_factory=dict, description="sent with every call (e.g. Authorization)")
+    allowed_field: str = Field(default="allowed", min_length=1, max_length=128,
+                               description="dotted path of the JSON answer's yes/no: true or yes/ok/allowed/pass "
+                               "= may be tested; false or no/hold/refused/blocked = a no")
+    reason_field: str = Field(default="reason", min_length=1, max_length=128,
+                              description="dotted path of the MES's reason in words")
+    refuse_statuses: list[int] = Field(default_factory=lambda: [403, 409, 423],
+                                       description="HTTP statuses that are a no whatever the body says")
+    when_unanswered: Literal["refuse", "proceed_and_flag"] = Field(
+        default="refuse", description="no usable answer: 'refuse' stops the slot (the part is not tested); "
+        "'proceed_and_flag' tests it and flags its record and its MES message as not route-checked")
+
+    @field_validator("refuse_statuses")
+    @classmethod
+    def _statuses(cls, v: list[int]) -> list[int]:
+        bad = [s for s in v if not 300 <= s <= 599 or s in (408, 429)]
+        if bad:
+            raise ValueError(f"{bad}: a refusal is a 3xx-5xx status other than 408/429 (those mean 'ask again')")
+        return v
+
+
 class Mes(_Model):
     """The MES webhook ([mes]): where each final verdict is posted (through the durable outbox, once
-    per record) and how a refused or unreachable MES is retried."""
+    per record) and how a refused or unreachable MES is retried; and its route check, if any."""
 
     webhook_url: str | None = None
     timeout_s: float = Field(default=10.0, gt=0, le=600, description="one POST's timeout")
@@ -140,6 +174,8 @@ class Mes(_Model):
     max_delay_s: float = Field(default=600.0, gt=0, le=86_400, description="retries never wait longer")
     poll_s: float = Field(default=2.0, gt=0, le=600, description="how often the outbox looks for due messages")
     batch: int = Field(default=20, ge=1, le=1000, description="messages sent per look")
+    route_check: RouteCheck | None = Field(default=None, description="ask the MES before testing each part "
+                                           "(None: no route check)")
 
 
 class Http(_Model):

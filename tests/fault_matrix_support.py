@@ -93,6 +93,9 @@ ROWS = [
     "clock jump forward",
     "stuck temperature sensor",
     "--check during a batch",
+    "MES refuses the part",
+    "MES does not answer (refuse)",
+    "MES does not answer (proceed, flag)",
     "database locked mid-batch (12 s)",
     "healthy DUTs (finished batches)",
 ]

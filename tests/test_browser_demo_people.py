@@ -2,7 +2,8 @@
 as a user starts it) with its simulated person at the plate (drivers/sim/operator.py: seconds to
 minutes to turn, the turn over seconds, sometimes Done first), and the operator page in headless
 Chromium starting three fast-thermal batches back to back (each starts where the last one left the
-plate). Every DUT must end pass, marginal or fail on its merit, never error; the end view is shot
+plate). Every DUT must end pass, marginal or fail on its merit, never error, but the one the demo's
+MES stand-in holds (stopped before the lamp heats, with the MES's reason); the end view is shot
 at 800x480 and 1280x800 (artifacts/demo-people-*.png).
 """
 
@@ -18,6 +19,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from cli.commands.demo import DEMO_HOLD_REASON
 from web_support import CHROMIUM, chromium_page, free_port
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,8 +83,15 @@ def test_three_demo_batches_from_the_page_with_a_person_at_the_plate(tmp_path):
                 waits = [t for t in st["transitions"] if t["to"] == "waiting_operator"]
                 assert len(waits) >= 2, (bid, waits)
                 verdicts = {s["slot"]: (s.get("decision") or {}).get("verdict") for s in st["slots"]}
-                bad = {s["slot"]: s["fault_reason"] for s in st["slots"] if verdicts[s["slot"]] not in ("pass", "marginal", "fail")}
+                # the demo's MES stand-in holds the third board's serial (design 5.4): that slot, and
+                # only that one, is stopped before the lamp heats, with the MES's words
+                held = next(s for s in st["slots"] if s["slot"] == "s03")
+                assert verdicts["s03"] == "error" and DEMO_HOLD_REASON in held["fault_reason"], held["fault_reason"]
+                assert "MES route check: the MES refused" in held["fault_reason"] and held["samples"] == 0
+                bad = {s["slot"]: s["fault_reason"] for s in st["slots"]
+                       if s["slot"] != "s03" and verdicts[s["slot"]] not in ("pass", "marginal", "fail")}
                 assert not bad, f"batch {k + 1}: {bad}"
+                page.wait_for_selector(f"text={DEMO_HOLD_REASON}", timeout=20_000)  # the page says why
                 page.wait_for_selector("#batch-state:has-text('finished')", timeout=20_000)
                 if k < 2:
                     page.click("#new-batch")

@@ -32,6 +32,7 @@ import sys
 
 import pytest
 
+from drivers.sim.mes_standin import MesStandIn
 from drivers.sim.operator import HumanTiming, Person
 from drivers.sim.station_sim import SimStation
 from tests.db_helpers import HOLD_LOCK
@@ -181,6 +182,49 @@ IDENTITY_ROWS = ["duplicate serial", "empty serial", "overlong serial", "board s
                  "board reset mid-run (streams again)", "clock jump back", "clock jump forward",
                  "stuck temperature sensor", "--check during a batch"]
 STORE_ROWS = ["database locked mid-batch (12 s)"]
+ROUTE_ROWS = ["MES refuses the part", "MES does not answer (refuse)", "MES does not answer (proceed, flag)"]
+ROUTE = ("mes route check",)
+_MES: list[MesStandIn] = []
+
+
+def _mes_url(up: bool) -> str:
+    """The route check URL of the matrix's MES stand-in (one for the module, started on first use),
+    or of one that is down (stopped: its port refuses connections)."""
+    if not up:
+        down = MesStandIn()
+        down.stop()
+        return down.url
+    if not _MES:
+        _MES.append(MesStandIn().start())
+    return _MES[0].url
+
+
+def _holds(**by_slot: str):
+    """arm: the MES stand-in holds the serial of the board in each slot, with the reason given."""
+    def arm(sim: SimStation) -> None:
+        for slot, why in by_slot.items():
+            _MES[0].hold(_own_serial(sim, slot), why)
+    return arm
+
+
+def _route_plans(profile: str, speed: float, seed: int) -> list[Plan]:
+    """The MES's route check (design 5.4): a held part is stopped before the lamp heats; an MES that
+    does not answer stops every part (policy refuse) or lets them be tested, flagged (proceed_and_flag)."""
+    def route(up: bool, policy: str) -> dict:
+        return {"route_check": {"url": _mes_url(up), "when_unanswered": policy, "timeout_s": 2.0}}
+
+    return [
+        Plan("ft-route", profile, speed, 3, 1, seed, arm=_holds(s02="on quality hold: NCR-77"), kw=route(True, "refuse"),
+             inject=_refused_before_heat({"s02"}), expects={
+            "s02": Expect("MES refuses the part", "faulted", ROUTE + ("quality hold",)),
+            "s01": Expect("MES refuses the part", "healthy"), "s03": Expect("MES refuses the part", "healthy"),
+            "c01": Expect("MES refuses the part", "healthy"),
+        }),
+        Plan("ft-route-down", profile, speed, 1, 1, seed + 1, kw=route(False, "refuse"),
+             expects=_all(_slots(1, 1), "MES does not answer (refuse)", keywords=("did not answer",))),
+        Plan("ft-route-flag", profile, speed, 2, 1, seed + 2, kw=route(False, "proceed_and_flag"),
+             expects=_all(_slots(2, 1), "MES does not answer (proceed, flag)", kind="unharmed")),
+    ]
 
 
 def _serials(**by_board):
@@ -402,6 +446,7 @@ def _verified_plans() -> list[Plan]:
     }))
     _na(P, [r for r in IDENTITY_ROWS if r != "board swapped mid-run (same port)"],
         "n/a (connect and link path: the same for every profile, run in fast-thermal)")
+    _na(P, ROUTE_ROWS, "n/a (asked at connect, before any step: the same for every profile, run in fast-thermal)")
     _na(P, STORE_ROWS, "n/a (the writer's path: the same for every profile, run in fast-thermal)")
     return plans
 
@@ -446,6 +491,7 @@ def _fast_thermal_plans() -> list[Plan]:
     _na(P, ["abort, 45 C block", "abort, last step"], "n/a (sfem-24 rows)")
     plans += _people_plans(P, FAST, 80)
     plans += _identity_plans(P, FAST, 110)
+    plans += _route_plans(P, FAST, 120)
     # a second station's `serve --check` on the same config mid-batch is refused and touches nothing
     plans.append(Plan("ft-check", P, FAST, 2, 1, 47, inject=check_during_batch,
                       expects=_all(_slots(2, 1), "--check during a batch", kind="unharmed")))
@@ -494,6 +540,7 @@ def _sfem_plans() -> list[Plan]:
     _na(P, ["abort, 2nd step", "abort, 3rd step", "abort, 4th step"], "n/a (see 45 C / last)")
     _na(P, ["label serial mismatch"], "n/a (checked at connect, before any step: one code path for all profiles)")
     _na(P, IDENTITY_ROWS, "n/a (connect and link path: the same for every profile, run in fast-thermal)")
+    _na(P, ROUTE_ROWS, "n/a (asked at connect, before any step: the same for every profile, run in fast-thermal)")
     _na(P, STORE_ROWS, "n/a (the writer's path: the same for every profile, run in fast-thermal)")
     # x1000, not x3000: a person's seconds (and a wrong turn's correction within a static step's 600 s
     # timeout) must not vanish into one 150 s tick of the compressed plant

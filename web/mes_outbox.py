@@ -81,6 +81,8 @@ def payload_of(result: dict, station_name: str) -> dict:
             "sfem": result.get("sfem"),
             # what the batch was started for and who ran it (contracts/trace.py)
             **{k: result.get(k) for k in ("profile", "operator", "sensor", "label_serial", *TRACE_FIELDS)},
+            # the MES's route check of the part (design 5.4): "unanswered" = tested without its yes
+            **{k: result.get(k) for k in ("route_check", "route_reason")},
             # the station's decision: verdict pass/marginal/fail/error, grade (bin), tray,
             # plain-words reason, the serial's attempt number and the limits set it was judged by
             **{k: result.get(k) for k in ("verdict", "grade", "tray", "reason", "attempt", "limits_name",

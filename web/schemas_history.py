@@ -20,6 +20,12 @@ SUPERSEDES_HELP = "idempotency_key of the record this one replaces; null for rev
 THERMAL_HELP = "the station's chosen result per axis x/y/z: TDB (mg/C) and TDSF (ppm/C) with their 1-sigma"
 
 
+
+ROUTE_OUTCOMES = ("allowed", "refused", "unanswered")
+ROUTE_CHECK_HELP = ("the MES's route check before the part was tested (design 5.4): 'allowed'; 'refused' (never "
+                    "tested, attempt 0); 'unanswered' (no usable answer: tested only under the site's policy "
+                    "proceed_and_flag, else stopped); null: no route check was asked")
+
 class Identity(_Out):
     """What the board reported of itself (station/daemon/slots.py IDENTITY_FIELDS)."""
 
@@ -100,6 +106,9 @@ class RunOut(_Results, StoredDecision, TraceFields):
     slot: str | None = Field(default=None, description="its slot")
     serial: str | None = Field(default=None, description="the board's serial")
     label_serial: str | None = Field(default=None, description="serial scanned from the part's label, if any")
+    route_check: str | None = one_of(ROUTE_OUTCOMES, ROUTE_CHECK_HELP, default=None)
+    route_reason: str | None = Field(default=None, description="the MES's words (refused, allowed) or what went wrong "
+                                     "(unanswered); '' when none")
     sensor: str | None = Field(default=None, description="not sent at present (always null): see identity.sensor")
     identity: Identity | None = Field(default=None, description="what the board reported of itself")
     software_version: str | None = Field(default=None, description="the station software's version that measured it "
@@ -144,6 +153,9 @@ class ResultOut(_Results, StoredDecision, TraceFields):
     supersedes: str | None = Field(default=None, description=SUPERSEDES_HELP)
     serial: str = Field(description="the board's serial")
     label_serial: str | None = Field(default=None, description="serial scanned from the part's label, if any")
+    route_check: str | None = one_of(ROUTE_OUTCOMES, ROUTE_CHECK_HELP, default=None)
+    route_reason: str | None = Field(default=None, description="the MES's words (refused, allowed) or what went wrong "
+                                     "(unanswered); '' when none")
     sensor: str | None = Field(default=None, description="sensor type")
     run_id: int | None = Field(default=None, description="the run judged")
     batch_id: int | None = Field(default=None, description="its batch")
@@ -185,6 +197,9 @@ class MesResultPayload(DecisionFields, TraceFields):
     operator: str | None = Field(default=None, description="its batch's operator (the person)")
     sensor: str | None = Field(default=None, description="sensor type")
     label_serial: str | None = Field(default=None, description="serial scanned from the part's label, if any")
+    route_check: str | None = one_of(ROUTE_OUTCOMES, ROUTE_CHECK_HELP, default=None)
+    route_reason: str | None = Field(default=None, description="the MES's words (refused, allowed) or what went wrong "
+                                     "(unanswered); '' when none")
 
 
 class OutboxEntry(_Out):

@@ -217,6 +217,9 @@ class SlotStatus(DecisionFields):
     link: str | None = Field(default=None, description="the board link, e.g. 'serial /dev/ttyUSB0'")
     serial: str | None = Field(default=None, description="the board's serial (null until identified)")
     label_serial: str | None = Field(default=None, description="serial scanned from the part's label at the start")
+    route_flag: str | None = Field(default=None, description="in words, when the part is tested without the MES's "
+                                   "yes (its route check gave no usable answer; the site's policy proceed_and_flag); "
+                                   "'' or null otherwise (design 5.4)")
     sensor: str | None = Field(default=None, description="sensor type, e.g. LIS3DSH")
     state: str | None = Field(default=None, description="connecting, identified, running, done, faulted, interrupted")
     fault_reason: str | None = Field(default=None, description="the daemon's fault reason ('' when none)")

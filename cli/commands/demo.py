@@ -42,6 +42,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "plate turns only when somebody presses Done on the page")
     p.add_argument("--operator-seed", type=int, default=None, metavar="N",
                    help="seed of the simulated person's timing (default: --seed)")
+    p.add_argument("--mes-hold", action="append", default=None, metavar="SERIAL",
+                   help="a serial the demo's MES stand-in holds (its route check refuses it; design 5.4); "
+                        "repeatable; default: the third board's serial; 'none' holds none")
+    p.add_argument("--no-mes", action="store_true", help="no MES stand-in and no route check")
+    p.add_argument("--mes-policy", choices=("refuse", "proceed_and_flag"), default="refuse",
+                   help="what the station does when the MES does not answer ([mes.route_check] when_unanswered)")
     p.add_argument("--host", default="127.0.0.1", help="HTTP host (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     p.add_argument("--no-web", action="store_true", help="do not serve the web page")
@@ -63,7 +69,7 @@ DEMO_TOKENS: tuple[dict, ...] = (
 def sim_config(sim, *, speed: float, db_url: str, fixture: bool = True, thermometer: bool = True,
                chamber: bool = True,
                http_host: str = "127.0.0.1", http_port: int = 8080, limits: dict | None = None,
-               timing: dict | None = None, profiles: dict | None = None) -> dict:
+               timing: dict | None = None, profiles: dict | None = None, route_check: dict | None = None) -> dict:
     """A station config (as the TOML would give it) pointing at a running SimStation's links."""
     slots: list[dict] = [{"name": f"s{i + 1:02d}", "serial": port} for i, port in enumerate(sim.serial_ports)]
     for j, node in enumerate(sim.can_node_ids):
@@ -87,7 +93,20 @@ def sim_config(sim, *, speed: float, db_url: str, fixture: bool = True, thermome
         cfg["chamber"] = {"tcp": tcp, "unit": 4}
     if profiles:
         cfg["profiles"] = profiles
+    if route_check:
+        cfg["mes"] = {"route_check": route_check}
     return cfg
+
+
+DEMO_HOLD_REASON = "on quality hold: NCR-2291 (voids under U3 at X-ray)"
+
+
+def demo_holds(args: argparse.Namespace, serials: list[str]) -> dict[str, str]:
+    """The serials the demo's MES stand-in holds: --mes-hold, or the third board's (the flow is
+    visible on the page: that slot stops before the lamp heats, with the MES's reason)."""
+    if args.mes_hold is None:
+        return {serials[min(2, len(serials) - 1)]: DEMO_HOLD_REASON} if serials else {}
+    return {s: DEMO_HOLD_REASON for s in args.mes_hold if s.lower() != "none"}
 
 
 def truth_by_slot(sim) -> dict[str, object]:
@@ -135,8 +154,17 @@ async def _main(args: argparse.Namespace) -> int:
         return 2
     async with SimStation(n_serial=args.serial, n_can=args.can, seed=args.seed, speed=args.speed,
                           effects=tuple(args.effect), firmware=firmware) as sim:
+        mes = None
+        if not args.no_mes:  # the line's MES, answering the route check (drivers/sim/mes_standin.py)
+            from drivers.sim.mes_standin import MesStandIn
+
+            mes = MesStandIn(demo_holds(args, [t.serial for t in sim.truths])).start()
+            for serial, why in mes.holds.items():
+                print(f"station demo: the MES stand-in holds {serial}: {why}", flush=True)
         cfg = parse_config(sim_config(sim, speed=args.speed, db_url=db_url, fixture=not args.no_fixture,
-                                      http_host=args.host, http_port=args.port), "<demo>")
+                                      http_host=args.host, http_port=args.port,
+                                      route_check=None if mes is None else
+                                      {"url": mes.url, "when_unanswered": args.mes_policy}), "<demo>")
         db = open_database(cfg.database_url, station=cfg.name, allow_new=args.new_database,
                            journal_path=cfg.journal_path)
         interrupted = db.mark_interrupted("station restarted") if hasattr(db, "mark_interrupted") else []
@@ -214,6 +242,8 @@ async def _main(args: argparse.Namespace) -> int:
                 hands.cancel()
             await station.close("daemon shutdown")  # lamp off first, then the web server
             await stop_web(server, task)
+            if mes is not None:
+                mes.stop()
             if hasattr(db, "dispose"):
                 db.dispose()
         return rc

@@ -104,6 +104,9 @@ class DutRun:
     # stored stream ended at (the live stream is joined on after it) and the offset applied.
     expected_serial: str | None = None
     label_serial: str | None = None  # scanned from the part's label at the start; must be the board's serial
+    # tested without the MES's yes (its route check gave no usable answer, the site's policy is
+    # proceed_and_flag): the words the page shows (the record holds route_check 'unanswered')
+    route_flag: str = ""
     resume_t: float | None = None
     time_offset_s: float = 0.0
     hold_calibrator: bool = False  # resumed: samples are stored but not calibrated until logging
@@ -136,6 +139,7 @@ class DutRun:
             "link": self.link,
             "serial": self.serial,
             "label_serial": self.label_serial,
+            "route_flag": self.route_flag,
             "sensor": self.identity.sensor if self.identity else None,
             "state": self.state,
             "fault_reason": self.fault_reason,

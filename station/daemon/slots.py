@@ -31,11 +31,13 @@ from station.daemon.identity_check import batch_identity_problems, identity_chan
 from station.daemon.instruments import Links
 from station.daemon.intake import pump
 from station.daemon.intake_monitor import IntakeMonitor
+from station.daemon.route_gate import RouteGate
 from station.daemon.safety import LampGuard
 from station.daemon.sequencer import Sequencer
 from station.daemon.states import TERMINAL
 from station.daemon.storage import Storage
 from station.decisions.moment import attempt_of
+from station.decisions.route_check import RouteAnswer, fault_words, flag_words, may_test
 from station.version import software_version
 
 log = logging.getLogger(__name__)
@@ -90,8 +92,9 @@ class SlotBank:
     """Every slot of the station and the pump of each running one (see the module doc)."""
 
     def __init__(self, slots: list[SlotConfig], *, links: Links, bus: EventBus, db: Database, storage: Storage,
-                 timing: Timing, calibrator_factory: Callable[[], Calibrator]) -> None:
+                 timing: Timing, calibrator_factory: Callable[[], Calibrator], route: RouteGate | None = None) -> None:
         self.slots: dict[str, SlotRuntime] = {s.name: SlotRuntime(s) for s in slots}
+        self.route = route  # the MES's route check ([mes.route_check]), asked before each run is made
         self.links = links
         self.bus = bus
         self.db = db
@@ -218,18 +221,34 @@ class SlotBank:
             # attempts or yields, db/database.py). The run is still stored (faulted, judged error):
             # the MES and the audit see which board was in the slot, and why it stopped.
             mismatch = label_mismatch(d.label_serial, ident.serial)
+            # The MES's route check (design 5.4), for a part that is the labelled one and whose run is
+            # new (a resumed run was asked when it was made): a part the MES refuses is never tested,
+            # so like a wrong label its run is stored (the record says why) but is no attempt.
+            route: RouteAnswer | None = None
+            stop_words: str | None = mismatch
+            if mismatch is None and d.run_id is None and self.route is not None:
+                part = self.route.part(ident.serial, d.slot, d.label_serial, seq.trace.work_order,
+                                       seq.trace.part_number, seq.trace.lot)
+                route = await self.route.ask(part, seq.batch_id)
+                policy = self.route.cfg.when_unanswered
+                if not may_test(route, policy):
+                    stop_words = fault_words(part, route, policy)
+                elif route.outcome == "unanswered":
+                    d.route_flag = flag_words(part, route)
             if d.run_id is None:
                 # off the event loop: the insert may wait on the database's lock (the writer's commit,
                 # another station meeting the same serial) while the other slots stream
                 d.run_id = int(await asyncio.to_thread(
                     self.db.create_run, seq.batch_id, d.slot, ident.serial, ident.sensor, identity_dict(ident),
-                    counts_as_attempt=mismatch is None, measured_by=measured_by(seq, ident)))
+                    counts_as_attempt=stop_words is None, measured_by=measured_by(seq, ident),
+                    route_check=None if route is None else route.outcome,
+                    route_reason="" if route is None else route.reason))
             if d.attempt is None:
                 d.attempt = await asyncio.to_thread(attempt_of, self.db, d.run_id)
             if self.storage.writer is not None:
                 self.storage.writer.bind_run(seq.batch_id, d.slot, d.run_id)
-            if mismatch is not None:
-                self.fault_dut(seq, d, mismatch)
+            if stop_words is not None:
+                self.fault_dut(seq, d, stop_words)
                 return
             self.publish_dut(seq, d)
             for seg, step in d.unstored_segments:

@@ -39,6 +39,7 @@ from station.daemon.instruments import Links
 from station.daemon.ownership import StationClaim, database_url_of
 from station.daemon.progress import batch_extras
 from station.daemon.rig import Rig
+from station.daemon.route_gate import RouteGate
 from station.daemon.run_end import RunEnd
 from station.daemon.safety import LampGuard
 from station.daemon.sequencer import Sequencer
@@ -82,7 +83,9 @@ class Station:
         self.profiles_by_name: dict[str, Profile] = all_profiles(config)
         factory = calibrator_factory or _default_calibrator_factory
         self.bank = SlotBank(config.slots, links=self.links, bus=self.bus, db=self.db, storage=self.storage,
-                             timing=config.timing, calibrator_factory=factory)
+                             timing=config.timing, calibrator_factory=factory,
+                             route=None if config.mes.route_check is None
+                             else RouteGate(config.mes.route_check, config.name, self.db))
         # what the verdict's moment reads, typed and taken here: a renamed part fails the type check
         # and the construction, not a judgement at a restart (station/decisions/verdict_context.py)
         self.verdicts = VerdictContext(db=self.db, bus=self.bus, product_for=config.product_for,

@@ -26,6 +26,10 @@ from station.records.parameter_names import words
 # the general ("could not turn the plate" quotes a prompt that may name a plate's position; a
 # programming link loss is a link loss, said before "program").
 _RULES: tuple[tuple[str, str], ...] = (
+    # the MES's route check (station/decisions/route_check.py fault_words), first: before anything the
+    # MES's own words may contain
+    ("route refused (MES)", r"\bMES route check: the MES refused\b"),
+    ("MES did not answer", r"\bMES route check: the MES did not answer\b"),
     ("station overloaded", r"\bstation overloaded\b"),
     ("cannot do it (operator)", r"\bcould not (?:.*: )?turn the plate to \S+: "),
     ("label mismatch", r"\blabel serial '.*' does not match the board's own serial"),
