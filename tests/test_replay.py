@@ -28,10 +28,12 @@ def _station(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
-    """A 12-DUT demo batch (8 serial + 4 CAN) recorded by the real daemon into SQLite."""
+    """A 12-DUT demo batch (8 serial + 4 CAN) recorded by the real daemon into SQLite. Without the
+    demo's MES stand-in: the part it holds would never be tested, and a run that tested no part
+    (like a label mismatch) is not replayed, so 11 DUTs would replay."""
     folder = tmp_path_factory.mktemp("replay")
     url = f"sqlite:///{folder / 'line.db'}"
-    out = _station("demo", "--once", "--serial", "8", "--can", "4", "--speed", SPEED, "--db", url)
+    out = _station("demo", "--once", "--serial", "8", "--can", "4", "--speed", SPEED, "--db", url, "--no-mes")
     assert out.returncode == 0, out.stdout + out.stderr
     return folder, url
 

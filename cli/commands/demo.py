@@ -44,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seed of the simulated person's timing (default: --seed)")
     p.add_argument("--mes-hold", action="append", default=None, metavar="SERIAL",
                    help="a serial the demo's MES stand-in holds (its route check refuses it; design 5.4); "
-                        "repeatable; default: the third board's serial; 'none' holds none")
+                        "repeatable; default: the third board's serial (with 3 boards or more); 'none' holds none")
     p.add_argument("--no-mes", action="store_true", help="no MES stand-in and no route check")
     p.add_argument("--mes-policy", choices=("refuse", "proceed_and_flag"), default="refuse",
                    help="what the station does when the MES does not answer ([mes.route_check] when_unanswered)")
@@ -104,8 +104,8 @@ DEMO_HOLD_REASON = "on quality hold: NCR-2291 (voids under U3 at X-ray)"
 def demo_holds(args: argparse.Namespace, serials: list[str]) -> dict[str, str]:
     """The serials the demo's MES stand-in holds: --mes-hold, or the third board's (the flow is
     visible on the page: that slot stops before the lamp heats, with the MES's reason)."""
-    if args.mes_hold is None:
-        return {serials[min(2, len(serials) - 1)]: DEMO_HOLD_REASON} if serials else {}
+    if args.mes_hold is None:  # a demo of one or two boards keeps them all (nothing else would run)
+        return {serials[2]: DEMO_HOLD_REASON} if len(serials) >= 3 else {}
     return {s: DEMO_HOLD_REASON for s in args.mes_hold if s.lower() != "none"}
 
 
