@@ -192,6 +192,28 @@ class Http(_Model):
                                  description="open HTTP connections; beyond, the oldest waiting for a head is evicted")
 
 
+class Metrics(_Model):
+    """GET /metrics (Prometheus, docs/metrics.md): who may scrape it without a token. A scraper
+    whose peer address (the TCP connection's, never X-Forwarded-For) is in `allow` needs none,
+    unless its request carries a forwarding header (a proxy); anyone else needs a token of role
+    admin or mes. [] = a token for everyone."""
+
+    allow: list[str] = Field(default=["127.0.0.1/32", "::1/128"], max_length=256,
+                             description="CIDR networks that may scrape /metrics without a token")
+
+    @field_validator("allow")
+    @classmethod
+    def _cidrs(cls, v: list[str]) -> list[str]:
+        import ipaddress
+
+        for net in v:
+            try:
+                ipaddress.ip_network(net, strict=True)
+            except ValueError as exc:
+                raise ValueError(f"not a CIDR network: {net!r} ({exc})") from None
+        return v
+
+
 class StepConfig(_Model):
     """One profile step (see station/profiles.py for the meaning; its kind's own rules are checked
     when the profile is built: parse_config)."""
@@ -266,6 +288,9 @@ class CertificateConfig(_Model):
                                                    "no., due date), quoted in the traceability statement")
 
 
+
+
+
 def _hostname() -> str:
     import socket
 
@@ -284,6 +309,7 @@ class StationConfig(_Model):
     mes_webhook_url: str | None = None  # the webhook's URL alone (older configs); [mes] webhook_url is the same
     mes: Mes = Mes()
     http: Http = Http()
+    metrics: Metrics = Metrics()
     limits: Limits = Limits()
     timing: Timing = Timing()
     slots: list[SlotConfig] = Field(min_length=1)

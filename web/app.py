@@ -32,6 +32,7 @@ from web.routes import diagnostics as diagnostics_routes
 from web.routes import records as records_routes
 from web.routes import exports as exports_routes
 from web.schemas import install_openapi
+from web import metrics
 from web.sse import DEFAULT_MAX_EVENT_STREAMS
 
 STATIC_DIR = Path(__file__).parent / "static"
@@ -186,6 +187,7 @@ def create_app(
     app.include_router(diagnostics_routes.router)  # model diagnostics of stored runs (design 7)
     app.include_router(records_routes.router)  # audit trail, yield and SPC (docs/records.md)
     app.include_router(exports_routes.build_router())  # every registered export format (STDF, OCPTV, ...)
+    app.include_router(metrics.build_router(station, __version__))  # GET /metrics for plant IT (docs/metrics.md)
     results.register_webhooks(app)  # the MES webhook payload in the OpenAPI, so an MES integrator reads it there
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
