@@ -77,6 +77,10 @@ async def serve_web(station: Any, host: str, port: int, *, app: Any = None, sock
                             access_log=access_log, lifespan="on", http=guard.protocol_class(),
                             timeout_keep_alive=keep_alive_s,  # type: ignore[arg-type]  # seconds, a float works
                             backlog=ACCEPT_BATCH,
+                            # the client's address is the TCP peer's: uvicorn would otherwise take it from
+                            # X-Forwarded-For on a connection from 127.0.0.1, so any local process could
+                            # claim another address (the /metrics allow list, the audit's addresses)
+                            proxy_headers=False,
                             timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S)
     server = _Server(config)
     task = asyncio.get_running_loop().create_task(server.serve(sockets=[listen]), name="http")
