@@ -97,13 +97,15 @@ def outbox_enqueue_new(db: Database, idempotency_key: str, payload: Mapping[str,
         return int(oid), added
 
 
-def outbox_pending(db: Database, limit: int = 50, now: datetime | None = None) -> list[JsonAnswer]:
-    """Undelivered messages due now (next_attempt_at <= now), oldest first."""
+def outbox_pending(db: Database, limit: int = 50, now: datetime | None = None, topic: str = "result") -> list[JsonAnswer]:
+    """Undelivered messages of `topic` due now (next_attempt_at <= now), oldest first. The webhook's
+    topic is "result"; the CFX worker's messages (topic "cfx", db/queries_cfx.py) share the table and
+    are never the webhook's to send."""
     now = now or utcnow()
     with db.session() as s:
         rows = s.scalars(
             select(Outbox)
-            .where(Outbox.delivered_at.is_(None), Outbox.next_attempt_at <= now)
+            .where(Outbox.delivered_at.is_(None), Outbox.next_attempt_at <= now, Outbox.topic == topic)
             .order_by(Outbox.next_attempt_at, Outbox.id)
             .limit(max(1, limit))
         ).all()

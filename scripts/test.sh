@@ -25,6 +25,10 @@ bash scripts/setup.sh test
 # The typed seams first (pyproject.toml [tool.mypy]): a part that reads another by a name it does
 # not have fails here, in seconds, not at a restart on the line.
 .venv/bin/python -m mypy || { echo "type check failed (mypy, pyproject.toml [tool.mypy])"; exit 1; }
+# The CFX tests (tests/test_cfx.py) talk AMQP 1.0 to the RabbitMQ on 127.0.0.1: its plugin on (idempotent).
+if command -v rabbitmq-plugins >/dev/null 2>&1; then
+  rabbitmq-plugins enable --quiet rabbitmq_amqp1_0 >/dev/null 2>&1 || echo "warning: could not enable rabbitmq_amqp1_0 (tests/test_cfx.py)"
+fi
 mkdir -p artifacts
 # Three workers on two cores: most tests wait on simulated hardware, not on the CPU. Whole files
 # go to one worker (--dist loadfile): module-scoped stations and venvs are built once.

@@ -288,7 +288,30 @@ class CertificateConfig(_Model):
                                                    "no., due date), quoted in the traceability statement")
 
 
+class Cfx(_Model):
+    """IPC-CFX (IPC-2591) over AMQP 1.0 ([cfx], docs/cfx.md): the station tells the line its work,
+    tests and state in CFX messages, through a durable outbox (nothing lost while the broker is down,
+    each message once, in order)."""
 
+    enabled: bool = False
+    broker_url: str = Field(default="amqp://guest:guest@127.0.0.1:5672", min_length=1, max_length=2048,
+                            description="the AMQP 1.0 broker: amqp[s]://user:password@host:port")
+    address: str = Field(default="/exchange/amq.topic", min_length=1, max_length=512,
+                         description="AMQP target the messages are sent to (RabbitMQ: /exchange/NAME routes by "
+                                     "the subject; /queue/NAME a durable queue)")
+    handle: str = Field(default="", max_length=256, description="the station's CFX handle (envelope Source), e.g. "
+                        "//Company/Line1/ThermalCal1; '' = //thermal-cal-station/<name>")
+    subject: Literal["message_name", "handle.message_name"] = Field(
+        default="message_name", description="the AMQP subject (a topic exchange's routing key): the MessageName, "
+        "or the CFX SDK's default <handle>.<MessageName>")
+    timeout_s: float = Field(default=10.0, gt=0, le=600, description="connect / one message's settlement")
+    base_delay_s: float = Field(default=1.0, gt=0, le=3600, description="first retry after this; doubles each time")
+    max_delay_s: float = Field(default=120.0, gt=0, le=86_400, description="retries never wait longer")
+    poll_s: float = Field(default=2.0, gt=0, le=600, description="how often the outbox looks for new data")
+    lookback_h: float = Field(default=24.0, gt=0, le=24 * 366,
+                              description="batches created this long before the worker starts are still announced")
+    complete_after_s: float = Field(default=60.0, ge=0, le=86_400,
+                                    description="an ended batch with unjudged runs is completed after this long")
 
 
 def _hostname() -> str:
@@ -310,6 +333,7 @@ class StationConfig(_Model):
     mes: Mes = Mes()
     http: Http = Http()
     metrics: Metrics = Metrics()
+    cfx: Cfx = Cfx()  # IPC-CFX over AMQP 1.0 (docs/cfx.md)
     limits: Limits = Limits()
     timing: Timing = Timing()
     slots: list[SlotConfig] = Field(min_length=1)
@@ -384,6 +408,10 @@ class StationConfig(_Model):
         # every limits set in force (built-ins included), so a stored verdict can be traced to it
         data["products"] = {k: v.model_dump(mode="json") for k, v in self.product_specs().items()}
         data["tokens"] = [{"role": t["role"], "name": t["name"], "token": "***"} for t in data["tokens"]]
+        if isinstance(data.get("cfx"), dict):  # the broker's password is no part of a batch's record
+            import re
+
+            data["cfx"]["broker_url"] = re.sub(r"//[^/@]*@", "//***@", str(data["cfx"]["broker_url"]))
         return data
 
 

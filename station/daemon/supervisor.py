@@ -33,6 +33,7 @@ from contracts.types import NotFound, StationError
 from db.database import Database
 from db.writer import DbWriter
 from station.config import StationConfig
+from station.cfx.outbox import CfxOutbox
 from station.daemon.batches import BatchDesk
 from station.daemon.dut_run import Calibrator, wall_text
 from station.daemon.instruments import Links
@@ -96,6 +97,7 @@ class Station:
                               profiles=self.profiles_by_name, config=config, calibrator_factory=factory,
                               running=lambda: self.running)
         self.lamp: LampGuard | None = None
+        self.cfx: CfxOutbox | None = None  # IPC-CFX to the line ([cfx] enabled; station/cfx, docs/cfx.md)
         self._started = False
         self._closed = False
 
@@ -152,6 +154,9 @@ class Station:
                             plate_again_after_s=cfg.timing.plate_again_after_s, speed=cfg.timing.speed,
                             slots=self.bank, run_end=self.run_end)
         self.storage.start()
+        if cfg.cfx.enabled:
+            self.cfx = CfxOutbox(self.db, self.bus, cfg)
+            await self.cfx.start()
         self._started = True
         if connect_slots:
             await self.bank.connect_all()
@@ -176,6 +181,9 @@ class Station:
             await self.lamp.close(reason)
         await self.bank.close()
         await self.links.close()
+        if self.cfx is not None:  # what it has not queued yet, the next start reads from the database
+            await self.cfx.stop()
+            self.cfx = None
         await self.storage.stop()
         if self.claim is not None:  # the last thing: nothing of this station is in use any more
             self.claim.release()
