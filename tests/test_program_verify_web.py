@@ -67,7 +67,7 @@ def test_dut_and_mes_results_carry_program_verify(live):
 def test_page_script_parses_and_renders_program_verify():
     js = Path(__file__).resolve().parents[1] / "web" / "static" / "app.js"
     subprocess.run(["node", "--check", str(js)], check=True)
-    text = js.read_text()
+    text = js.read_text() + (js.parent / "i18n" / "en.json").read_text(encoding="utf-8")  # its words: the catalog
     for needle in ("programVerifyTable", "E verified mg", "DutProgrammed", "DutVerified", "compensation "):
         assert needle in text
 

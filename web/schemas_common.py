@@ -7,12 +7,13 @@ up in tests/test_openapi_truth.py as an undeclared or mistyped field.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, WithJsonSchema
+from pydantic import BaseModel, ConfigDict, Field, WithJsonSchema, model_validator
 
 from station.decisions.measurements import declared
 from station.decisions.verdicts import VERDICTS
+from station.records.causes import reason_code as _code_of_reason
 
 FREE_FORM = "x-free-form"  # marks a documented free-form map in the document (its keys are data)
 
@@ -189,6 +190,17 @@ class DecisionFields(_Out):
                                 "attempt, the run was stopped for a label mismatch before it tested the part)")
     limits_name: str | None = Field(default=None, description="limits set the DUT was judged by")
     limits_version: str | None = Field(default=None, description="version of that limits set")
+
+    reason_code: str | None = Field(default=None, description="the machine code of `reason` "
+                                    "(station/records/causes.py reason_code, e.g. 'label_mismatch', 'limit_exceeded'): "
+                                    "the page says the cause in the operator's language from it (web/static/i18n); "
+                                    "null when no rule names the words (shown as they are)")
+
+    @model_validator(mode="after")
+    def _reason_code_from_words(self) -> Self:
+        """Derived here, not by each producer: every response that carries a reason carries its code."""
+        self.reason_code = _code_of_reason(self.reason)
+        return self
 
 
 class StoredDecision(DecisionFields):

@@ -4,10 +4,11 @@ and outbox, yields (db/repository.py through web/db_repo.py; web/views.py dut_vi
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Self
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
+from station.records.causes import reason_code as _code_of_reason
 from web.schemas_common import (
     SFEM_HELP, CheckOut, DecisionFields, StoredDecision, ThermalAxes, ThermalByMethod, ThermalRow, TraceFields,
     ProgramVerifyOut, _Out, free_form, one_of,
@@ -133,6 +134,15 @@ class RunOut(_Results, StoredDecision, TraceFields):
     verdict_detail: VerdictDetail | None = Field(
         default=None, description="the decision with every check (measurement, axis, value, sigma, low, high, "
         "outcome, reason)")
+    fault_code: str | None = Field(default=None, description="the machine code of `fault_reason` "
+                                   "(station/records/causes.py reason_code, e.g. "
+                                   "'link_lost'); null when no rule names the words")
+
+    @model_validator(mode="after")
+    def _fault_code_from_words(self) -> Self:
+        """Derived from the stored English words, which stay as the station wrote them."""
+        self.fault_code = _code_of_reason(self.fault_reason)
+        return self
 
 
 class SegmentOut(SegmentRecord):

@@ -8,8 +8,11 @@ slot_view, prompt_view); a batch the daemon no longer holds comes from web/db_re
 
 from __future__ import annotations
 
-from pydantic import ConfigDict, Field
+from typing import Self
 
+from pydantic import ConfigDict, Field, model_validator
+
+from station.records.causes import reason_code as _code_of_reason
 from station.steps import kind_names, row_kinds
 from web.schemas_common import (
     DecisionFields, DecisionOut, PerAxis, ProgramVerifyOut, TraceFields, _Out, free_form, one_of, passed_through,
@@ -246,6 +249,16 @@ class SlotStatus(DecisionFields):
     waiting_for: str | None = Field(default=None, description="what this DUT's current step waits for; "
                                     "'plate at N' while it does not measure the confirmed position yet; "
                                     "'other DUTs' once it has what the step needs; null when not live")
+    error_code: str | None = Field(default=None, description="the machine code of `error` "
+                                   "(station/records/causes.py reason_code, e.g. "
+                                   "'link_lost'): the page translates the cause by it; "
+                                   "null when no rule names the words")
+
+    @model_validator(mode="after")
+    def _error_code_from_words(self) -> Self:
+        """Derived from the English words every producer already sends: the record keeps them."""
+        self.error_code = _code_of_reason(self.error)
+        return self
 
 
 class DecisionSummary(_Out):
@@ -266,6 +279,16 @@ class SortingEntry(_Out):
     tray: str | None = Field(default=None, description="the tray to put the board in")
     reason: str | None = Field(default=None, description="plain words")
     attempt: int | None = Field(default=None, description="the serial's attempt number")
+    reason_code: str | None = Field(default=None, description="the machine code of `reason` "
+                                    "(station/records/causes.py reason_code, e.g. "
+                                    "'link_lost'): the page translates the cause by it; "
+                                    "null when no rule names the words")
+
+    @model_validator(mode="after")
+    def _reason_code_from_words(self) -> Self:
+        """Derived from the English words every producer already sends: the record keeps them."""
+        self.reason_code = _code_of_reason(self.reason)
+        return self
 
 
 class DutCounts(_Out):
@@ -369,6 +392,15 @@ class BatchStatus(TraceFields):
     step_windows: dict[str, dict[str, list[float | None]]] = Field(
         default_factory=dict, description="stored only: {step index: {slot: [from, to]}} board seconds of every "
         "completed step (resume, SFEM windows)")
+    error_code: str | None = Field(default=None, description="the machine code of `error` "
+                                   "(station/records/causes.py reason_code, e.g. "
+                                   "'cannot_do_it_operator'); null when no rule names the words")
+
+    @model_validator(mode="after")
+    def _error_code_from_words(self) -> Self:
+        """Derived from the English words the daemon sends: the record keeps them."""
+        self.error_code = _code_of_reason(self.error)
+        return self
 
 
 class SlotOut(_Out):
@@ -396,6 +428,16 @@ class SlotOut(_Out):
     identity_problem: str | None = Field(default=None, description="why a batch would stop this identified slot before "
                                          "heating (design 3.1): a serial another identified slot reports too, an "
                                          "empty or invalid one; null when none")
+    error_code: str | None = Field(default=None, description="the machine code of `error` "
+                                   "(station/records/causes.py reason_code, e.g. "
+                                   "'link_lost'): the page translates the cause by it; "
+                                   "null when no rule names the words")
+
+    @model_validator(mode="after")
+    def _error_code_from_words(self) -> Self:
+        """Derived from the English words every producer already sends: the record keeps them."""
+        self.error_code = _code_of_reason(self.error)
+        return self
 
 
 class LampHealth(_Out):

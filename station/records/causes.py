@@ -90,6 +90,45 @@ def cause_of(reason: str) -> str | None:
     return None
 
 
+def code_of(cause: str) -> str:
+    """A cause's stable machine code, for a page that says the cause in the reader's language
+    (web/static/i18n/*.json `reason.<code>`): the name in lower case, every run of other characters
+    one "_" ("route refused (MES)" -> "route_refused_mes"). Derived, not listed, so that a cause
+    named here has its code at once; tests/test_i18n_catalogs.py fails until every catalog says it."""
+    return re.sub(r"[^a-z0-9]+", "_", cause.lower()).strip("_")
+
+
+# The verdict's own reasons that are no fault (station/decisions/judging.py, verdicts.py): a limit
+# check's words. Not causes of the Pareto (that counts a fail by its measurement), but the page says
+# them in the operator's language too; code -> pattern on the first reason of the line.
+_VERDICT_WORDS: tuple[tuple[str, str], ...] = (
+    ("all_limits_met", r"^all limits met$"),
+    ("limit_crossed", r" crosses limit \S+$"),
+    ("limit_near", r", within \S+ of limit \S+$"),
+    ("limit_exceeded", r", limit \S+$"),
+    ("not_measured", r" not measured$"),
+    ("no_grade_met", r"^meets no grade"),
+)
+_VERDICT_RX = tuple((code, re.compile(pat)) for code, pat in _VERDICT_WORDS)
+# every code reason_code can give: what the message catalogs must translate
+CODES = tuple(dict.fromkeys([*(code_of(c) for c in CAUSES), *(code for code, _ in _VERDICT_WORDS)]))
+
+
+def reason_code(reason: str | None) -> str | None:
+    """The machine code of a reason the station shows (a fault reason, a verdict's or a batch's
+    reason), so that the page translates the cause while the record keeps the station's English
+    words; None for words no rule names (the MES's free text, a new fault): the page then shows
+    them as they are, marked untranslated, rather than guess."""
+    text = str(reason or "").strip()
+    if not text:
+        return None
+    cause = cause_of(text)
+    if cause is not None:
+        return code_of(cause)
+    first = text.split("; ")[0]
+    return next((code for code, rx in _VERDICT_RX if rx.search(first)), None)
+
+
 def _failing_check(run: dict[str, Any]) -> dict | None:
     """The check that failed the run: the one its first (worst) reason names, else the first failing."""
     checks = [c for c in run.get("checks") or [] if isinstance(c, dict) and c.get("outcome") == "fail"]
@@ -122,4 +161,4 @@ def run_cause(run: dict[str, Any]) -> tuple[str, str]:
     return str(run.get("state") or "unknown"), example
 
 
-__all__ = ["CAUSES", "cause_of", "run_cause", "unnamed"]
+__all__ = ["CAUSES", "CODES", "cause_of", "code_of", "reason_code", "run_cause", "unnamed"]

@@ -2,7 +2,8 @@
 // (/api/events); the authoritative batch state is also polled, in its compact view, and what is big
 // or seldom changes is fetched once when it changes (status.js). The other parts: cards.js (slot
 // cards, sorting, steps, progress), start.js (start form, retest, abort), prompt.js and
-// orientation.js (the prompt and its picture), attention.js (tone, title flash, mute).
+// orientation.js (the prompt and its picture), attention.js (tone, title flash, mute); every word the
+// page shows comes from i18n.js (t(key) from the catalogs in /static/i18n/), which loads first.
 "use strict";
 
 const S = {
@@ -28,13 +29,23 @@ const S = {
   retest: null,            // the start form is a retest of {batchId, slots} (start.js)
 };
 
-const VERDICT_FIELDS = ["verdict", "grade", "tray", "reason", "attempt", "limits_name", "limits_version"];
-const VERDICT_WORD = { pass: "PASS", marginal: "MARGINAL", fail: "FAIL", error: "ERROR" };
+const VERDICT_FIELDS = ["verdict", "grade", "tray", "reason", "reason_code", "attempt", "limits_name", "limits_version"];
+// The verdict's word (PASS, BESTANDEN, 合格): the catalog's, else the station's own (a new verdict).
+const verdictWord = (v) => (v && I18N.has("verdict." + v) ? t("verdict." + v) : (v || ""));
 
 const FINAL = new Set(["finished", "aborted", "failed", "interrupted"]);
-const STATE_LABEL = { identified: "ready", disconnected: "no DUT", busy: "running", idle: "idle" };
+// A slot's and a batch's state in words (identified: "ready"); a state the catalog does not know as it is.
+const slotStateWord = (st) => (I18N.has("slot_state." + st) ? t("slot_state." + st) : st);
+const batchStateWord = (st) => (I18N.has("batch_state." + st) ? t("batch_state." + st) : st);
 
 const $ = (id) => document.getElementById(id);
+
+// What a profile does, in words: a built-in one's (station/profiles.py) from the catalog, by name;
+// a site's profile in the words its config gives (the site writes them in its own language).
+function profileDescription(p) {
+  if (p.builtin && I18N.lang !== "en" && I18N.has("profile.desc." + p.name)) return t("profile.desc." + p.name);
+  return p.description || "";
+}
 
 function el(tag, attrs, ...children) {
   const e = document.createElement(tag);
@@ -52,10 +63,10 @@ function el(tag, attrs, ...children) {
 
 function fmt(v, digits) {
   if (v === null || v === undefined || Number.isNaN(Number(v))) return "–";
-  return Number(v).toFixed(digits);
+  return I18N.num(v, digits);  // in the page's language (German 23,5)
 }
 
-function message(text) { $("message").textContent = text || ""; }
+function message(text) { $("message").textContent = text || ""; delete $("message").dataset.kind; }
 
 async function api(path, opts = {}) {
   const headers = Object.assign({}, opts.headers || {});
@@ -133,9 +144,9 @@ function showControls() {
 function setLamp(on, state) {
   // state 'unknown': the relay does not answer, the lamp may be on whatever was commanded.
   const unknown = state === "unknown";
-  $("lamp").textContent = unknown ? "UNKNOWN" : (on ? "ON" : "OFF");
+  $("lamp").textContent = t(unknown ? "lamp.unknown" : (on ? "lamp.on" : "lamp.off"));
   $("lamp").className = "chip " + (unknown ? "lamp-unknown" : (on ? "lamp-on" : "lamp-off"));
-  $("lamp").title = unknown ? "lamp relay not answering: lamp state unknown" : "";
+  $("lamp").title = unknown ? t("lamp.unknown_title") : "";
   $("batch-panel").classList.toggle("lamp-alert", unknown || !!on);  // still shown after the end
 }
 
@@ -145,8 +156,9 @@ function programVerifyTable(p, v) {
   if (p) {
     const ok = p.programmed && p.readback_identical !== false;
     wrap.append(el("div", { class: "programmed " + (ok ? "ok" : "bad") },
-      ok ? `Programmed · CRC ${p.crc}` + (p.attempts > 1 ? ` (${p.attempts} tries)` : "") + " · compensation " + (p.comp ? "on" : "OFF")
-         : `Not programmed: ${p.error_kind || "error"}`));
+      ok ? t("program.programmed", { crc: p.crc }) + (p.attempts > 1 ? " " + t("program.tries", { n: p.attempts }) : "")
+           + " · " + t(p.comp ? "program.comp_on" : "program.comp_off")
+         : t("program.not_programmed", { kind: p.error_kind || t("program.error") })));
   }
   if (v && v.e_after_mg) {
     const rows = ["x", "y", "z"].map((ax) => {
@@ -155,9 +167,9 @@ function programVerifyTable(p, v) {
         el("td", { class: "e-before" }, fmt((v.e_before_mg || {})[ax], 1)), el("td", { class: "e-after" }, fmt(v.e_after_mg[ax], 1)));
     });
     wrap.append(el("table", { class: "results verify" },
-      el("thead", {}, el("tr", {}, el("th", {}, "axis"), el("th", {}, "E before mg"), el("th", {}, "E verified mg"))),
+      el("thead", {}, el("tr", {}, el("th", {}, t("result.axis")), el("th", {}, t("program.e_before")), el("th", {}, t("program.e_verified")))),
       el("tbody", {}, ...rows)));
-    wrap.append(el("div", { class: "verdict " + (v.passed ? "ok" : "bad") }, v.passed ? "Verified" : "Verification failed"));
+    wrap.append(el("div", { class: "verdict " + (v.passed ? "ok" : "bad") }, t(v.passed ? "program.verified" : "program.verify_failed")));
     for (const f of v.flags || []) wrap.append(el("div", { class: "flag" }, f));
   }
   return wrap;
@@ -198,6 +210,7 @@ function onEvent(ev) {
     case "SlotStateChanged": {
       const s = slotState(ev.slot);
       s.state = ev.state; if (ev.serial) s.serial = ev.serial;
+      if ((ev.fault_reason || "") !== s.error) s.error_code = null;  // the event has no code: the slot's fields (status.js) bring it
       s.error = ev.fault_reason || "";
       break;
     }
@@ -207,7 +220,7 @@ function onEvent(ev) {
       break;
     }
     case "StepStarted":
-      $("batch-step").textContent = `${ev.step_index + 1} / ${S.stepCount ?? "?"} · ${ev.step_name}`;
+      $("batch-step").textContent = `${ev.step_index + 1} / ${S.stepCount ?? "?"} · ${stepName(ev.step_name)}`;
       pollBatch();  // the step list and progress move on now, not at the next poll
       break;
     case "DutResult": {
@@ -224,7 +237,7 @@ function onEvent(ev) {
     case "PromptAnswered": if (S.prompt && promptId(S.prompt) === ev.prompt_id) hidePrompt(); break;
     case "LampChanged": setLamp(ev.on); break;
     case "BatchStateChanged":
-      $("batch-state").textContent = ev.state;
+      $("batch-state").textContent = batchStateWord(ev.state);
       $("batch-state").dataset.state = ev.state;
       pollBatch();
       break;
@@ -242,8 +255,8 @@ function connect() {
   if (S.es) S.es.close();
   if (!S.token) return;
   S.es = new EventSource("/api/events?token=" + encodeURIComponent(S.token));
-  S.es.onopen = () => { $("conn").textContent = "live"; $("conn").className = "conn on"; };
-  S.es.onerror = () => { $("conn").textContent = "reconnecting"; $("conn").className = "conn off"; };
+  S.es.onopen = () => { $("conn").textContent = t("conn.live"); $("conn").className = "conn on"; };
+  S.es.onerror = () => { $("conn").textContent = t("conn.reconnecting"); $("conn").className = "conn off"; };
   S.es.onmessage = (m) => { try { onEvent(JSON.parse(m.data)); } catch (e) { console.error(e); } };
 }
 
@@ -255,16 +268,16 @@ async function search() {
   $("dut-runs").replaceChildren();
   try {
     const duts = await api("/api/duts?serial_like=" + encodeURIComponent(q));
-    if (!duts.length) list.append(el("p", { class: "muted" }, "No DUT found."));
+    if (!duts.length) list.append(el("p", { class: "muted" }, t("history.no_dut")));
     for (const d of duts) {
       list.append(el("button", { type: "button", class: "btn dut", "data-serial": d.serial, onclick: () => showDut(d.serial) },
-        `${d.serial} · ${d.runs} run${d.runs === 1 ? "" : "s"}`));
+        t(d.runs === 1 ? "history.dut_one_run" : "history.dut_runs", { serial: d.serial, n: d.runs })));
     }
     if (duts.length === 1) showDut(duts[0].serial);
   } catch (e) { list.append(el("p", { class: "error" }, e.message)); }
 }
 
-function localTime(iso) { return iso ? new Date(iso).toLocaleString() : "–"; }
+function localTime(iso) { return iso ? I18N.dateTime(iso) : "–"; }  // in the page's language
 
 let showDutSeq = 0;
 
@@ -286,31 +299,32 @@ async function showDut(serial) {
             const url = await blobUrl(`/api/duts/${encodeURIComponent(serial)}/certificate.pdf`);
             const a = el("a", { href: url, download: `certificate-${serial}.pdf` }); document.body.append(a); a.click(); a.remove();
           } catch (e) { msg.textContent = e.message; }
-        } }, "Certificate (PDF)"), msg));
+        } }, t("history.certificate")), msg));
     }
-    if (!runs.length) box.append(el("p", { class: "muted" }, "No run stored."));
+    if (!runs.length) box.append(el("p", { class: "muted" }, t("history.no_run")));
     for (const r of runs) {
       const plotBox = el("div", { class: "plot-box" });
       const info = el("div", {},
-        el("h3", {}, `Run ${r.id} · ${r.state ?? ""}`),
-        el("div", { class: "muted" }, `batch ${r.batch_id ?? "–"} · slot ${r.slot ?? "–"} · ${r.profile ?? ""}`),
+        el("h3", {}, t("history.run_head", { id: r.id, state: r.state ? slotStateWord(r.state) : "" })),
+        el("div", { class: "muted" }, t("history.run_where", { batch: r.batch_id ?? "–", slot: r.slot ?? "–", profile: r.profile ?? "" })),
         el("div", { class: "muted" }, `${localTime(r.started_at)} → ${localTime(r.finished_at)}`),
         r.verdict ? el("div", { class: "run-verdict v-" + r.verdict, "data-verdict": r.verdict },
-          `${VERDICT_WORD[r.verdict] || r.verdict}${r.grade ? " · grade " + r.grade : ""}`
-          + (r.attempt === 0 ? " · no attempt (the part was not tested)" : ` · attempt ${r.attempt ?? "?"}`)
-          + (r.reason ? " · " + r.reason : "") + (r.limits_name ? ` · limits ${r.limits_name} v${r.limits_version}` : "")) : null,
-        r.fault_reason ? el("div", { class: "fault" }, "Fault: " + r.fault_reason) : null,
-        (r.thermal || r.sfem) ? resultTable(storedResult(r)) : el("div", { class: "muted" }, "no result"),
+          `${verdictWord(r.verdict)}${r.grade ? " · " + t("verdict.grade", { grade: gradeWord(r.grade) }) : ""}`
+          + (r.attempt === 0 ? " · " + t("verdict.no_attempt") : " · " + t("verdict.attempt", { n: r.attempt ?? "?" }))
+          + (r.limits_name ? " · " + t("verdict.limits", { name: r.limits_name, version: r.limits_version }) : "")
+          + (r.reason ? " · " : ""), ...(r.reason ? reasonNodes(r.reason_code, r.reason) : [])) : null,
+        r.fault_reason ? el("div", { class: "fault" }, t("slot.fault") + " ", ...reasonNodes(r.fault_code, r.fault_reason)) : null,
+        (r.thermal || r.sfem) ? resultTable(storedResult(r)) : el("div", { class: "muted" }, t("result.none")),
         el("div", { class: "actions" },
-          el("button", { type: "button", class: "btn plot", onclick: async () => showPlot(await blobUrl(`/api/runs/${r.id}/plot.png`)) }, "Plot"),
+          el("button", { type: "button", class: "btn plot", onclick: async () => showPlot(await blobUrl(`/api/runs/${r.id}/plot.png`)) }, t("history.plot")),
           el("button", { type: "button", class: "btn csv", onclick: async () => {
             const url = await blobUrl(`/api/runs/${r.id}/log.csv`);
             const a = el("a", { href: url, download: `${serial}-run${r.id}.csv` }); document.body.append(a); a.click(); a.remove();
-          } }, "Log CSV"),
-          window.diagnoseRun ? el("button", { type: "button", class: "btn diag", onclick: () => window.diagnoseRun(r.id, serial) }, "Diagnose") : null));
+          } }, t("history.log_csv")),
+          window.diagnoseRun ? el("button", { type: "button", class: "btn diag", onclick: () => window.diagnoseRun(r.id, serial) }, t("history.diagnose")) : null));
       box.append(el("article", { class: "run-card st-" + (r.state || ""), "data-run": r.id }, info, plotBox));
       blobUrl(`/api/runs/${r.id}/plot.png`).then((url) => plotBox.append(
-        el("img", { class: "plot-inline", src: url, alt: `plot of run ${r.id}`, onclick: () => showPlot(url) }))).catch(() => {});
+        el("img", { class: "plot-inline", src: url, alt: t("history.plot_alt", { id: r.id }), onclick: () => showPlot(url) }))).catch(() => {});
     }
   } catch (e) { if (seq === showDutSeq) box.append(el("p", { class: "error" }, e.message)); }
 }
@@ -330,10 +344,9 @@ function showView(name) {
 function storageText(h) {
   const waiting = (h.forwarding && h.forwarding.events) || 0;
   const batches = Object.keys((h.forwarding && h.forwarding.batches) || {}).filter((b) => b !== "0");
-  const kept = waiting ? ` ${waiting} records wait on this station to be forwarded` +
-    (batches.length ? ` (batch ${batches.join(", ")})` : "") + ": nothing is lost." : "";
-  if (h.db && h.db.startsWith("error")) return [`Database: ${h.db.slice(7).split(";")[0]}. New batches cannot start.${kept}`, true];
-  if (waiting) return [`Database back: forwarding.${kept}`, false];
+  const kept = waiting ? " " + t(batches.length ? "storage.waiting_batches" : "storage.waiting", { n: waiting, batches: batches.join(", ") }) : "";
+  if (h.db && h.db.startsWith("error")) return [t("storage.down", { why: h.db.slice(7).split(";")[0] }) + kept, true];
+  if (waiting) return [t("storage.back") + kept, false];
   return ["", false];
 }
 
@@ -354,7 +367,7 @@ async function boot() {
   $("auth").classList.toggle("hidden", !!S.token);
   $("whoami").replaceChildren();
   if (!S.token) {
-    $("auth-msg").textContent = "Sign in with your token to operate the station.";
+    $("auth-msg").textContent = t("auth.sign_in_hint");
     setBatch(null);
     $("batch-panel").classList.add("hidden");
     return;
@@ -362,11 +375,16 @@ async function boot() {
   try {
     const me = await api("/api/me");
     S.role = me.role;
-    $("whoami").replaceChildren(el("span", { class: "who-name", title: `${me.name} (${me.role})` }, `${me.name} (${me.role})`),
-      el("button", { type: "button", class: "btn small", id: "sign-out", onclick: signOut }, "Sign out"));
+    // the token's name is the config's (the site's words); its role in the page's language
+    const role = I18N.has("role." + me.role) ? t("role." + me.role) : me.role;
+    $("whoami").replaceChildren(el("span", { class: "who-name", title: `${me.name} (${role})` },
+      el("span", { class: "site-words" }, me.name), ` (${role})`),
+      el("button", { type: "button", class: "btn small", id: "sign-out", onclick: signOut }, t("auth.sign_out")));
     const [profiles, slots, batches] = await Promise.all([api("/api/profiles"), api("/api/slots"), api("/api/batches?limit=1&view=compact")]);
     const sel = $("profile");
-    sel.replaceChildren(...profiles.map((p) => el("option", { value: p.name }, p.description ? `${p.name} — ${p.description}` : p.name)));
+    // a built-in profile's description in the page's language; a site's own as its config says it
+    sel.replaceChildren(...profiles.map((p) => el("option", { value: p.name, class: p.builtin ? null : "site-words" },
+      profileDescription(p) ? `${p.name} — ${profileDescription(p)}` : p.name)));
     S.profiles = new Map(profiles.map((p) => [p.name, p]));
     describeProfile();
     renderSlotPicks(slots);
@@ -377,6 +395,7 @@ async function boot() {
       if (s.sensor) st.sensor = s.sensor;
       st.state = s.state;
       st.error = s.fault_reason || "";
+      st.error_code = s.error_code || null;
     }
     // the newest batch, ended ones too: after a reload its verdicts and sorting are still on top
     if (batches.length) S.batchId = batches[0].id;
@@ -386,7 +405,7 @@ async function boot() {
       S.token = "";
       localStorage.removeItem("station.token");
       $("auth").classList.remove("hidden");
-      $("auth-msg").textContent = "Token rejected: " + e.message;
+      $("auth-msg").textContent = t("auth.rejected", { why: e.message });
     } else message(e.message);
     return;
   }
@@ -399,12 +418,11 @@ async function boot() {
 }
 
 document.addEventListener("DOMContentLoaded", () => {
-  pollStorage();
-  setInterval(pollStorage, 3000);
+  I18N.ready.then(() => { pollStorage(); setInterval(pollStorage, 3000); });  // its words need the catalog
   $("save-token").addEventListener("click", saveToken);
   $("token").addEventListener("keydown", (e) => { if (e.key === "Enter") saveToken(); });
   $("search-go").addEventListener("click", search);
   $("search").addEventListener("keydown", (e) => { if (e.key === "Enter") search(); });
-  for (const t of document.querySelectorAll(".tab")) t.addEventListener("click", () => showView(t.dataset.view));
-  boot();
+  for (const tab of document.querySelectorAll(".tab")) tab.addEventListener("click", () => showView(tab.dataset.view));
+  I18N.ready.then(boot);  // the catalog first: every view is built in the page's language
 });

@@ -8,7 +8,7 @@ const ATTN = {
   ctx: null,           // AudioContext, made on the first tap (browsers start audio only after a gesture)
   flashTimer: null,
   flashText: "",
-  baseTitle: document.title,
+  baseTitle: document.title,  // in the page's language once i18n.js has set it (DOMContentLoaded below)
   repeatTimer: null,
 };
 
@@ -69,10 +69,10 @@ function attention(kind, silent = false) {
   ATTN.repeatTimer = null;
   if (!silent) beep(kind);
   if (kind === "prompt") {
-    flashTitle("● Prompt waiting");
+    flashTitle("● " + t("attention.prompt_waiting"));
     ATTN.repeatTimer = setInterval(() => beep("prompt"), 30000);
   } else {
-    flashTitle("● Batch ended");
+    flashTitle("● " + t("attention.batch_ended"));
   }
   document.body.dataset.attention = kind;
 }
@@ -90,9 +90,9 @@ function renderMute() {
   if (!b) return;
   const muted = attentionMuted();
   b.setAttribute("aria-pressed", muted ? "true" : "false");
-  b.title = muted ? "sound off: tap to turn it on" : "sound on: tap to mute";
+  b.title = t(muted ? "attention.muted_title" : "attention.sound_title");
   b.classList.toggle("muted-on", muted);
-  b.querySelector(".mute-word").textContent = muted ? "Muted" : "Sound";
+  b.querySelector(".mute-word").textContent = t(muted ? "attention.muted" : "attention.sound");
 }
 
 function toggleMute() {
@@ -104,7 +104,7 @@ function toggleMute() {
 document.addEventListener("DOMContentLoaded", () => {
   const b = document.getElementById("mute");
   if (b) b.addEventListener("click", toggleMute);
-  renderMute();
+  I18N.ready.then(() => { ATTN.baseTitle = document.title; renderMute(); });  // the words once the catalog is in
   // the first tap unlocks audio; any tap or key ends the "batch ended" flash (the operator is here)
   const touched = () => {
     audioContext();

@@ -1,7 +1,9 @@
 // Slot cards, the sorting view and the batch's step list and progress bar (plain JavaScript, no
 // framework): what each slot shows live and at the end (verdict, reason, tray, result tables, its
 // run's plot). Split from app.js to keep modules small; it uses app.js's helpers (S, el, $, fmt, api,
-// blobUrl, programVerifyTable).
+// blobUrl, programVerifyTable, verdictWord, slotStateWord) and i18n.js (t, reasonNodes): every word
+// from the catalogs; the station's own words (reasons, tray names from the config) as they are, or
+// translated by their code.
 "use strict";
 
 // ---- slots -----------------------------------------------------------------------------------
@@ -32,28 +34,31 @@ function renderSlots() {
     // one dot per profile step, lit for the steps this DUT has actually completed (not segments)
     const need = S.stepCount || 4;
     const done = s.steps_done ?? 0;
-    const dots = el("span", { class: "dots", "aria-hidden": "true", title: `${done} of ${need} steps done` });
+    const dots = el("span", { class: "dots", "aria-hidden": "true", title: t("slot.steps_done", { done, need }) });
     for (let i = 0; i < Math.min(need, 40); i++) dots.append(el("span", { class: i < done ? "dot on" : "dot" }));
     card.replaceChildren(...[
-      el("header", {}, el("h2", {}, name), el("span", { class: "st" }, STATE_LABEL[state] || state)),
-      el("div", { class: "serial" }, s.serial || "no DUT", s.sensor ? el("span", { class: "muted" }, " · " + s.sensor) : null,
-        active && s.label_serial ? el("span", { class: "label-serial muted", title: "serial on the part's label" }, " · label ",
+      el("header", {}, el("h2", {}, name), el("span", { class: "st" }, slotStateWord(state))),
+      el("div", { class: "serial" }, s.serial || t("slot.no_dut"), s.sensor ? el("span", { class: "muted" }, " · " + s.sensor) : null,
+        active && s.label_serial ? el("span", { class: "label-serial muted", title: t("slot.label_title") }, " · " + t("slot.label") + " ",
           el("b", {}, s.label_serial)) : null),
       active ? el("div", { class: "live" },
         el("span", { class: "temp" }, s.temp_c === undefined || s.temp_c === null ? "– °C" : fmt(s.temp_c, 1) + " °C"),
-        el("span", { class: "segbox" }, "Segments ", el("b", { class: "segments" }, String(s.segments || 0)), " · Steps ", dots)) : null,
+        el("span", { class: "segbox" }, t("slot.segments") + " ", el("b", { class: "segments" }, String(s.segments || 0)),
+          " · " + t("slot.steps") + " ", dots)) : null,
       active ? el("dl", {},
-        el("dt", {}, "Acc x y z (g)"), el("dd", { class: "acc" }, acc),
-        el("dt", {}, "Samples"), el("dd", { class: "samples" }, String(s.samples ?? 0)),
-      ) : el("div", { class: "muted" }, S.batchId && !S.finalBatch ? "not in this batch" : ""),
+        el("dt", {}, t("slot.acc")), el("dd", { class: "acc" }, acc),
+        el("dt", {}, t("slot.samples")), el("dd", { class: "samples" }, String(s.samples ?? 0)),
+      ) : el("div", { class: "muted" }, S.batchId && !S.finalBatch ? t("slot.not_in_batch") : ""),
       active && s.verdict ? verdictBlock(s) : null,
       active && !s.verdict && s.tempHist && s.tempHist.length > 1 ? sparkline(s.tempHist) : null,
-      active && s.waiting_for && !S.finalBatch ? el("div", { class: "waiting muted" }, "waiting for ", el("b", { class: "waiting-for" }, s.waiting_for)) : null,
+      active && s.waiting_for && !S.finalBatch ? el("div", { class: "waiting muted" }, t("slot.waiting_for") + " ",
+        el("b", { class: "waiting-for" }, waitingWords(s.waiting_for))) : null,
       // a fault's reason stays on the card after the verdict too, unless the verdict's reason says it
-      s.error && (!s.verdict || !(s.reason || "").includes(s.error)) ? el("div", { class: "fault" }, "Fault: " + s.error) : null,
+      s.error && (!s.verdict || !(s.reason || "").includes(s.error))
+        ? el("div", { class: "fault" }, t("slot.fault") + " ", ...reasonNodes(s.error_code, s.error)) : null,
       active && s.result ? resultTable(s.result) : null,
       active && (s.program || s.verification) ? programVerifyTable(s.program, s.verification) : null,
-      active && s.plotUrl ? el("img", { class: "plot-thumb", src: s.plotUrl, alt: s.plotAlt || "plot of " + (s.serial || name), onclick: () => showPlot(s.plotUrl) }) : null,
+      active && s.plotUrl ? el("img", { class: "plot-thumb", src: s.plotUrl, alt: s.plotAlt || t("slot.plot_alt", { what: s.serial || name }), onclick: () => showPlot(s.plotUrl) }) : null,
     ].filter((c) => c !== null && c !== undefined && c !== false));
   }
 }
@@ -62,11 +67,43 @@ function renderSlots() {
 function verdictBlock(s) {
   return el("div", { class: "verdict v-" + s.verdict, "data-verdict": s.verdict },
     el("div", { class: "verdict-head" },
-      el("span", { class: "verdict-word" }, VERDICT_WORD[s.verdict] || s.verdict),
-      s.grade ? el("span", { class: "grade" + (s.grade.length > 2 ? " long" : ""), title: "grade" }, s.grade) : null),
-    el("div", { class: "reason" }, s.reason || ""),
-    el("div", { class: "tray-line" }, "→ ", el("b", { class: "tray" }, s.tray || "–"),
-      s.attempt > 1 ? el("span", { class: "attempt" }, ` · attempt ${s.attempt}`) : null));
+      el("span", { class: "verdict-word" }, verdictWord(s.verdict)),
+      s.grade ? el("span", { class: "grade" + (gradeWord(s.grade).length > 2 ? " long" : ""), title: t("verdict.grade_title"),
+        "data-grade": s.grade }, gradeWord(s.grade)) : null),
+    el("div", { class: "reason" }, ...reasonNodes(s.reason_code, s.reason)),
+    el("div", { class: "tray-line" }, "→ ", el("b", { class: "tray", "data-tray": s.tray || "" }, s.tray ? trayWord(s.tray) : "–"),
+      s.attempt > 1 ? el("span", { class: "attempt" }, " · " + t("verdict.attempt", { n: s.attempt })) : null));
+}
+
+// A grade: the product's bins (A, B: the config's names) as they are; the station's own grades of an
+// exception ("retest", "reject", "hold", "none": station/decisions/verdicts.py) in the page's language.
+function gradeWord(g) { return I18N.has("grade." + g) ? t("grade." + g) : g; }
+
+// A tray's name: the config names it (a site may name its own, in its own language); the built-in
+// names (station/decisions/limits.py: "reject", "hold (review / retest)", "retest", "grade A") are
+// said in the page's language. The data-tray attribute keeps the station's name.
+function trayWord(name) {
+  const g = /^grade (\S+)$/.exec(name || "");
+  if (g) return t("tray.grade", { grade: g[1] });
+  const key = "tray." + String(name || "").toLowerCase().replace(/[^a-z0-9]+/g, "_").replace(/^_|_$/g, "");
+  return I18N.has(key) ? t(key) : (name || "");
+}
+
+// A step's name: the built-in profiles' (station/profiles.py: "P ambient", "N hot", "cool down",
+// "program", "verify hot") in the page's language; a site's own step names as the config wrote them.
+function stepName(name) {
+  const m = /^(\S+) (ambient|hot)$/.exec(name || "");
+  if (m) return t("stepname." + m[2], { position: m[1] });
+  const key = "stepname." + String(name || "").toLowerCase().replace(/[^a-z0-9]+/g, "_");
+  return I18N.has(key) ? t(key) : (name || "");
+}
+
+// What a DUT's step waits for (SlotStatus.waiting_for, the daemon's words): "plate at N", "other DUTs".
+function waitingWords(w) {
+  const m = /^plate at (\S+)$/.exec(w || "");
+  if (m) return t("waiting.plate_at", { position: m[1] });
+  const key = "waiting." + String(w || "").toLowerCase().replace(/[^a-z0-9]+/g, "_");  // "other DUTs", "static dwell", ...
+  return I18N.has(key) ? t(key) : (w || "");
 }
 
 // Live temperature of one slot (the last few minutes), an SVG line with its range.
@@ -79,7 +116,8 @@ function sparkline(hist) {
   const pts = hist.map(([t, v]) => `${((t - t0) / Math.max(t1 - t0, 1e-9) * w).toFixed(1)},${(h - 4 - (v - lo) / span * (h - 8)).toFixed(1)}`).join(" ");
   // numbers only go into the markup; the HTML parser puts <svg> in the SVG namespace by itself
   const box = el("div", { class: "spark-box" });
-  box.innerHTML = `<svg viewBox="0 0 ${w} ${h}" class="spark" role="img" aria-label="temperature ${fmt(lo, 1)} to ${fmt(hi, 1)} °C">`
+  const label = t("slot.temp_range", { lo: fmt(lo, 1), hi: fmt(hi, 1) }).replace(/[<>&"']/g, (c) => `&#${c.charCodeAt(0)};`);
+  box.innerHTML = `<svg viewBox="0 0 ${w} ${h}" class="spark" role="img" aria-label="${label}">`
     + `<polyline points="${pts}"></polyline></svg>`;
   box.append(el("span", { class: "muted" }, `${fmt(lo, 1)}–${fmt(hi, 1)} °C`));
   return box;
@@ -131,18 +169,19 @@ function renderSorting(b) {
     const slots = r.slots.slice().sort(bySlot);
     return el("div", { class: "tray-row v-" + r.verdict + (exception ? " exception" : ""), "data-tray": r.tray, "data-verdict": r.verdict },
       el("div", { class: "tray-head" },
-        el("span", { class: "tray-name" }, r.tray),
+        el("span", { class: "tray-name" }, trayWord(r.tray)),
         el("span", { class: "tray-tags" },
-          el("span", { class: "tray-verdict" }, VERDICT_WORD[r.verdict] || r.verdict || ""),
-          el("span", { class: "tray-count", title: `${slots.length} part${slots.length === 1 ? "" : "s"}` }, "× " + slots.length))),
+          el("span", { class: "tray-verdict" }, verdictWord(r.verdict)),
+          el("span", { class: "tray-count", title: t(slots.length === 1 ? "sorting.one_part" : "sorting.parts", { n: slots.length }) },
+            "× " + slots.length))),
       el("div", { class: "tray-slots" }, ...slots.map((e) => el("span", {
         class: "tray-slot v-" + e.verdict, "data-slot": e.slot, "data-verdict": e.verdict,
-        title: `${e.slot} ${e.serial || ""}: ${VERDICT_WORD[e.verdict] || e.verdict} → ${r.tray}` + (e.reason ? ` · ${e.reason}` : ""),
+        title: `${e.slot} ${e.serial || ""}: ${verdictWord(e.verdict)} → ${trayWord(r.tray)}` + (e.reason ? ` · ${e.reason}` : ""),
       }, el("b", { class: "tray-slot-name" }, e.slot), el("small", {}, " " + (e.serial || "")),
-      exception && e.reason ? el("span", { class: "tray-why" }, shortReason(e.reason)) : null))));
+      exception && e.reason ? el("span", { class: "tray-why" }, ...reasonNodes(e.reason_code, e.reason, shortReason(e.reason))) : null))));
   }));
   const d = (b && b.decision && b.decision.verdicts) || {};
-  $("yield-line").textContent = `${d.pass || 0} pass · ${d.marginal || 0} marginal · ${d.fail || 0} fail · ${d.error || 0} error`;
+  $("yield-line").textContent = t("sorting.yield", { pass: d.pass || 0, marginal: d.marginal || 0, fail: d.fail || 0, error: d.error || 0 });
 }
 
 // The batch's outcome from its verdicts: all pass (green), some pass (amber), none pass (red),
@@ -153,7 +192,7 @@ function batchOutcome(b) {
   if (!judged) return null;
   const pass = v.pass || 0;
   const kind = pass === judged ? "all" : (pass === 0 ? "none" : "some");
-  return { kind, pass, judged, counts: v, words: kind === "all" ? `all ${judged} pass` : `${pass} of ${judged} pass` };
+  return { kind, pass, judged, counts: v, words: kind === "all" ? t("outcome.all", { n: judged }) : t("outcome.some", { pass, n: judged }) };
 }
 
 // "11 running · 0 done · 1 faulted: s03" - which slot (a tap takes you to its card), and the reasons
@@ -161,18 +200,18 @@ function batchOutcome(b) {
 function renderCounts(c, b, final) {
   const faulted = (b.slots || []).filter((sl) => sl.state === "faulted").sort(bySlot);
   const box = $("batch-counts");
-  const text = `${c.running || 0} running · ${c.done || 0} done · ${c.faulted || 0} faulted`;
+  const text = t("counts.line", { running: c.running || 0, done: c.done || 0, faulted: c.faulted || 0 });
   const names = final ? [] : faulted.flatMap((sl, i) => [i ? ", " : "", el("button", {
-    type: "button", class: "fault-slot", "data-slot": sl.slot, title: sl.error || "faulted",
+    type: "button", class: "fault-slot", "data-slot": sl.slot, title: sl.error || t("slot_state.faulted"),
     onclick: () => showSlotCard(sl.slot),
   }, sl.slot)]);
-  box.replaceChildren(text, ...(names.length ? [": ", ...names] : []), c.interrupted ? ` · ${c.interrupted} interrupted` : "");
+  box.replaceChildren(text, ...(names.length ? [": ", ...names] : []), c.interrupted ? " · " + t("counts.interrupted", { n: c.interrupted }) : "");
   const line = $("batch-faults");
   const live = !final && faulted.length;
   line.classList.toggle("hidden", !live);
   line.replaceChildren(...(live ? faulted.map((sl) => el("button", {
     type: "button", class: "fault-line", "data-slot": sl.slot, title: sl.error || "", onclick: () => showSlotCard(sl.slot),
-  }, el("b", {}, sl.slot), " " + (shortReason(sl.error) || "faulted"))) : []));
+  }, el("b", {}, sl.slot), " ", ...(sl.error ? reasonNodes(sl.error_code, sl.error, shortReason(sl.error)) : [t("slot_state.faulted")]))) : []));
 }
 
 // A stored batch (the daemon no longer holds it) has no clock of its own: its start to its end.
@@ -213,8 +252,8 @@ function storedResult(run) {
 // the certificate do.
 function tdsfCell(a) {
   if (!a.tdsf_clamped) return el("td", { class: "tdsf" }, fmt(a.tdsf_ppm_per_c, 1));
-  return el("td", { class: "tdsf clamped", title: "positive TDSF clamped to 0: not observable in this run" },
-    fmt(a.tdsf_ppm_per_c, 1) + " ", el("span", { class: "clamped-flag" }, "(clamped: not observable)"));
+  return el("td", { class: "tdsf clamped", title: t("result.clamped_title") },
+    fmt(a.tdsf_ppm_per_c, 1) + " ", el("span", { class: "clamped-flag" }, t("result.clamped")));
 }
 
 function sigmaText(sigma, digits) {
@@ -230,26 +269,27 @@ function resultTable(result) {
         tdsfCell(a));
     });
     wrap.append(el("table", { class: "results" },
-      el("thead", {}, el("tr", {}, el("th", {}, "axis"), el("th", {}, "TDB mg/°C"), el("th", {}, "TDSF ppm/°C"))),
+      // TDB and TDSF are the coefficients' symbols, like their units: the same in every language
+      el("thead", {}, el("tr", {}, el("th", {}, t("result.axis")), el("th", {}, "TDB mg/°C"), el("th", {}, "TDSF ppm/°C"))),
       el("tbody", {}, ...rows)));
     // every ± on the page is the part's own 1 sigma (docs/verdicts.md "Uncertainty budget"); the
     // verdict's guard band is k = 2 of it. A line under the table, so a card keeps its width.
     const sig = (key, digits) => ["x", "y", "z"].map((ax) => sigmaText((result.axes[ax] || {})[key], digits)).join(" / ");
     if (["x", "y", "z"].some((ax) => (result.axes[ax] || {}).tdb_sigma_mg_per_c != null)) {
       wrap.append(el("div", { class: "sigmas" },
-        `± 1σ (this part's): TDB ${sig("tdb_sigma_mg_per_c", 4)} · TDSF ${sig("tdsf_sigma_ppm_per_c", 1)}`));
+        t("result.sigmas", { tdb: sig("tdb_sigma_mg_per_c", 4), tdsf: sig("tdsf_sigma_ppm_per_c", 1) })));
     }
-    let note = (result.method || "") + (result.method === "offline" ? " fit" : "");
+    let note = result.method && I18N.has("result.method_" + result.method) ? t("result.method_" + result.method) : (result.method || "");
     if (result.streaming && result.method !== "streaming") {
-      note += " · streaming TDB " + ["x", "y", "z"].map((ax) => fmt((result.streaming[ax] || {}).tdb_mg_per_c, 3)).join(" / ");
+      note += " · " + t("result.streaming_tdb", { values: ["x", "y", "z"].map((ax) => fmt((result.streaming[ax] || {}).tdb_mg_per_c, 3)).join(" / ") });
     }
     wrap.append(el("div", { class: "method" }, note));
   }
   if (result.sfem) {
     const sf = result.sfem;
     // the record (contracts/sfem_result.py): the step nearest Tref at the top, the model check's words
-    const at = sf.temp_c === null || sf.temp_c === undefined ? "" : ` at ${fmt(sf.temp_c, 1)} °C`;
-    wrap.append(el("div", { class: "sfem" }, `SFEM${at}: RMSE ${fmt(sf.rmse_before_mg, 2)} → ${fmt(sf.rmse_after_mg, 2)} mg`));
+    const at = sf.temp_c === null || sf.temp_c === undefined ? "" : " " + t("result.sfem_at", { temp: fmt(sf.temp_c, 1) });
+    wrap.append(el("div", { class: "sfem" }, t("result.sfem", { at, before: fmt(sf.rmse_before_mg, 2), after: fmt(sf.rmse_after_mg, 2) })));
     const check = sf.model_check || {};
     if (check.words && check.words !== "not testable") {
       wrap.append(el("div", { class: "sfem-check" + (check.misses_effect ? " warn" : "") }, check.words));
@@ -275,7 +315,7 @@ async function loadPlot(slot) {
     // so the card never keeps a plot of half a run. A run's end is stored after its result.
     if (!run.finished_at) return;
     if (run.thermal || run.sfem) s.result = storedResult(run);
-    s.plotAlt = `plot of ${s.serial || slot} run ${s.runId} (${run.state})`;
+    s.plotAlt = t("slot.plot_run_alt", { what: s.serial || slot, run: s.runId, state: slotStateWord(run.state) });
     s.plotUrl = await blobUrl(s.plotPath || `/api/runs/${s.runId}/plot.png`);
     renderSlots();
   } catch (e) { /* retried on the next poll */ } finally { s.plotLoading = false; }
@@ -283,8 +323,9 @@ async function loadPlot(slot) {
 
 // ---- the batch's steps and progress -----------------------------------------------------------
 function traceText(b) {
-  const part = [b.part_number, b.part_revision ? "rev " + b.part_revision : ""].filter(Boolean).join(" ");
-  const bits = [b.work_order ? "WO " + b.work_order : "", part ? "part " + part : "", b.lot ? "lot " + b.lot : ""].filter(Boolean);
+  const part = [b.part_number, b.part_revision ? t("trace.short_rev", { rev: b.part_revision }) : ""].filter(Boolean).join(" ");
+  const bits = [b.work_order ? t("trace.short_wo", { wo: b.work_order }) : "", part ? t("trace.short_part", { part }) : "",
+    b.lot ? t("trace.short_lot", { lot: b.lot }) : ""].filter(Boolean);
   return bits.join(" · ");
 }
 
@@ -293,7 +334,7 @@ function stepTime(st) {
   const exp = Number.isFinite(Number(st.expected_s)) && st.expected_s !== null ? "~" + clock(st.expected_s) : "";
   if (st.state === "running") return clock(st.duration_s) + (exp ? " / " + exp : "");
   if (st.state === "done" || st.state === "failed") return clock(st.duration_s);
-  if (st.state === "skipped") return "skipped";
+  if (st.state === "skipped") return t("step_state.skipped");
   return exp;
 }
 
@@ -304,8 +345,9 @@ function renderSteps(b) {
   box.classList.toggle("hidden", !list.length);
   box.replaceChildren(...list.map((st) => el("li", {
     class: "step", "data-state": st.state, "data-kind": st.kind || "step", "data-index": st.index,
-    title: `step ${st.index + 1}: ${st.name || st.kind}${st.position_name ? " at " + st.position_name : ""} · ${st.state} · ${stepTime(st)}`,
-  }, el("span", { class: "step-n" }, String(st.index + 1)), el("span", { class: "step-name" }, st.name || st.kind || ""),
+    title: t(st.position_name ? "step.title_at" : "step.title", { n: st.index + 1, name: stepName(st.name || st.kind), position: st.position_name,
+      state: I18N.has("step_state." + st.state) ? t("step_state." + st.state) : st.state, time: stepTime(st) }),
+  }, el("span", { class: "step-n" }, String(st.index + 1)), el("span", { class: "step-name" }, stepName(st.name || st.kind || "")),
   el("span", { class: "step-time" }, stepTime(st)))));
   const cur = box.querySelector('.step[data-state="running"]');
   if (cur && box.scrollWidth > box.clientWidth + 2) box.scrollLeft = Math.max(0, cur.offsetLeft - box.clientWidth / 3);
@@ -342,7 +384,7 @@ function renderProgress(b, final) {
   $("batch-outcome").textContent = out ? out.words : "";
   if (out) $("batch-outcome").dataset.outcome = out.kind;
   const left = (b.time_left || {}).batch_wall_s;
-  $("progress-text").textContent = (known ? `${pct} %` : "") + (final ? (known ? " · " : "") + b.state + (out ? ` · ${out.words}` : "")
-    : (left !== null && left !== undefined ? ` · ${clock(left)} left` : ""));
+  $("progress-text").textContent = (known ? `${pct} %` : "") + (final ? (known ? " · " : "") + batchStateWord(b.state) + (out ? ` · ${out.words}` : "")
+    : (left !== null && left !== undefined ? " · " + t("progress.left", { time: clock(left) }) : ""));
   $("batch-error").title = b.error || "";  // the kiosk shows it on one line
 }

@@ -7,7 +7,7 @@
 // in that position. An accelerometer at rest reads +1 g along the axis that points UP (a board lying
 // flat, component side up, reads z = +1 g: position "+z"), so the picture turns the board until
 // `direction` points up; gravity pulls along -direction ("this side down").
-// Pure: numbers in, SVG markup out (no DOM, no state).
+// Pure: numbers in, SVG markup out (no DOM, no state); its few words from i18n.js (t).
 "use strict";
 
 const ORIENT_S = 1 / Math.sqrt(3);
@@ -96,7 +96,7 @@ const toWorld = (A, p) => [0, 1, 2].map((k) => p[0] * A[0][k] + p[1] * A[1][k] +
 function axisWords(d) {
   return ["x", "y", "z"].map((ax, i) => {
     const c = d[i];
-    return `${ax} ${c > 0.2 ? "up" : c < -0.2 ? "down" : "level"}`;
+    return t(c > 0.2 ? "orient.axis_up" : c < -0.2 ? "orient.axis_down" : "orient.axis_level", { axis: ax });
   }).join(" · ");
 }
 
@@ -151,7 +151,8 @@ function orientationSvg(d, rawName) {
   const heads = Object.entries(colours).map(([ax, c]) => `<marker id="orient-head-${ax}" viewBox="0 0 10 10" refX="8" refY="5" `
     + `markerWidth="4" markerHeight="4" orient="auto-start-reverse"><path d="M0,0 L10,5 L0,10 z" fill="${c}"/></marker>`).join("");
   const dirText = d.map((v) => (Math.abs(v) < 5e-4 ? 0 : v).toFixed(2)).join(", ");
-  const label = `plate in position ${name || "?"}: ${axisWords(d)} (board reads ${dirText} g)`;
+  const esc = (x) => String(x).replace(/[<>&"']/g, (c) => `&#${c.charCodeAt(0)};`);
+  const label = esc(t("orient.label", { position: rawName || "?", axes: axisWords(d), reading: dirText }));
   return `<svg class="orientation" viewBox="0 0 ${W} ${H}" role="img" aria-label="${label}" data-position="${name || ""}" `
     + `data-direction="${dirText}"><title>${label}</title><defs>${heads}`
     + `<marker id="orient-head-g" viewBox="0 0 10 10" refX="8" refY="5" markerWidth="4" markerHeight="4" orient="auto">`
@@ -159,7 +160,7 @@ function orientationSvg(d, rawName) {
     + `<polygon class="floor" points="${table}"/>`
     + back.join("") + faces.join("") + front.join("")
     + `<g class="gravity"><line x1="${W - 20}" y1="26" x2="${W - 20}" y2="${H - 30}" marker-end="url(#orient-head-g)"/>`
-    + `<text x="${W - 20}" y="16" text-anchor="middle">down</text></g>`
+    + `<text x="${W - 20}" y="16" text-anchor="middle">${esc(t("orient.down"))}</text></g>`
     + `<text class="pos-name" x="8" y="22">${name || ""}</text></svg>`;
 }
 

@@ -1,7 +1,7 @@
 // The operator prompt ("turn the plate to N"): its text, a picture of the position asked for
 // (orientation.js), and two answers: "Done: continue" and "Cannot do it" with the operator's words,
 // which end the DUTs it concerns as error. Uses app.js (S, $, api, message, pollBatch, canControl)
-// and attention.js (tone and title while it waits).
+// and attention.js (tone and title while it waits); its words from i18n.js (t).
 "use strict";
 
 // ---- prompts ---------------------------------------------------------------------------------
@@ -15,7 +15,7 @@ function showPrompt(p) {
   }
   S.prompt = p;
   S.promptShownAt = performance.now();
-  $("prompt-text").textContent = p.text;
+  $("prompt-text").replaceChildren(...promptWords(p));
   drawPromptPicture(p);
   $("prompt-cannot-box").classList.add("hidden");
   $("prompt-note").value = "";
@@ -25,6 +25,25 @@ function showPrompt(p) {
   for (const id of ["prompt-confirm", "prompt-cannot", "prompt-cannot-send"]) $(id).disabled = !canControl();
   attention("prompt", S.alertedPrompt === promptId(p));  // one tone per prompt, even if a stale status hid it a moment
   S.alertedPrompt = promptId(p);
+}
+
+// The prompt in the page's language: the daemon's text is English ("turn the plate to N", a re-prompt
+// "s03 still faces P 40 s after Done: turn the plate to N", station/daemon/positioning.py); a
+// turn-the-plate prompt is said from its position, the re-prompt's reason kept as the station's words.
+// English: the daemon's text as it is. Another prompt: its text, marked untranslated.
+function promptWords(p) {
+  const text = String(p.text || "");
+  if (I18N.lang === "en") return [text];
+  const m = /^(?:(.*): )?turn the plate to (\S+)$/.exec(text);
+  const pos = p.position_name || (m && m[2]) || (m ? positionNameOf(p) : "");
+  if ((p.kind === "turn_plate" || m) && pos) {
+    const why = p.reason || (m && m[1]) || "";
+    const main = t(p.again || why ? "prompt.turn_plate_again" : "prompt.turn_plate", { position: pos });
+    if (!why) return [main];
+    const detail = el("span", { class: "reason-detail prompt-why", lang: "en" }, why);
+    return [main, el("br"), detail];
+  }
+  return reasonNodes(null, text);
 }
 
 function drawPromptPicture(p) {
@@ -49,7 +68,7 @@ async function answerPrompt(answer, note) {
     hidePrompt();
     return true;
   } catch (e) {
-    message((answer === "cannot" ? "Could not send: " : "Confirm failed: ") + e.message);
+    message(t(answer === "cannot" ? "prompt.could_not_send" : "prompt.confirm_failed", { why: e.message }));
     return false;
   }
 }
@@ -64,7 +83,7 @@ async function sendCannot() {
   const note = $("prompt-note").value.trim();
   if (!note) {
     $("prompt-note").classList.add("invalid");
-    $("prompt-cannot-msg").textContent = "Say why it cannot be done: your words are recorded with the DUTs it ends.";
+    $("prompt-cannot-msg").textContent = t("prompt.say_why");
     $("prompt-note").focus();
     return;
   }
@@ -72,7 +91,7 @@ async function sendCannot() {
   $("prompt-cannot-msg").textContent = "";
   $("prompt-cannot-send").disabled = true;
   if (await answerPrompt("cannot", note)) {
-    message(`Answered "cannot do it": the DUTs end as error with your words.`);
+    message(t("prompt.answered_cannot"));
     pollBatch();
   }
   $("prompt-cannot-send").disabled = !canControl();

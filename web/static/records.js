@@ -1,21 +1,22 @@
 // Records view: filters, SPC per product and limits version (run rules named on the
 // points, Cpk from n >= 25 with its interval), the failure Pareto, each with a CSV of what is shown
 // (drawn here as SVG, no library), replays and the audit trail (admin). Uses app.js's globals (api,
-// blobUrl, el, fmt, S); loaded after it.
+// blobUrl, el, fmt, S); loaded after it. Its messages and the audit's columns come from i18n.js (t);
+// the charts' statistical labels (UCL, Cpk, run rules, ...) are not translated yet.
 "use strict";
 
 async function loadAudit() {
   const table = document.getElementById("audit-table");
   const status = document.getElementById("audit-status");
   table.replaceChildren();
-  if (S.role !== "admin") { status.textContent = "The audit trail is for admin tokens."; return; }
+  if (S.role !== "admin") { status.textContent = t("records.audit_admin_only"); return; }
   try {
     const rows = await api("/api/audit?limit=50");
-    status.textContent = rows.length ? "" : "No audited action yet.";
-    table.append(el("tr", {}, ...["time", "station", "who", "action", "target", "detail"].map((h) => el("th", {}, h))));
+    status.textContent = rows.length ? "" : t("records.no_audit");
+    table.append(el("tr", {}, ...["time", "station", "who", "action", "target", "detail"].map((h) => el("th", {}, t("audit." + h)))));
     for (const a of rows) {
       table.append(el("tr", { "data-action": a.action },
-        el("td", {}, new Date(a.at).toLocaleString()), el("td", {}, a.station), el("td", {}, a.actor),
+        el("td", {}, I18N.dateTime(a.at)), el("td", {}, a.station), el("td", {}, a.actor),
         el("td", {}, a.action), el("td", {}, a.target),
         el("td", { class: "detail" }, Object.entries(a.detail || {}).map(([k, v]) => `${k}: ${JSON.stringify(v)}`).join(", "))));
     }
@@ -226,7 +227,7 @@ async function spcShow(opts = {}) {
   REC_STATE.spcCsv = "/api/records/spc.csv?" + shown.toString();
   document.getElementById("spc-csv").setAttribute("data-src", REC_STATE.spcCsv);
   if (!r.group || !r.parameter) {
-    status.textContent = "No judged run under these filters.";
+    status.textContent = t("records.no_judged_run");
     for (const n of [charts, summary, table]) n.replaceChildren();
     document.getElementById("spc-points-count").textContent = "0";
     return;
@@ -367,7 +368,7 @@ async function loadReplays() {
   table.replaceChildren();
   try {
     const rows = await api("/api/replays?limit=20");
-    status.textContent = rows.length ? "" : "No replay yet.";
+    status.textContent = rows.length ? "" : t("records.no_replay");
     if (!rows.length) return;
     table.append(el("tr", {}, ...["batch", "when", "source", "DUTs", "unchanged", "changed", "verdicts changed", "plate"]
       .map((h) => el("th", {}, h))));
@@ -392,7 +393,7 @@ async function showReplay(batchId) {
   try {
     const r = await api(`/api/replays/${batchId}`);
     const d = r.diff;
-    if (!d) { box.append(el("p", { class: "muted" }, "This replay has not finished.")); return; }
+    if (!d) { box.append(el("p", { class: "muted" }, t("records.replay_unfinished"))); return; }
     box.append(el("h3", {}, `Replay batch ${batchId}: ${d.summary.unchanged} unchanged, ${d.summary.changed} changed ` +
       `(before = ${d.before}; tolerance rtol ${d.rtol}, atol ${d.atol})`));
     const t = el("table", { class: "records-table", id: "replay-changes" });

@@ -4,7 +4,7 @@
 // button does. The operator's name is required and is a person's, not the station's: it lives in
 // memory and sessionStorage only and is forgotten on sign-out (a shared kiosk must not hand the last
 // name to the next person). Also Retest failed and Abort. Uses app.js (S, el, $, api, message,
-// setBatch, pollBatch, showControls).
+// setBatch, pollBatch, showControls) and i18n.js (t).
 "use strict";
 
 const TRACE_FIELDS = [["work-order", "work_order"], ["part-number", "part_number"], ["part-revision", "part_revision"], ["lot", "lot"]];
@@ -21,7 +21,7 @@ function setOperator(name, typing = false) {
   if (!typing && $("operator").value.trim() !== S.operator) $("operator").value = S.operator;
   $("operator").classList.remove("invalid");
   $("operator").removeAttribute("aria-invalid");
-  if (S.operator && $("message").textContent.startsWith("Operator name required")) message("");
+  if (S.operator && $("message").dataset.kind === "operator-required") message("");
 }
 
 // Sign-out (and an old page's stored name): nothing of the person stays in the browser.
@@ -37,7 +37,8 @@ function requireOperator(what) {
   if (name) { setOperator(name); return name; }
   $("operator").classList.add("invalid");
   $("operator").setAttribute("aria-invalid", "true");
-  message(`Operator name required to ${what}: type your name or scan your badge in the Operator field.`);
+  message(t(what === "retest" ? "start.operator_required_retest" : "start.operator_required_start"));
+  $("message").dataset.kind = "operator-required";  // cleared once a name is typed (setOperator)
   return "";
 }
 
@@ -47,8 +48,9 @@ function describeProfile() {
   const box = $("profile-desc");
   if (!box) return;
   if (!p) { box.textContent = ""; return; }
-  const yields = { thermal: "TDB/TDSF calibration result", sfem: "SFEM result", none: "no calibration result (logs data only)" };
-  box.textContent = `${p.description || p.name} · ${p.n_steps ?? "?"} steps · ${yields[p.analysis] || p.analysis || ""}`;
+  const yields = I18N.has("profile.yields_" + p.analysis) ? t("profile.yields_" + p.analysis) : (p.analysis || "");
+  box.replaceChildren(el("span", { class: p.builtin ? "" : "site-words" }, profileDescription(p) || p.name),
+    ` · ${t("profile.steps", { n: p.n_steps ?? "?" })} · ${yields}`);
 }
 
 // One row per slot: the tick box and the label serial of the part in it. A ready slot is ticked; a
@@ -61,7 +63,7 @@ function renderSlotPicks(slots, retest = null) {
   $("slot-picks").replaceChildren(...slots.map((s) => {
     const on = retest ? retest.has(s.slot) : s.state !== "faulted" && s.state !== "disconnected";
     const label = el("input", { type: "text", class: "label-serial scan", "data-slot": s.slot, maxlength: "64", autocomplete: "off",
-      placeholder: "label serial", "aria-label": `label serial of the part in ${s.slot}`, disabled: on ? null : "disabled" });
+      placeholder: t("start.label_serial"), "aria-label": t("start.label_serial_of", { slot: s.slot }), disabled: on ? null : "disabled" });
     const box = el("input", { type: "checkbox", value: s.slot, checked: on ? "checked" : null,
       disabled: retest && !on ? "disabled" : null, onchange: () => { label.disabled = !box.checked; } });
     const row = el("div", { class: "slot-row", "data-state": s.state || "" }, el("label", { class: "slot-pick" }, box, s.slot), label);
@@ -69,7 +71,8 @@ function renderSlotPicks(slots, retest = null) {
     // report, an empty one): the operator sees it before pressing Start
     const why = s.state === "faulted" ? s.fault_reason : s.identity_problem;
     if (!why) return row;
-    return el("div", { class: "slot-cell" }, row, el("div", { class: "muted slot-why", "data-slot": s.slot }, why));
+    return el("div", { class: "slot-cell" }, row, el("div", { class: "muted slot-why", "data-slot": s.slot, title: why },
+      ...reasonNodes(s.state === "faulted" ? s.error_code : null, why)));
   }));
 }
 
@@ -140,16 +143,16 @@ async function startBatch() {
   if (S.retest) { await startRetest(); return; }
   const picks = [...document.querySelectorAll("#slot-picks input[type=checkbox]:checked")].map((i) => i.value);
   const all = document.querySelectorAll("#slot-picks input[type=checkbox]").length;
-  if (!requireOperator("start a batch")) { $("operator").focus(); return; }
+  if (!requireOperator("start")) { $("operator").focus(); return; }
   const body = startBody(picks, all);
-  if (body.slots && !body.slots.length) { message("Choose at least one slot."); return; }
+  if (body.slots && !body.slots.length) { message(t("start.choose_slot")); return; }
   $("start").disabled = true;
   try {
     const r = await api("/api/batches", { method: "POST", body });
     for (const i of document.querySelectorAll("#slot-picks input.label-serial")) i.value = "";  // the next parts have other labels
     await began(r.id, body.slots || [...S.slots.keys()]);
   } catch (e) {
-    message("Could not start: " + e.message);
+    message(t("start.could_not_start", { why: e.message }));
   } finally {
     $("start").disabled = false;
   }
@@ -165,9 +168,8 @@ function setRetest(rt) {
   const on = !!rt;
   $("profile").disabled = on;
   for (const [id] of TRACE_FIELDS) $(id).disabled = on;
-  $("start").textContent = on ? "Start retest" : "Start batch";
-  $("start-mode").textContent = on ? `Retest of batch ${rt.batchId}: ${rt.slots.join(", ")} (ended ${rt.verdicts}).`
-    + " Scan each part's label again." : "";
+  $("start").textContent = t(on ? "start.start_retest" : "start.start");
+  $("start-mode").textContent = on ? t("start.retest_of", { batch: rt.batchId, slots: rt.slots.join(", "), verdicts: rt.verdicts }) : "";
   $("start-mode").classList.toggle("hidden", !on);
 }
 
@@ -179,13 +181,13 @@ async function retestFailed() {
     const [b, ended, slots] = await Promise.all([api(`/api/batches/${S.batchId}?view=compact`),
       api(`/api/batches/${S.batchId}/slots?result=false`), api("/api/slots")]);
     const again = ended.filter((sl) => RETEST_VERDICTS.has(sl.verdict));
-    if (!again.length) { message(`Batch ${b.id} has no slot that ended error, fail or marginal.`); return; }
+    if (!again.length) { message(t("start.nothing_to_retest", { batch: b.id })); return; }
     $("profile").value = b.profile;
     describeProfile();
     for (const [id, key] of TRACE_FIELDS) $(id).value = b[key] || "";
     renderSlotPicks(slots, new Set(again.map((sl) => sl.slot)));
     setRetest({ batchId: b.id, slots: again.map((sl) => sl.slot),
-      verdicts: [...new Set(again.map((sl) => sl.verdict))].join(", ") });
+      verdicts: [...new Set(again.map((sl) => (I18N.has("verdict_name." + sl.verdict) ? t("verdict_name." + sl.verdict) : sl.verdict)))].join(", ") });
     message("");
     S.formOpen = true;
     showControls();
@@ -193,7 +195,7 @@ async function retestFailed() {
     const first = document.querySelector("#slot-picks input.label-serial:not(:disabled)");
     (operatorName() ? first : $("operator")).focus();
   } catch (e) {
-    message("Could not retest: " + e.message);
+    message(t("start.could_not_retest", { why: e.message }));
   } finally {
     $("retest").disabled = false;
   }
@@ -203,7 +205,7 @@ async function startRetest() {
   const rt = S.retest;
   const picks = [...document.querySelectorAll("#slot-picks input[type=checkbox]:checked")].map((i) => i.value);
   if (!requireOperator("retest")) { $("operator").focus(); return; }
-  if (!picks.length) { message("Choose at least one slot."); return; }
+  if (!picks.length) { message(t("start.choose_slot")); return; }
   const labels = {};
   for (const i of document.querySelectorAll("#slot-picks input.label-serial:not(:disabled)")) {
     if (i.value.trim()) labels[i.dataset.slot] = i.value.trim();
@@ -215,7 +217,7 @@ async function startRetest() {
     setRetest(null);
     await began(r.id, picks);
   } catch (e) {
-    message("Could not retest: " + e.message);
+    message(t("start.could_not_retest", { why: e.message }));
   } finally {
     $("start").disabled = false;
   }
@@ -243,23 +245,23 @@ function disarmAbort() {
   clearTimeout(abortArmed);
   abortArmed = null;
   $("abort").classList.remove("armed");
-  $("abort").textContent = "Abort";
+  $("abort").textContent = t("batch.abort");
 }
 
 async function abortBatch() {
   if (!S.batchId) return;
   if (!abortArmed) {
     $("abort").classList.add("armed");
-    $("abort").textContent = "Tap again to abort";
+    $("abort").textContent = t("batch.abort_again");
     abortArmed = setTimeout(disarmAbort, 4000);
     return;
   }
   disarmAbort();
   try {
     await api(`/api/batches/${S.batchId}/abort`, { method: "POST" });
-    message(`Batch ${S.batchId} aborted.`);
+    message(t("batch.aborted", { batch: S.batchId }));
     await pollBatch();
-  } catch (e) { message("Abort failed: " + e.message); }
+  } catch (e) { message(t("batch.abort_failed", { why: e.message })); }
 }
 
 document.addEventListener("DOMContentLoaded", () => {

@@ -13,7 +13,7 @@
 "use strict";
 
 const SLOT_LIVE = ["state", "segments", "samples", "steps_done"];  // kept when not null (as the full view's were)
-const SORTING_FIELDS = ["slot", "serial", "verdict", "grade", "tray", "reason", "attempt"];
+const SORTING_FIELDS = ["slot", "serial", "verdict", "grade", "tray", "reason", "reason_code", "attempt"];
 
 // One poll at a time: the live events ask for one too (a step, a verdict, the end: 64 verdicts come
 // within a second at the end of a 64-DUT batch), and a poll asked for while one runs is made once
@@ -82,6 +82,7 @@ function applySlotDetails(sl) {
   }
   for (const k of VERDICT_FIELDS) s[k] = sl[k] ?? null;
   s.error = sl.error || "";
+  s.error_code = sl.error_code || null;  // the page says the cause in its language by it (i18n.js reasonNodes)
 }
 
 // The step list again when the running step changed (or the batch's state: its end marks the
@@ -120,21 +121,22 @@ function showOverload(from, alarm) {
 
 function applyBatch(b, askedAt = Infinity) {
   $("batch-profile").textContent = b.profile || "";
-  $("batch-state").textContent = b.state;
+  $("batch-state").textContent = batchStateWord(b.state);
   $("batch-state").dataset.state = b.state;
   $("batch-trace-text").textContent = traceText(b);
   $("batch-trace").classList.toggle("hidden", !traceText(b));
   const steps = stepsShown(b);
   S.stepCount = (b.step && b.step.count) || steps.length || S.stepCount;
   if (b.step && b.step.index !== null && b.step.index !== undefined && b.step.index >= 0) {  // -1: boards still connecting
-    $("batch-step").textContent = `${b.step.index + 1} / ${b.step.count ?? "?"} · ${b.step.name ?? ""}`;
+    $("batch-step").textContent = `${b.step.index + 1} / ${b.step.count ?? "?"} · ${stepName(b.step.name ?? "")}`;
   }
   if (b.lamp_on !== undefined) setLamp(b.lamp_on, b.lamp_state);
-  $("batch-error").textContent = b.error || "";  // e.g. "aborted by Ana at 2026-11-23 14:02:05 UTC"
+  // e.g. "aborted by Ana at 2026-11-23 14:02:05 UTC"; its code only in the full status (error_code)
+  $("batch-error").replaceChildren(...(b.error ? reasonNodes(b.error_code, b.error) : []));
   $("batch-note").textContent = b.note || "";
   $("batch-note").classList.toggle("hidden", !b.note);
   $("batch-elapsed").textContent = clock(b.elapsed_s ?? storedElapsed(b));
-  $("batch-waiting").textContent = b.waiting_for || "–";
+  $("batch-waiting").textContent = b.waiting_for ? waitingWords(b.waiting_for) : "–";
   showOverload("batch", b.overload && b.overload.alarm);
   const names = (b.slots || []).map((sl) => sl.slot);
   S.batchSlots = names;
