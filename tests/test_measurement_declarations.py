@@ -64,8 +64,9 @@ def test_every_reading_carries_its_declarations_unit_and_axes():
 def test_the_verdict_records_field_lists_are_the_rest_models():
     v = final_verdict(RunRecord("thermal", False, "faulted", "faulted: link lost"), default_products()["LIS3DSH"])
     assert tuple(v.to_json()) == VERDICT_FIELDS
+    # reason_code is no stored field: a live or stored decision derives it from `reason` (causes.reason_code) for the page
     assert set(DecisionOut.model_fields) == {*VERDICT_FIELDS, "attempt", "run_id"}
-    assert set(DecisionFields.model_fields) == set(DECISION_FIELDS)
+    assert set(DecisionFields.model_fields) == {*DECISION_FIELDS, "reason_code"}
     assert set(DECISION_FIELDS) <= {*VERDICT_FIELDS, "attempt"}
     assert tuple(CheckOut.model_fields) == CHECK_FIELDS
     assert get_args(VerdictName) == VERDICTS
