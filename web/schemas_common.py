@@ -7,7 +7,7 @@ up in tests/test_openapi_truth.py as an undeclared or mistyped field.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Self
+from typing import Annotated, Any, ClassVar, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, WithJsonSchema, model_validator
 
@@ -175,7 +175,23 @@ class DecisionOut(_Out):
     run_id: int | None = Field(default=None, description="the run judged")
 
 
-class DecisionFields(_Out):
+class CodedWords(BaseModel):
+    """A response carrying the daemon's English words (a reason, a fault) and, beside each, the code the
+    page translates them by (web/static/i18n). The codes are derived here from the words
+    (station/records/causes.py reason_code), never by each producer: every response that carries the
+    words carries their code, and the record keeps the words as the station wrote them.
+    `words_codes`: code field -> the words field it names (a subclass extends its base's)."""
+
+    words_codes: ClassVar[dict[str, str]] = {}
+
+    @model_validator(mode="after")
+    def _codes_from_words(self) -> Self:
+        for code, words in self.words_codes.items():
+            setattr(self, code, _code_of_reason(getattr(self, words)))
+        return self
+
+
+class DecisionFields(_Out, CodedWords):
     """The station's decision on a DUT run (station/decisions/verdicts.py DECISION_FIELDS); null while it is not
     judged."""
 
@@ -196,11 +212,7 @@ class DecisionFields(_Out):
                                     "the page says the cause in the operator's language from it (web/static/i18n); "
                                     "null when no rule names the words (shown as they are)")
 
-    @model_validator(mode="after")
-    def _reason_code_from_words(self) -> Self:
-        """Derived here, not by each producer: every response that carries a reason carries its code."""
-        self.reason_code = _code_of_reason(self.reason)
-        return self
+    words_codes: ClassVar[dict[str, str]] = {"reason_code": "reason"}
 
 
 class StoredDecision(DecisionFields):

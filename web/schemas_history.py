@@ -4,11 +4,10 @@ and outbox, yields (db/repository.py through web/db_repo.py; web/views.py dut_vi
 
 from __future__ import annotations
 
-from typing import Any, Self
+from typing import Any, ClassVar
 
-from pydantic import Field, model_validator
+from pydantic import Field
 
-from station.records.causes import reason_code as _code_of_reason
 from web.schemas_common import (
     SFEM_HELP, CheckOut, DecisionFields, StoredDecision, ThermalAxes, ThermalByMethod, ThermalRow, TraceFields,
     ProgramVerifyOut, _Out, free_form, one_of,
@@ -138,11 +137,7 @@ class RunOut(_Results, StoredDecision, TraceFields):
                                    "(station/records/causes.py reason_code, e.g. "
                                    "'link_lost'); null when no rule names the words")
 
-    @model_validator(mode="after")
-    def _fault_code_from_words(self) -> Self:
-        """Derived from the stored English words, which stay as the station wrote them."""
-        self.fault_code = _code_of_reason(self.fault_reason)
-        return self
+    words_codes: ClassVar[dict[str, str]] = {**StoredDecision.words_codes, "fault_code": "fault_reason"}
 
 
 class SegmentOut(SegmentRecord):

@@ -8,14 +8,14 @@ slot_view, prompt_view); a batch the daemon no longer holds comes from web/db_re
 
 from __future__ import annotations
 
-from typing import Self
+from typing import ClassVar
 
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field
 
-from station.records.causes import reason_code as _code_of_reason
 from station.steps import kind_names, row_kinds
 from web.schemas_common import (
-    DecisionFields, DecisionOut, PerAxis, ProgramVerifyOut, TraceFields, _Out, free_form, one_of, passed_through,
+    CodedWords, DecisionFields, DecisionOut, PerAxis, ProgramVerifyOut, TraceFields, _Out, free_form, one_of,
+    passed_through,
 )
 from web.schemas_thermal import CalibrationResultJson
 
@@ -254,11 +254,7 @@ class SlotStatus(DecisionFields):
                                    "'link_lost'): the page translates the cause by it; "
                                    "null when no rule names the words")
 
-    @model_validator(mode="after")
-    def _error_code_from_words(self) -> Self:
-        """Derived from the English words every producer already sends: the record keeps them."""
-        self.error_code = _code_of_reason(self.error)
-        return self
+    words_codes: ClassVar[dict[str, str]] = {**DecisionFields.words_codes, "error_code": "error"}
 
 
 class DecisionSummary(_Out):
@@ -269,7 +265,7 @@ class DecisionSummary(_Out):
     grades: dict[str, int] = Field(default_factory=dict, description="count per grade")
 
 
-class SortingEntry(_Out):
+class SortingEntry(_Out, CodedWords):
     """Which slot's board goes to which tray."""
 
     slot: str = Field(description="slot name")
@@ -284,11 +280,7 @@ class SortingEntry(_Out):
                                     "'link_lost'): the page translates the cause by it; "
                                     "null when no rule names the words")
 
-    @model_validator(mode="after")
-    def _reason_code_from_words(self) -> Self:
-        """Derived from the English words every producer already sends: the record keeps them."""
-        self.reason_code = _code_of_reason(self.reason)
-        return self
+    words_codes: ClassVar[dict[str, str]] = {"reason_code": "reason"}
 
 
 class DutCounts(_Out):
@@ -320,7 +312,7 @@ class SlotLive(_Out):
                            "restart of the daemon")
 
 
-class BatchStatus(TraceFields):
+class BatchStatus(TraceFields, CodedWords):
     """A batch: live from the daemon (station/daemon/batch_view.py status + progress.py batch_extras,
     through web/views.py batch_view), or, once the daemon no longer holds it, from the database
     (web/db_repo.py batch: `stored` true, no live fields)."""
@@ -396,14 +388,10 @@ class BatchStatus(TraceFields):
                                    "(station/records/causes.py reason_code, e.g. "
                                    "'cannot_do_it_operator'); null when no rule names the words")
 
-    @model_validator(mode="after")
-    def _error_code_from_words(self) -> Self:
-        """Derived from the English words the daemon sends: the record keeps them."""
-        self.error_code = _code_of_reason(self.error)
-        return self
+    words_codes: ClassVar[dict[str, str]] = {"error_code": "error"}
 
 
-class SlotOut(_Out):
+class SlotOut(_Out, CodedWords):
     """A slot of the station (station/daemon/slots.py slots_status + web/views.py slot_view)."""
 
     slot: str = Field(description="slot name from the config")
@@ -433,11 +421,7 @@ class SlotOut(_Out):
                                    "'link_lost'): the page translates the cause by it; "
                                    "null when no rule names the words")
 
-    @model_validator(mode="after")
-    def _error_code_from_words(self) -> Self:
-        """Derived from the English words every producer already sends: the record keeps them."""
-        self.error_code = _code_of_reason(self.error)
-        return self
+    words_codes: ClassVar[dict[str, str]] = {"error_code": "error"}
 
 
 class LampHealth(_Out):
