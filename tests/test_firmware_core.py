@@ -11,12 +11,15 @@ from __future__ import annotations
 
 import ctypes as C
 import random
+import re
 import struct
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from contracts.board_health import BoardRecordInfo
 from contracts.types import Identity
 from drivers.protocol import can_frames as cf
 from drivers.protocol import serial_frames as sf
@@ -24,14 +27,31 @@ from drivers.protocol.cal_record import crc32_f32, to_f32
 from drivers.sim.board_nvm import CalFirmware
 from drivers.sim.firmware_build import build, missing_tools
 from drivers.sim.slcan_pty import can_scale
+from tests.firmware_nvm import decode_slot, encode_record, slot_image
+from tests.firmware_proc import split_keys
 
 LIS = Identity("SN0001", "LIS3DSH", "fw-c-1.0", 60.0, 1.0, 0.0, 3.125)
 ADXL = Identity("AX0001", "ADXL355", "fw-c-1.0", 3.9, -9.05, 1885.0, 3.125)
-SLOT = 256
+CORE = Path(__file__).resolve().parents[1] / "firmware" / "core"
+
+
+def _header_define(header: str, name: str) -> int:
+    """A `#define NAME 123u` of a core header: the mirrors below size their arrays from the C."""
+    m = re.search(rf"#define\s+{name}\s+(\d+)u", (CORE / header).read_text())
+    assert m, name
+    return int(m.group(1))
+
+
+SLOT = _header_define("fw_hal.h", "FW_NVM_SLOT_BYTES")  # 512 since the version-2 record
+SERIAL_MAX = _header_define("fw_board.h", "FW_SERIAL_MAX")
+RX_LINE_MAX = _header_define("fw_board.h", "FW_RX_LINE_MAX")
+TX_BODY_MAX = _header_define("fw_frame.h", "FW_TX_BODY_MAX")
+REPLY_STEP = _header_define("fw_board.h", "FW_REPLY_STEP_VALUES")
+NO_LAYOUT = 0xFFFFFFFF  # fw_layout of a name it does not know
 
 
 class FwIdentity(C.Structure):
-    _fields_ = [("serial", C.c_char * 16), ("sensor", C.c_char * 16), ("fw", C.c_char * 16),
+    _fields_ = [("serial", C.c_char * (SERIAL_MAX + 1)), ("sensor", C.c_char * 16), ("fw", C.c_char * 16),
                 ("ug_per_lsb", C.c_float), ("t_lsb_per_c", C.c_float), ("t_lsb_at_25c", C.c_float),
                 ("odr_hz", C.c_float)]
 
@@ -61,9 +81,36 @@ class FwBoardHead(C.Structure):
     _fields_ = [("hal", C.c_void_p), ("id", FwIdentity), ("can_node", C.c_uint8), ("cal", FwCal),
                 ("nvm_status", C.c_int), ("nvm_seq", C.c_uint32), ("streaming", C.c_uint8),
                 ("seq", C.c_uint32), ("decim", C.c_uint32), ("phase", C.c_uint32), ("odr_hz", C.c_float),
-                ("can_cal_have", C.c_uint8), ("can_cal_fields", C.c_float * 6), ("rx_line", C.c_uint8 * 200),
+                ("can_cal_have", C.c_uint8), ("can_cal_fields", C.c_float * 6), ("rx_line", C.c_uint8 * RX_LINE_MAX),
                 ("rx_len", C.c_uint32), ("rx_overflow", C.c_uint8), ("rx_bad_frames", C.c_uint32),
                 ("selfcal_on", C.c_uint8)]
+
+
+class FwTx(C.Structure):
+    """fw_tx_t of fw_frame.h."""
+    _fields_ = [("body", C.c_char * TX_BODY_MAX), ("len", C.c_uint32), ("overflow", C.c_uint8)]
+
+
+MIRRORS = {"fw_identity_t": FwIdentity, "fw_cal_t": FwCal, "fw_hal_t": FwHal, "fw_raw_sample_t": FwRawSample,
+           "fw_tx_t": FwTx}
+
+
+def layout_mismatches(so, mirrors: dict | None = None) -> list[str]:
+    """Every way the ctypes mirrors differ from the compiler's layout (fw_layout): whole sizes,
+    every field offset, and FwBoardHead's offsets inside fw_board_t (a prefix: its size is not)."""
+    so.fw_layout.argtypes = [C.c_char_p]
+    so.fw_layout.restype = C.c_uint32
+    bad = []
+    for cname, mirror in [*(mirrors or MIRRORS).items(), ("fw_board_t", FwBoardHead)]:
+        if cname != "fw_board_t" and C.sizeof(mirror) != so.fw_layout(cname.encode()):
+            bad.append(f"sizeof {cname}: C {so.fw_layout(cname.encode())}, mirror {C.sizeof(mirror)}")
+        for fname, _ in mirror._fields_:
+            off = so.fw_layout(f"{cname}.{fname}".encode())
+            if cname in ("fw_hal_t", "fw_raw_sample_t") and off == NO_LAYOUT:
+                continue  # fw_hal.h's structs: sizes only (their fields are the HAL contract, not exported)
+            if off != getattr(mirror, fname).offset:
+                bad.append(f"{cname}.{fname}: C offset {off}, mirror {getattr(mirror, fname).offset}")
+    return bad
 
 
 @pytest.fixture(scope="module")
@@ -71,6 +118,8 @@ def lib():
     if missing_tools("host"):
         pytest.skip(f"no {missing_tools('host')}")
     so = C.CDLL(str(build("host") / "libfwcore.so"))
+    # a mirror that disagrees with the C layout would read garbage or write past the board: stop here
+    assert layout_mismatches(so) == [], layout_mismatches(so)
     u8p, f32p = C.POINTER(C.c_uint8), C.POINTER(C.c_float)
     so.fw_crc32.argtypes = [C.c_uint32, C.c_char_p, C.c_uint32]
     so.fw_crc32.restype = C.c_uint32
@@ -87,13 +136,31 @@ def lib():
     so.fw_temp_c.restype = C.c_float
     so.fw_fmt_f32.argtypes = [C.c_char_p, C.c_float]
     so.fw_fmt_f32.restype = C.c_uint32
-    so.fw_parse_real.argtypes = [C.c_char_p, C.c_uint32, C.POINTER(C.c_double), f32p]
-    so.fw_parse_real.restype = C.c_int
+    so.fw_parse_f32.argtypes = [C.c_char_p, C.c_uint32, f32p]
+    so.fw_parse_f32.restype = C.c_int
+    so.fw_rate_ratio.argtypes = [C.c_float, C.c_float]
+    so.fw_rate_ratio.restype = C.c_uint32
+    so.fw_fmt_u32.argtypes = [C.c_char_p, C.c_uint32]
+    so.fw_fmt_u32.restype = C.c_uint32
+    so.fw_fmt_i32.argtypes = [C.c_char_p, C.c_int32]
+    so.fw_fmt_i32.restype = C.c_uint32
+    for name in ("fw_tx_begin", "fw_tx_str"):
+        getattr(so, name).argtypes = [C.c_void_p, C.c_char_p]
+    so.fw_tx_raw.argtypes = [C.c_void_p, C.c_char_p, C.c_uint32]
+    so.fw_tx_u32.argtypes = [C.c_void_p, C.c_uint32]
+    so.fw_tx_hex32.argtypes = [C.c_void_p, C.c_uint32]
+    so.fw_tx_i32.argtypes = [C.c_void_p, C.c_int32]
+    so.fw_tx_f32.argtypes = [C.c_void_p, C.c_float]
+    so.fw_tx_frame.argtypes = [C.c_void_p, C.c_char_p, C.c_uint32]
+    so.fw_tx_frame.restype = C.c_uint32
     so.fw_board_sizeof.restype = C.c_uint32
     so.fw_board_init.argtypes = [C.c_void_p, C.POINTER(FwHal), C.POINTER(FwIdentity), C.c_uint8]
     so.fw_uart_rx.argtypes = [C.c_void_p, C.c_char_p, C.c_uint32]
     so.fw_can_rx.argtypes = [C.c_void_p, C.c_uint16, C.c_uint8, C.c_char_p]
     so.fw_sample.argtypes = [C.c_void_p, C.POINTER(FwRawSample)]
+    so.fw_board_idle.argtypes = [C.c_void_p]
+    so.fw_layout.argtypes = [C.c_char_p]
+    so.fw_layout.restype = C.c_uint32
     so.fw_can_scale.argtypes = [C.POINTER(FwIdentity), f32p]
     so.fw_can_scale.restype = C.c_uint8
     so.fw_bridge_line.argtypes = [C.c_char_p, C.c_uint32, C.POINTER(FwIdentity), C.POINTER(FwRawSample)]
@@ -151,7 +218,10 @@ class Board:
         return 0
 
     def rx(self, data: bytes) -> None:
+        """Bytes from the station, then the target's idle pass (fw_board_idle): a long reply the
+        command only recorded goes out, as on a board whose main loop found nothing else to do."""
         self.lib.fw_uart_rx(self.mem, data, len(data))
+        self.lib.fw_board_idle(self.mem)
 
     def cmd(self, body: str) -> list:
         self.rx(sf.encode(body))
@@ -252,19 +322,47 @@ def test_unframe_accepts_python_frames_and_rejects_corrupted(lib):
         assert lib.fw_unframe(junk, len(junk), C.byref(body_p)) == -1
 
 
-def test_f32_text_round_trips_like_the_station(lib):
-    """C prints what fmt_f32 prints; C parses every text to float32(float(text)) (and the float64)."""
+def _hard_f32() -> np.ndarray:
+    """The float32 inputs where a shortest-digits formatter goes wrong first: every exponent (the
+    denormal one included) with mantissa 0 (a power of two: the asymmetric rounding interval), 1,
+    all ones and one half; the powers of ten float32(1eK); the normal/denormal border; both signs."""
+    exps = np.arange(255, dtype=np.uint32) << 23
+    bits = np.concatenate([exps, exps | 1, exps | 0x7FFFFF, exps | 0x400000, exps | 0x2AAAAA,
+                           np.array([1, 2, 3, 7, 0x7FFFFE, 0x800001, 0x7F7FFFFE], dtype=np.uint32)])
+    tens = np.array([float(f"1e{k}") for k in range(-45, 39)], dtype=np.float32)
+    vals = np.concatenate([bits.view(np.float32), tens, (tens * np.float32(3)).astype(np.float32)])
+    vals = vals[np.isfinite(vals) & (vals != 0)]
+    return np.concatenate([vals, -vals])
+
+
+def _c_fmt(lib, buf, v) -> str:
+    n = lib.fw_fmt_f32(buf, float(v))
+    return buf.raw[:n].decode()
+
+
+def test_f32_shortest_text_matches_numpy(lib):
+    """fw_fmt_f32 prints exactly fmt_f32 (numpy's shortest unique positional text) on 200k random bit
+    patterns, the usual range and the hard cases, and the text reads back to the same float32.
+    (All 2^32 patterns were compared once with firmware/tools/f32_exhaustive.cc: 0 differences.)"""
     rng = np.random.default_rng(5)
     buf = C.create_string_buffer(80)
-    d, f = C.c_double(), C.c_float()
-    vals = _random_f32(rng, 30000)
+    vals = np.concatenate([_random_f32(rng, 100_000), _hard_f32()])
     for v in vals:
-        n = lib.fw_fmt_f32(buf, float(v))
-        text = buf.raw[:n].decode()
-        assert text == sf.fmt_f32(float(v)), (v, text)
+        text = _c_fmt(lib, buf, v)
+        assert text == sf.fmt_f32(float(v)), (hex(int(np.float32(v).view(np.uint32))), text)
         assert np.float32(float(text)).tobytes() == np.float32(v).tobytes() or v == 0
+    for special, text in [(np.inf, "inf"), (-np.inf, "-inf"), (np.nan, "nan"), (0.0, "0"), (-0.0, "-0")]:
+        assert _c_fmt(lib, buf, special) == text == sf.fmt_f32(special)
+
+
+def test_f32_text_parses_like_the_station(lib):
+    """C parses every text to float32(float(text)) bit for bit (the float64 first, then float32: the
+    station's cal_record.to_f32). The core has no double: fw_parse_real (which also returned the
+    float64) is gone, and so is every soft-double routine (test_firmware_arm checks the images)."""
+    rng = np.random.default_rng(6)
+    f = C.c_float()
     texts = []
-    for v in vals[::5]:
+    for v in np.concatenate([_random_f32(rng, 6000), _hard_f32()[::3]]):
         texts += ["%.9g" % v, "%.17g" % v, "%.5e" % v, repr(float(v) * (1 + 1e-7))]
     r = random.Random(6)
     for _ in range(5000):
@@ -272,18 +370,178 @@ def test_f32_text_round_trips_like_the_station(lib):
         k = r.randint(0, len(s))
         s = ("-" if r.random() < 0.5 else "") + s[:k] + "." + s[k:] + (f"e{r.randint(-70, 50)}" if r.random() < 0.5 else "")
         texts.append(s)
+    # float32 midpoints written out exactly and nudged: where the float64-then-float32 rounding
+    # (double rounding) differs from rounding the decimal once
+    for bits in rng.integers(0x00800000, 0x7F000000, 300, dtype=np.uint64).astype(np.uint32):
+        lo = float(np.uint32(bits).view(np.float32))
+        hi = float(np.uint32(bits + 1).view(np.float32))
+        mid = (lo + hi) / 2  # exact in float64
+        texts += [repr(mid), f"{mid:.40e}", f"{mid * (1 + 2**-60):.40e}", f"{mid * (1 - 2**-60):.40e}"]
     texts += ["0", "-0", ".5", "5.", "1_000.25", " 2.5 ", "3.4028235e38", "3.4028236e38", "7.006492321624086e-46",
-              "1e-46", "1e400", "inf", "-Infinity", "nan"]
+              "1e-46", "1e400", "inf", "-Infinity", "nan", "1.0000000596046448", "1.00000005960464477539062500001"]
     for s in texts:
         want = float(s)
-        assert lib.fw_parse_real(s.encode(), len(s), C.byref(d), C.byref(f)) == 0, s
+        assert lib.fw_parse_f32(s.encode(), len(s), C.byref(f)) == 0, s
         with np.errstate(over="ignore"):
             w32 = np.float32(want)
         assert np.float32(f.value).tobytes() == w32.tobytes(), (s, f.value, w32)
-        if 1e-46 <= abs(want) < 1e39:  # the float64 is exact where a float32 is not 0 or inf
-            assert d.value == want, s
     for s in ("", "-", ".", "e5", "1e", "1.2.3", "0x10", "1,5", "--1", "1e+", "_1", "abc"):
-        assert lib.fw_parse_real(s.encode(), len(s), C.byref(d), C.byref(f)) == -1, s
+        f.value = 1234.5
+        assert lib.fw_parse_f32(s.encode(), len(s), C.byref(f)) == -1, s
+        assert f.value == 1234.5, s  # untouched on refusal
+    assert not hasattr(lib, "fw_parse_real")
+
+
+def _board_ratio(src: float, dst: float) -> int:
+    """The decimation rule of fw_num.h, exactly, on rationals: k = src/dst rounded (halves up) when
+    |src/dst - k| < 1e-6 + k 2^-24 and 1 <= k < 2^31 - 1, else 0 (not positive finite, dst > src).
+    The k 2^-24 term is the float32 rounding of the station's rate text (relative 2^-24 at most)."""
+    import math
+    from fractions import Fraction
+
+    if not (math.isfinite(src) and math.isfinite(dst) and src > 0 and dst > 0) or dst > src:
+        return 0
+    q = Fraction(src) / Fraction(dst)
+    k = math.floor(q + Fraction(1, 2))
+    if k >= 2**31 - 1:
+        return 0
+    return k if abs(q - k) < Fraction(1, 10**6) + Fraction(k, 2**24) else 0
+
+
+def test_rate_ratio_follows_its_rule(lib):
+    """fw_rate_ratio (integers on the float32 values) against the rule evaluated on exact rationals:
+    exact divisors, near misses by a few ulps, the 1e-6 + k 2^-24 borders from both sides, junk."""
+    f32 = np.float32
+    pairs = []
+    for src in [3.125, 100.0, 400.0, 1600.0, 800.0, 25.0, 6.25, 1000 / 3, 4000.0, 1e-40, 3e38]:
+        s32 = f32(src)
+        for k in list(range(1, 300)) + [1000, 3125, 10**5, 10**6, 2**22, 2**23, 2**24, 2**31 - 2, 2**31 - 1, 2**31,
+                                        2**33]:
+            d32 = f32(s32 / f32(k))
+            for nudge in (-3, -1, 0, 1, 3):  # neighbouring float32 values
+                pairs.append((s32, np.array([int(d32.view(np.uint32)) + nudge], np.int64).astype(np.uint32)
+                              .view(np.float32)[0]))
+            tol = 1e-6 + k * 2.0**-24
+            for side in (0.9, 1.1):  # inside / just outside the window, above and below k
+                for sign in (1, -1):
+                    pairs.append((s32, f32(float(s32) / (k + sign * side * tol))))
+    rng = np.random.default_rng(7)
+    rand = rng.integers(0, 2**32, (20_000, 2), dtype=np.uint64).astype(np.uint32).view(np.float32)
+    pairs += [(a, b) for a, b in rand]
+    junk = [0.0, -0.0, -1.0, np.inf, -np.inf, np.nan, 1e-45, 3.4028235e38]
+    pairs += [(f32(a), f32(b)) for a in junk + [100.0] for b in junk + [100.0, 50.0]]
+    accepted = refused = 0
+    for src, dst in pairs:
+        got = lib.fw_rate_ratio(float(src), float(dst))
+        assert got == _board_ratio(float(src), float(dst)), (float(src), float(dst), got)
+        accepted += got > 0
+        refused += got == 0
+    assert accepted > 3000 and refused > 20_000  # both sides of the rule were exercised
+    assert lib.fw_rate_ratio(3.125, 0.625) == 5 and lib.fw_rate_ratio(100.0, f32(100 / 3)) == 3
+    assert lib.fw_rate_ratio(3.125, f32(1e-3)) == 3125  # float32(0.001): 1.5e-4 off 3125 in the ratio
+    assert lib.fw_rate_ratio(3.125, f32(0.1)) == 0  # 31.25
+
+
+def test_rate_ratio_accepts_every_rate_the_simulated_board_accepts(lib):
+    """The station writes a rate as decimal text; the simulated board (serial_pty._ratio) decides on
+    its float64, the C board on its float32. Every rate the simulated board accepts must be accepted
+    by the C board with the same k (else a profile that runs on the simulator fails on hardware),
+    and the C board accepts no rate whose float32 is farther from src/k than the rule allows."""
+    from drivers.sim.serial_pty import _ratio
+
+    rng = np.random.default_rng(17)
+    checked = 0
+    for src in (3.125, 100.0, 400.0, 1600.0, 1000 / 3, 6.25):
+        s32 = float(np.float32(src))
+        for k in [1, 2, 3, 5, 7, 10, 16, 25, 100, 3125, 10**4, 10**5, 10**6, 2**20]:
+            for rel in np.concatenate([[0.0], rng.uniform(-0.99e-6, 0.99e-6, 6) / k]):
+                rate = s32 / (k * (1 + float(rel)))  # a float64 rate inside the simulated board's window
+                if _ratio(s32, rate) != k:
+                    continue
+                text = repr(rate)
+                assert lib.fw_rate_ratio(s32, float(np.float32(float(text)))) == k, (src, k, text)
+                checked += 1
+    assert checked > 400
+    assert _ratio(3.125, 1e-3) == 3125 and lib.fw_rate_ratio(3.125, float(np.float32(1e-3))) == 3125
+
+
+def test_int_formatting_writes_exactly_the_text(lib):
+    """fw_fmt_u32 / fw_fmt_i32 print str(v) and write nothing past the NUL (callers size their
+    buffers for the text: the word-wide copies inside must not spill)."""
+    rng = random.Random(8)
+    us = [0, 1, 9, 10, 99, 100, 999, 1000, 9999, 10**5, 10**8 - 1, 10**8, 10**9 - 1, 10**9, 2**32 - 1]
+    us += [rng.getrandbits(rng.randint(1, 32)) for _ in range(3000)]
+    for u in us:
+        buf = C.create_string_buffer(b"\xaa" * 16, 16)
+        n = lib.fw_fmt_u32(buf, u)
+        assert buf.raw[:n + 1] == str(u).encode() + b"\0" and buf.raw[n + 1:] == b"\xaa" * (15 - n), u
+    for i in [0, -1, 1, -9, -10, -2**31, 2**31 - 1] + [rng.randint(-2**31, 2**31 - 1) for _ in range(3000)]:
+        buf = C.create_string_buffer(b"\xaa" * 16, 16)
+        n = lib.fw_fmt_i32(buf, i)
+        assert buf.raw[:n + 1] == str(i).encode() + b"\0" and buf.raw[n + 1:] == b"\xaa" * (15 - n), i
+
+
+def test_reply_builder_frames_like_python(lib):
+    """The fw_tx_* builder (numbers formatted in place) frames exactly what sf.encode makes of the same
+    fields, also when the body is nearly full: a field that fits to the last byte is kept, one that
+    does not marks the reply overflowed and nothing is framed."""
+    rng = np.random.default_rng(9)
+    out = C.create_string_buffer(800)
+    for trial in range(400):
+        t = FwTx()
+        lib.fw_tx_begin(C.byref(t), b"D" if trial % 2 else b"ID")
+        parts = ["D" if trial % 2 else "ID"]
+        pad = int(rng.integers(0, TX_BODY_MAX))  # a raw prefix to move the builder towards its end
+        raw = ("x" * pad).encode()
+        lib.fw_tx_raw(C.byref(t), raw, len(raw))
+        parts[0] += "x" * pad
+        for _ in range(int(rng.integers(1, 20))):
+            kind = int(rng.integers(0, 5))
+            if kind == 0:
+                v = int(rng.integers(0, 2**32))
+                lib.fw_tx_u32(C.byref(t), v)
+                parts.append(str(v))
+            elif kind == 1:
+                v = int(rng.integers(-2**31, 2**31))
+                lib.fw_tx_i32(C.byref(t), v)
+                parts.append(str(v))
+            elif kind == 2:
+                v = rng.integers(0, 2**32, dtype=np.uint64).astype(np.uint32).view(np.float32)
+                lib.fw_tx_f32(C.byref(t), float(v))
+                parts.append(sf.fmt_f32(float(v)))
+            elif kind == 3:
+                v = int(rng.integers(0, 2**32))
+                lib.fw_tx_hex32(C.byref(t), v)
+                parts.append(sf.fmt_crc(v))
+            else:
+                lib.fw_tx_str(C.byref(t), b"SFER")
+                parts.append("SFER")
+        body = ",".join(parts).encode()
+        n = lib.fw_tx_frame(C.byref(t), out, 800)
+        if len(body) <= TX_BODY_MAX:
+            assert (t.overflow, t.len) == (0, len(body)) and out.raw[:n] == sf.encode(body), trial
+        else:
+            assert t.overflow == 1 and n == 0, trial
+    # exactly full: TX_BODY_MAX bytes accepted, one more refused
+    t = FwTx()
+    lib.fw_tx_begin(C.byref(t), b"S")
+    lib.fw_tx_raw(C.byref(t), b"y" * (TX_BODY_MAX - 12), TX_BODY_MAX - 12)
+    lib.fw_tx_u32(C.byref(t), 4294967295)  # 1 + (TX_BODY_MAX - 12) + 11 bytes: full
+    assert (t.len, t.overflow) == (TX_BODY_MAX, 0)
+    lib.fw_tx_u32(C.byref(t), 0)
+    assert t.overflow == 1 and lib.fw_tx_frame(C.byref(t), out, 800) == 0
+
+
+def test_pow10_table_is_what_its_generator_makes():
+    """fw_num_pow10.h is the output of fw_num_pow10.py (which also proves its integer shortcuts over
+    the float32 exponent range): nobody edited the table by hand."""
+    import subprocess
+    import sys
+    from drivers.sim.firmware_build import FIRMWARE_DIR
+
+    proc = subprocess.run([sys.executable, str(FIRMWARE_DIR / "core" / "fw_num_pow10.py"), "--check"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
 
 
 # ---- compensation --------------------------------------------------------------------------------
@@ -357,14 +615,38 @@ def _ident_with(i: Identity, **kw) -> Identity:
     return dataclasses.replace(i, **kw)
 
 
+def _flash_record(slots) -> BoardRecordInfo:
+    """The `rec_*` keys a board must report for this flash (docs/design.md 3.1), from the
+    bytes alone (tests/firmware_nvm.py decodes them): the newest valid record, `fallback` when the
+    other slot is neither erased nor valid, `empty` / `corrupt` when no slot is valid."""
+    recs = [decode_slot(k, bytes(slots[k])) for k in range(2)]
+    bad = [recs[k] is None and bytes(slots[k]) != b"\xff" * SLOT for k in range(2)]
+    valid = [r for r in recs if r is not None]
+    if valid:
+        r = max(valid, key=lambda x: x.generation)
+        return BoardRecordInfo(r.version, r.generation, r.slot, "fallback" if bad[1 - r.slot] else "ok")
+    return BoardRecordInfo(0, 0, None, "corrupt" if any(bad) else "empty")
+
+
+def _calr(values, comp: bool, slots) -> sf.CalReadFrame:
+    """The C frame a board answers $CALR with: the base fields of design 3.1 and the record keys."""
+    return sf.CalReadFrame(values, crc32_f32(values), comp, _flash_record(slots))
+
+
 @pytest.mark.parametrize("ident", [LIS, ADXL])
 def test_identity_start_samples_stop(lib, ident):
     b = Board(lib, ident)
     assert b.out == b"" and b.head.nvm_status == 1  # virgin: EMPTY, no error frame
     b.rx(b"$ID*0D\n")
-    assert bytes(b.out) == sf.IdentityFrame(ident).encode()  # fmt_number text: 60,1,0 / 3.9,-9.05,1885
+    raw = bytes(b.out)
+    base, keys = split_keys(raw[1:-4].decode().split(","))
+    assert base == sf.IdentityFrame(ident).encode()[1:-4].decode().split(",")  # fmt_number: 60,1,0 / 3.9,-9.05,1885
+    # the keys of a board that was never told its reset cause (fw_board_set_boot), on erased flash
+    health = _ident_with(ident, reset_cause="unknown", boots=0, record=BoardRecordInfo(0, 0, None, "empty"),
+                         caps={"scal", "sfem3"}, sensor_reinits=0)
+    assert raw == sf.IdentityFrame(health).encode(), keys  # byte for byte, keys in the contract's order
     (frame,) = b.frames()
-    assert frame.identity == ident
+    assert frame.identity == ident and frame.identity.record == health.record
     b.sample([1, 2, 3], 4)
     assert b.out == b""  # not started: nothing
     assert b.cmd("START") == [sf.AckFrame("START")]
@@ -476,7 +758,7 @@ def test_calibration_write_read_and_nvm_layout(lib):
     rng = np.random.default_rng(11)
     b = Board(lib)
     zeros = (0.0,) * 6
-    assert bytes(b.cmd_raw("CALR")) == sf.CalReadFrame(zeros, crc32_f32(zeros), False).encode()
+    assert bytes(b.cmd_raw("CALR")) == _calr(zeros, False, b.slots).encode()
     assert b.cmd("SFER") == [sf.ErrorFrame("SFER", "no SFEM stored")]
     for k in range(6):
         thermal, sfem = _coefficients(rng, sfem=True)
@@ -485,7 +767,8 @@ def test_calibration_write_read_and_nvm_layout(lib):
         assert bytes(b.cmd_raw(sf.cmd_calw(thermal[:3], thermal[3:])[1:-4].decode())) == \
             sf.AckFrame("CALW", (sf.fmt_crc(crc32_f32(thermal)),)).encode()
         rb = b.cmd_raw("CALR")
-        assert bytes(rb) == sf.CalReadFrame(thermal, crc32_f32(thermal), False).encode()
+        assert bytes(rb) == _calr(thermal, False, b.slots).encode()
+        assert _flash_record(b.slots) == BoardRecordInfo(1, len(b.writes), b.writes[-1], "ok")
         (c,) = sf.FrameParser().feed(bytes(rb))
         assert c.values == thermal and c.crc == crc32_f32(thermal)
         a, bb = np.array(sfem[:9]).reshape(3, 3), sfem[9:]
@@ -505,7 +788,7 @@ def test_calibration_write_read_and_nvm_layout(lib):
     # power cycle: a new board on the same flash applies the newest record, no error frame
     b2 = Board(lib, slots=b.slots)
     assert b2.out == b"" and b2.head.nvm_status == 0 and b2.head.nvm_seq == 13
-    assert b2.cmd("CALR") == [sf.CalReadFrame(thermal, crc32_f32(thermal), True)]
+    assert b2.cmd("CALR") == [_calr(thermal, True, b.slots)]
     assert b2.cmd("SFER") == [sf.SfemReadFrame(sfem, crc32_f32(sfem))]
 
 
@@ -525,17 +808,20 @@ def test_failed_flash_write_keeps_the_previous_record(lib):
     b.cmd(sf.cmd_calw(old[:3], old[3:])[1:-4].decode())
     b.fail_writes = 1
     assert b.cmd("CALW,1,1,1,-1,-1,-1") == [sf.ErrorFrame("CALW", "flash write failed")]
-    assert b.cmd("CALR") == [sf.CalReadFrame(old, crc32_f32(old), False)]
+    # the half-programmed slot 1 makes the record in force a fallback now, as it would after a restart
+    assert _flash_record(b.slots) == BoardRecordInfo(1, 1, 0, "fallback")
+    assert b.cmd("CALR") == [_calr(old, False, b.slots)]
     b.fail_writes = 1
     assert b.cmd("COMP,1") == [sf.ErrorFrame("COMP", "flash write failed")]
     assert b.cmd("CALR")[0].comp is False
     # power cycle: the half-programmed slot is reported, the previous record applied
     b2 = Board(lib, slots=b.slots)
     assert b2.frames() == [sf.ErrorFrame("NVM", "calibration record CRC mismatch in slot 1")]
-    assert b2.cmd("CALR") == [sf.CalReadFrame(old, crc32_f32(old), False)]
+    assert b2.cmd("CALR") == [_calr(old, False, b.slots)]
     new = to_f32([1, 1, 1, -1, -1, -1])
     assert b2.cmd("CALW,1,1,1,-1,-1,-1") == [sf.AckFrame("CALW", (sf.fmt_crc(crc32_f32(new)),))]
     assert b2.writes == [1]  # over the broken slot, never over the good one
+    assert b2.cmd("CALR") == [_calr(new, False, b2.slots)] and _flash_record(b2.slots).rec_state == "ok"
     assert Board(lib, slots=b2.slots).frames() == []
 
 
@@ -553,7 +839,8 @@ def test_corrupt_records_at_boot(lib):
     b2 = Board(lib, slots=slots)
     assert b2.frames() == [sf.ErrorFrame("NVM", f"calibration record CRC mismatch in slot {newest}")]
     assert b2.head.nvm_status == 0
-    assert b2.cmd("CALR") == [sf.CalReadFrame(first, crc32_f32(first), True)]  # the older valid record
+    assert b2.cmd("CALR") == [_calr(first, True, slots)]  # the older valid record
+    assert _flash_record(slots).rec_state == "fallback"
     # both slots corrupt: zeros, uncompensated, CALR refused until a new CALW succeeds
     slots[1 - newest][60] ^= 0x80
     b3 = Board(lib, slots=[bytearray(s) for s in slots])
@@ -568,7 +855,9 @@ def test_corrupt_records_at_boot(lib):
     b3.sample([1000, -1000, 16000], 40)
     assert b3.frames() == [sf.SampleFrame(0, 0, 1000, -1000, 16000, 40)]  # raw counts
     assert b3.cmd(sf.cmd_calw(second[:3], second[3:])[1:-4].decode())[0].command == "CALW"
-    assert b3.cmd("CALR") == [sf.CalReadFrame(second, crc32_f32(second), False)]
+    # stored in slot 0; slot 1 still neither erased nor valid: a fallback until it is written over
+    assert b3.cmd("CALR") == [_calr(second, False, b3.slots)]
+    assert _flash_record(b3.slots) == BoardRecordInfo(1, 1, 0, "fallback")
     # a record with a valid record CRC but the wrong magic / version is not applied either
     rec = bytearray(b.slots[newest])
     rec[4] = 2
@@ -639,6 +928,76 @@ def test_bridge_lines(lib):
     assert lib.fw_bridge_line(line, len(line), C.byref(ident), C.byref(s)) == 0
 
 
+def test_mirrors_match_the_c_layout(lib):
+    """The ctypes mirrors are the C structs (fw_layout: sizeof/offsetof by name), and the check can
+    fail: a mirror with the old 16-byte serial is caught, naming the struct, and an unknown name is
+    no offset at all."""
+    assert layout_mismatches(lib) == []
+    assert lib.fw_layout(b"fw_board_t") == lib.fw_board_sizeof()
+    assert lib.fw_layout(b"fw_identity_t.serial") == 0 and lib.fw_layout(b"no_such_t.x") == NO_LAYOUT
+
+    class OldIdentity(C.Structure):  # before issue 42: FW_SERIAL_MAX 15
+        _fields_ = [("serial", C.c_char * 16), *FwIdentity._fields_[1:]]
+
+    bad = layout_mismatches(lib, {**MIRRORS, "fw_identity_t": OldIdentity})
+    assert bad and bad[0].startswith("sizeof fw_identity_t") and any("fw_identity_t.sensor" in x for x in bad)
+
+
+def _reply_state(lib, b: Board) -> tuple[int, int]:
+    """(pending, numbers formatted so far) of the board's long reply, through fw_layout's offsets."""
+    base = lib.fw_layout(b"fw_board_t.reply")
+    pending = C.c_uint8.from_buffer(b.mem, base + lib.fw_layout(b"fw_reply_t.pending")).value
+    done = C.c_uint8.from_buffer(b.mem, base + lib.fw_layout(b"fw_reply_t.next")).value
+    return pending, done
+
+
+def test_long_replies_go_out_whole_a_few_numbers_per_sample(lib):
+    """$SFER (12 numbers) is only recorded by the command; each fw_sample formats REPLY_STEP more
+    numbers after its own D frame, and the S frame goes out whole, byte for byte what the station's
+    codec makes of the stored values (the same as answering at once), after ceil(12 / REPLY_STEP)
+    samples. fw_board_idle finishes a reply at once (a silent sensor still gets an answer); a command
+    arriving while a reply is pending sends that reply first (replies keep their order)."""
+    # denormals print 47-48 characters (the longest fw_fmt_f32 writes): the body near its worst case.
+    # Stored in the flash image directly: a $SFEW of them would pass the 512-byte line.
+    sfem = to_f32([(-1) ** k * (k + 1) * 1.4e-45 for k in range(12)])
+    thermal = to_f32([0.5, -0.5, 0.25, -100, -200, -300])
+    b = Board(lib, slots=[bytearray(slot_image(encode_record(1, thermal, sfem))), bytearray(b"\xff" * SLOT)])
+    assert b.out == b"" and b.head.cal.has_sfem == 1
+    want = sf.SfemReadFrame(sfem, crc32_f32(sfem)).encode()
+    assert len(want) > 560
+    b.cmd("START")
+    request = sf.encode("SFER")
+    lib.fw_uart_rx(b.mem, request, len(request))  # no idle pass: a board with samples back to back
+    assert b.out == b"" and _reply_state(lib, b) == (1, 0)
+    steps = -(-12 // REPLY_STEP)
+    for k in range(steps):
+        b.sample([k, 0, 16000], 25)
+        if k < steps - 1:
+            assert _reply_state(lib, b) == (1, REPLY_STEP * (k + 1))
+    lines = b.lines()
+    assert [ln[:3] for ln in lines] == [b"$D,"] * steps + [b"$S,"]  # each sample's D frame first, then S whole
+    assert lines[-1] + b"\n" == want and _reply_state(lib, b)[0] == 0
+    # a board whose sensor is silent: the idle loop answers
+    lib.fw_uart_rx(b.mem, request, len(request))
+    assert b.out == b""
+    lib.fw_board_idle(b.mem)
+    assert bytes(b.out) == want
+    b.out.clear()
+    # two commands in one read, no sample, no idle pass between them: S first, then the identity
+    both = request + sf.encode("CALR") + sf.encode("ID")
+    lib.fw_uart_rx(b.mem, both, len(both))
+    lib.fw_board_idle(b.mem)
+    got = b.frames()
+    assert [type(f) for f in got] == [sf.SfemReadFrame, sf.CalReadFrame, sf.IdentityFrame]
+    assert got[0].encode() == want and got[1] == _calr(thermal, False, b.slots)
+    # decimated: the samples the decimation drops step the reply too
+    assert b.cmd("ODR,0.625")[0].command == "ODR"
+    lib.fw_uart_rx(b.mem, request, len(request))
+    for k in range(steps):
+        b.sample([k, 0, 16000], 25)
+    assert [ln[:3] for ln in b.lines()] == [b"$D,", b"$S,"]
+
+
 # ---- the board on a fake HAL: CAN (design 3.2) ----------------------------------------------------
 
 def _sim_can(node, ident, thermal=None, comp=False):
@@ -651,7 +1010,8 @@ def _sim_can(node, ident, thermal=None, comp=False):
     return sim, sent
 
 
-@pytest.mark.parametrize("ident", [LIS, ADXL, _ident_with(LIS, serial="ABCDEFGHIJKLMN")])
+@pytest.mark.parametrize("ident", [LIS, ADXL, _ident_with(LIS, serial="ABCDEFGHIJKLMN"),
+                                   _ident_with(LIS, serial="F4" + "0123456789ABCDEF01234567")])
 def test_can_identity_and_samples_match_sim(lib, ident):
     node = 5
     b = Board(lib, ident, can_node=node)
@@ -660,13 +1020,23 @@ def test_can_identity_and_samples_match_sim(lib, ident):
     shift = lib.fw_can_scale(C.byref(b.id), C.byref(ug))
     assert (shift, ug.value) == (can_scale(ident)[0], cf.float32(can_scale(ident)[1]))
     got = b.can_cmd(node, cf.encode_command(cf.CMD_IDENTIFY))
-    sim, sent = _sim_can(node, ident)
+    # the simulated CAN board keeps design 3.2's 14-character serial: frames 0 and 1 are the same
+    sim_ident = _ident_with(ident, serial=ident.serial[:14])
+    sim, sent = _sim_can(node, sim_ident)
     sim.on_frame(cf.CMD_BASE + node, cf.encode_command(cf.CMD_IDENTIFY))
-    assert got == sent
+    # frames 0..3 byte for byte what the simulated CAN board sends (it knows no more), then frame 11
+    # and, for a serial longer than 14 (an STM32's F4 + 24 hex digits), frames 12 and 13
+    long_serial = len(ident.serial) > 14
+    assert [d[0] for _, d in got] == [0, 1, 2, 3, 11] + ([12, 13] if long_serial else [])
+    assert {arb for arb, _ in got} == {cf.IDENT_BASE + node}
+    assert got[:4] == sent
+    # frame 11 of a board never told its reset cause, on erased flash
+    assert cf.decode_identity_health(got[4][1]) == ("unknown", BoardRecordInfo(0, 0, None, "empty"))
     asm = cf.IdentityAssembler()
     for _, d in got:
         asm.feed(d)
-    assert asm.serial == ident.serial
+    assert asm.complete and asm.serial == ident.serial
+    assert asm.waits_for_more == (len(ident.serial) == 14)  # only 14 characters are ambiguous (12/13 may follow)
     assert b.can_cmd(node + 1, cf.encode_command(cf.CMD_IDENTIFY)) == []  # another node's command
     rng = np.random.default_rng(13)
     fs = 32767 if ident is not ADXL else 524287
@@ -678,7 +1048,7 @@ def test_can_identity_and_samples_match_sim(lib, ident):
                 b.can_cmd(node, cf.encode_cal_field(k, v))
             assert b.can_cmd(node, cf.encode_cal_commit(crc32_f32(thermal)))[0][1][1] == cf.CAL_STORED
             assert b.can_cmd(node, cf.encode_comp(True)) == []  # COMP: no reply in 3.2
-        sim, sent = _sim_can(node, ident, thermal, comp)
+        sim, sent = _sim_can(node, sim_ident, thermal, comp)
         for cmd in (cf.encode_command(cf.CMD_SET_ODR, 0.625), cf.encode_command(cf.CMD_START)):
             assert b.can_cmd(node, cmd) == []
             sim.on_frame(cf.CMD_BASE + node, cmd)

@@ -9,14 +9,10 @@ a power loss (--nvm-tear-after) are checked at boot.
 from __future__ import annotations
 
 import asyncio
-import os
-import select
-import signal
 import socket
 import struct
 import subprocess
 import time
-import tty
 
 import numpy as np
 import pytest
@@ -30,10 +26,12 @@ from drivers.protocol.slcan_lines import split_frames
 from drivers.serial_board import SerialBoard
 from drivers.sim.board_nvm import CalFirmware
 from drivers.sim.firmware_build import build, missing_tools
+from tests.firmware_nvm import SLOT_BYTES
+from tests.firmware_proc import FwProc
 
 LIS = Identity("SN0001", "LIS3DSH", "fw-c-1.0", 60.0, 1.0, 0.0, 3.125)
 ADXL = Identity("AX0001", "ADXL355", "fw-c-1.0", 3.9, -9.05, 1885.0, 3.125)
-SLOT = 256
+SLOT = SLOT_BYTES
 
 
 @pytest.fixture(scope="module")
@@ -41,80 +39,6 @@ def fwboard():
     if missing_tools("host"):
         pytest.skip(f"no {missing_tools('host')}")
     return build("host") / "fwboard"
-
-
-class FwProc:
-    """One board process: pty master to the child, the slave kept open here (raw), a socketpair bridge."""
-
-    def __init__(self, exe, ident: Identity, nvm, *, can: int | None = None, tear: int | None = None,
-                 fw: str | None = None) -> None:
-        master, self.slave = os.openpty()
-        tty.setraw(self.slave)
-        self.path = os.ttyname(self.slave)
-        self.bridge, child = socket.socketpair()
-        args = [str(exe), "--uart-fd", str(master), "--bridge-fd", str(child.fileno()), "--nvm", str(nvm)]
-        if can is not None:
-            args += ["--can", str(can)]
-        if tear is not None:
-            args += ["--nvm-tear-after", str(tear)]
-        if fw is not None:
-            args += ["--fw", fw]
-        self.proc = subprocess.Popen(args, pass_fds=(master, child.fileno()))
-        os.close(master)
-        child.close()
-        self.ident = ident
-        self.t_us = 0
-        self.k = 0
-        i = ident
-        self.bridge.sendall(sf.encode(f"B,{i.serial},{i.sensor},{sf.fmt_number(i.ug_per_lsb)},"
-                                      f"{sf.fmt_number(i.t_lsb_per_c)},{sf.fmt_number(i.t_lsb_at_25c)},{sf.fmt_number(i.odr_hz)}"))
-        self.bridge.settimeout(5)
-        assert self.bridge.recv(64) == sf.encode("READY")
-
-    def feed(self, acc, temp) -> list[int]:
-        """Samples (n,3) counts and (n,) temperature counts; returns their t_us."""
-        out, ts = [], []
-        for a, t in zip(np.asarray(acc).tolist(), np.asarray(temp).tolist()):
-            ts.append(self.t_us)
-            out.append(sf.encode(f"S,{self.t_us},{a[0]},{a[1]},{a[2]},{t}"))
-            self.t_us += 320_000
-        self.bridge.sendall(b"".join(out))
-        return ts
-
-    def write(self, raw: bytes) -> None:
-        os.write(self.slave, raw)
-
-    def read_until(self, done, timeout: float = 5.0) -> bytes:
-        buf = b""
-        end = time.monotonic() + timeout
-        while not done(buf) and time.monotonic() < end:
-            r, _, _ = select.select([self.slave], [], [], 0.05)
-            if r:
-                try:
-                    buf += os.read(self.slave, 65536)
-                except OSError:
-                    break
-        return buf
-
-    def frames(self, raw: bytes) -> list:
-        p = sf.FrameParser()
-        got = p.feed(raw)
-        assert p.stats.frames_bad_checksum == 0 and p.stats.frames_malformed == 0, raw
-        return got
-
-    def command(self, body: str, n_frames: int = 1) -> list:
-        self.write(sf.encode(body))
-        return self.frames(self.read_until(lambda b: b.count(b"\n") >= n_frames))
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            rc = self.proc.wait(5)
-        finally:
-            self.bridge.close()
-            os.close(self.slave)
-        return rc
 
 
 @pytest.fixture
@@ -162,11 +86,13 @@ async def test_serial_board_driver_end_to_end(fwboard, tmp_path, procs):
         np.testing.assert_array_equal(blk.acc_g, ADXL.acc_g(acc))
         np.testing.assert_array_equal(blk.temp_c, ADXL.temp_c(temp))
         await drv.stop()
+        # the driver re-learns the sample period from the first step after START: let the board
+        # take four samples while stopped (a t_us gap would count as missed samples, seq running
+        # on), so one new period (1.6 s) lies between the last sample sent and the first decimated one
+        p.feed(acc[:4], temp[:4])
+        await drv.stop()  # a round trip: the board took the four before it reads the next command
         await drv.set_odr(0.625)
         await drv.start()
-        # the driver re-learns the sample period from the first step after START: let the board
-        # clock run one new period (1.6 s) between the last sample sent and the first decimated one
-        p.t_us += 1_600_000 - 320_000
         p.feed(acc[:96], temp[:96])  # ends on a sent sample: the next rate's first step is its period
         blk = await _collect(drv, 20)
         assert len(blk) == 20
@@ -317,9 +243,11 @@ def test_can_node_over_slcan_lines(fwboard, tmp_path, procs):
         assert garbled == 0 and not buf
         return frames
 
-    frames = exchange(cf.encode_command(cf.CMD_IDENTIFY), 4)
-    assert [a for a, _ in frames] == [cf.IDENT_BASE + node] * 4
-    assert [d for _, d in frames] == cf.encode_identity("AX0001", 3.9 * 16, 3.125)
+    frames = exchange(cf.encode_command(cf.CMD_IDENTIFY), 5)
+    assert [a for a, _ in frames] == [cf.IDENT_BASE + node] * 5
+    assert [d for _, d in frames[:4]] == cf.encode_identity("AX0001", 3.9 * 16, 3.125)
+    # frame 11 (contract v2): reset cause (the target's), record state 2 = empty, version 0, generation 0
+    assert frames[4][1][0] == 11 and frames[4][1][1] <= 6 and frames[4][1][2:] == bytes([2, 0, 0, 0, 0, 0])
     assert exchange(bytes([cf.CMD_START]), 0) == []
     acc = np.array([[256410, -256410, 1000], [-17, 8, 7], [524287, -524288, 0], [24, -24, 8]])
     temp = np.array([1885, 1885 - 905, 1885 + 452, 1885 + 5000])
@@ -341,6 +269,8 @@ def test_can_node_over_slcan_lines(fwboard, tmp_path, procs):
     assert exchange(cf.encode_comp(True), 0) == []
     assert p.stop() == 0
     p = _spawn(procs, fwboard, ADXL, nvm, can=node)  # power cycle
+    (frame11,) = [d for _, d in exchange(cf.encode_command(cf.CMD_IDENTIFY), 5) if d[0] == 11]
+    assert frame11[2:] == bytes([0, 1]) + struct.pack("<I", 2)  # ok, version 1, generation 2 (commit, COMP)
     frames = exchange(cf.encode_cal_read(), 7)
     assert [cf.decode_cal_reply(d)[1] for _, d in frames[:6]] == list(vals)
     assert cf.decode_cal_reply(frames[6][1])[1] == cf.CalStatus(cf.CAL_STORED, True, crc32_f32(vals))

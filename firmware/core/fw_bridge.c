@@ -6,7 +6,7 @@
 static int copy_text(char *dst, uint32_t cap, const fw_field_t *f)
 {
     if (f->len == 0 || f->len > cap) return -1;
-    for (uint32_t i = 0; i < f->len; i++) if (f->p[i] == ',' || (uint8_t)f->p[i] < 0x21u || (uint8_t)f->p[i] > 0x7Eu) return -1;
+    for (uint32_t i = 0; i < f->len; i++) if (f->p[i] == ',' || f->p[i] == '$' || f->p[i] == '*' || (uint8_t)f->p[i] < 0x21u || (uint8_t)f->p[i] > 0x7Eu) return -1;
     memcpy(dst, f->p, f->len);
     dst[f->len] = 0;
     return 0;
@@ -14,7 +14,7 @@ static int copy_text(char *dst, uint32_t cap, const fw_field_t *f)
 
 static int finite_f32(const fw_field_t *f, float *out)
 {
-    return fw_parse_real(f->p, f->len, NULL, out) == 0 && fw_f32_finite(*out) ? 0 : -1;
+    return fw_parse_f32(f->p, f->len, out) == 0 && fw_f32_finite(*out) ? 0 : -1;
 }
 
 static int int32_field(const fw_field_t *f, int32_t *out)
@@ -57,7 +57,34 @@ int fw_bridge_line(const uint8_t *line, uint32_t len, fw_identity_t *id_out, fw_
     return FW_BRIDGE_NONE;
 }
 
+int fw_bridge_fault(const uint8_t *line, uint32_t len, fw_bridge_fault_t *out)
+{
+    const uint8_t *body;
+    fw_field_t f[FW_MAX_FIELDS];
+    int32_t n = fw_unframe(line, len, &body);
+    if (n < 0) return FW_BRIDGE_NONE;
+    uint32_t nf = fw_split(body, (uint32_t)n, f, FW_MAX_FIELDS);
+    if (nf < 2 || !fw_field_is(&f[0], "X")) return FW_BRIDGE_NONE;
+    fw_bridge_fault_t x = { FW_FAULT_NONE, 0.0f };
+    if (nf == 2 && fw_field_is(&f[1], "hardfault")) x.kind = FW_FAULT_HARDFAULT;
+    else if (nf == 2 && fw_field_is(&f[1], "hang")) x.kind = FW_FAULT_HANG;
+    else if (nf == 3 && fw_field_is(&f[1], "selfcal_skew") && finite_f32(&f[2], &x.value) == 0) x.kind = FW_FAULT_SELFCAL_SKEW;
+    else return FW_BRIDGE_NONE;
+    *out = x;
+    return FW_BRIDGE_FAULT;
+}
+
 uint32_t fw_bridge_ready(uint8_t *out, uint32_t cap)
 {
     return fw_frame((const uint8_t *)"READY", 5, out, cap);
+}
+
+uint32_t fw_bridge_boot(uint8_t *out, uint32_t cap)
+{
+    return fw_frame((const uint8_t *)"BOOT", 4, out, cap);
+}
+
+uint32_t fw_bridge_init(uint8_t *out, uint32_t cap)
+{
+    return fw_frame((const uint8_t *)"INIT", 4, out, cap);
 }

@@ -1,5 +1,8 @@
 /* fw_can_proto.c: design 3.2 (CAN 2.0A, node N): commands on 0x600+N, identity and calibration
- * replies on 0x580+N, samples on 0x180+N. Bytes as drivers/protocol/can_frames.py packs them. */
+ * replies on 0x580+N, samples on 0x180+N. Bytes as drivers/protocol/can_frames.py packs them.
+ * docs/design.md 3.2: identity frame 11 (reset cause, record state, version,
+ * generation) after frames 0..3, frames 12/13 (serial characters 15..28) when the serial is longer
+ * than 14, a non-finite CAL_FIELD refused at CAL_COMMIT (status 1), seq counts samples taken. */
 #include <string.h>
 #include "fw_board_internal.h"
 #include "fw_nvm.h"
@@ -30,9 +33,10 @@ static void send(fw_board_t *b, uint16_t base, uint8_t dlc, const uint8_t *data)
 static void send_identity(fw_board_t *b)
 {
     uint8_t d[8];
-    char serial[14];
+    char serial[28];
+    uint32_t n = 0;
     memset(serial, 0, sizeof serial);
-    for (uint32_t i = 0; i < 14u && b->id.serial[i]; i++) serial[i] = b->id.serial[i];
+    for (; n < 28u && b->id.serial[n]; n++) serial[n] = b->id.serial[n];
     for (uint8_t k = 0; k < 2; k++) {
         d[0] = k;
         memcpy(d + 1, serial + 7 * k, 7);
@@ -44,6 +48,19 @@ static void send_identity(fw_board_t *b)
     d[0] = 3;
     put_u32(d + 1, fw_f32_bits(b->odr_hz));
     send(b, CAN_REPLY_BASE, 5, d);
+    d[0] = 11;
+    d[1] = b->boot.cause <= FW_RESET_SOFTWARE ? b->boot.cause : (uint8_t)FW_RESET_UNKNOWN;
+    d[2] = (uint8_t)fw_board_rec_state(b);
+    d[3] = fw_board_rec_version(b);
+    put_u32(d + 4, b->nvm_slot >= 0 ? b->nvm_seq : 0u);
+    send(b, CAN_REPLY_BASE, 8, d);
+    if (n > 14u) {   /* characters 15..28, NUL padded */
+        for (uint8_t k = 0; k < 2; k++) {
+            d[0] = (uint8_t)(12u + k);
+            memcpy(d + 1, serial + 14 + 7 * k, 7);
+            send(b, CAN_REPLY_BASE, 8, d);
+        }
+    }
 }
 
 static void send_status(fw_board_t *b, uint8_t status)
@@ -57,8 +74,10 @@ static void cal_commit(fw_board_t *b, uint32_t want_crc)
 {
     uint8_t status;
     fw_cal_t c = b->cal;
-    if (b->can_cal_have != 0x3Fu || fw_crc32_f32(b->can_cal_fields, 6) != want_crc) {
-        status = CAL_CRC_MISMATCH;
+    int finite = 1;
+    for (int i = 0; i < 6; i++) finite &= fw_f32_finite(b->can_cal_fields[i]);
+    if (b->can_cal_have != 0x3Fu || !finite || fw_crc32_f32(b->can_cal_fields, 6) != want_crc) {
+        status = CAL_CRC_MISMATCH;   /* a field missing, not finite, or not the values the CRC says */
     } else {
         for (int i = 0; i < 6; i++) {
             float v = b->can_cal_fields[i] + 0.0f;
@@ -91,7 +110,7 @@ void fw_can_command(fw_board_t *b, uint8_t dlc, const uint8_t *data)
     case 0x03: send_identity(b); break;
     case 0x04: {
         if (dlc < 5) { b->rx_bad_frames++; break; }
-        uint32_t k = fw_odr_ratio((double)b->id.odr_hz, (double)fw_bits_f32(get_u32(data + 1)));
+        uint32_t k = fw_rate_ratio(b->id.odr_hz, fw_bits_f32(get_u32(data + 1)));
         if (k) fw_set_decimation(b, k);   /* an unsupported rate is ignored (3.2 has no error reply) */
         break;
     }
@@ -121,7 +140,7 @@ void fw_can_sample(fw_board_t *b, const fw_raw_sample_t *s)
 {
     int32_t acc[3] = { s->acc[0], s->acc[1], s->acc[2] };
     float temp_c = fw_temp_c(&b->id, s->temp);
-    if (b->cal.comp) fw_compensate(&b->cal, b->id.ug_per_lsb, s->acc, temp_c, acc);
+    if (b->cal.comp) fw_apply_comp(b, s, temp_c, acc);
     uint8_t d[8];
     for (int i = 0; i < 3; i++) {
         int64_t v = acc[i];
@@ -145,7 +164,7 @@ void fw_can_sample(fw_board_t *b, const fw_raw_sample_t *s)
         t8 = (int32_t)r;
     }
     d[6] = (uint8_t)(int8_t)t8;
-    d[7] = (uint8_t)b->seq;
+    d[7] = (uint8_t)b->seq;   /* 8-bit: the low byte of the samples-taken count (missed ones included) */
     send(b, CAN_SAMPLE_BASE, 8, d);
     b->seq++;
 }

@@ -6,10 +6,23 @@
  * even, numpy rint) and saturated to int32. Same result as drivers/sim/board_nvm.CalFirmware.
  * compensate_counts up to float32 rounding: the arithmetic is done in counts (tdb and b divided by
  * the count size once) so the raw count never goes through a g round trip.
+ *
+ * A version-2 record replaces all of that with its cubic SFEM (docs/design.md 3.1,
+ * sensors2023 eq. 8): T clamped to [t_lo_c, t_hi_c], d = T - t_ref_c, the 12 polynomials of A(d)
+ * and b(d) by Horner in float32 (3 multiply-adds each, c[3] first), out = A (raw - b counts_per_g)
+ * in counts. Eq. 13 is not applied on top: the cubic model was fitted on raw readings and carries
+ * the thermal drift itself. No division per sample (counts_per_g is the board's, computed once).
  */
 #include "fw_board.h"
 
-static int32_t round_sat(float x)
+/* Inlined into both users: at -Os GCC would otherwise call it three times per sample. */
+#if defined(__GNUC__)
+#define COMP_INLINE static inline __attribute__((always_inline))
+#else
+#define COMP_INLINE static inline
+#endif
+
+COMP_INLINE int32_t round_sat(float x)
 {
     if (!(x == x)) return 0;                                 /* NaN */
     if (x >= 2147483648.0f) return INT32_MAX;
@@ -42,5 +55,26 @@ void fw_compensate(const fw_cal_t *cal, float ug_per_lsb, const int32_t raw[3], 
         for (int i = 0; i < 3; i++)
             v[i] = cal->sfem[3 * i] * w[0] + cal->sfem[3 * i + 1] * w[1] + cal->sfem[3 * i + 2] * w[2];
     }
+    for (int i = 0; i < 3; i++) out[i] = round_sat(v[i]);
+}
+
+void fw_compensate_cubic_f32(const fw_cubic_t *cu, float counts_per_g, const int32_t raw[3], float temp_c, float out[3])
+{
+    float t = temp_c;
+    if (!(t >= cu->t_lo_c)) t = cu->t_lo_c;                 /* NaN too: the low end */
+    if (t > cu->t_hi_c) t = cu->t_hi_c;
+    const float d = t - cu->t_ref_c;
+    float m[12];
+    for (int j = 0; j < 12; j++)
+        m[j] = ((cu->c[3][j] * d + cu->c[2][j]) * d + cu->c[1][j]) * d + cu->c[0][j];
+    float w[3];
+    for (int i = 0; i < 3; i++) w[i] = (float)raw[i] - m[9 + i] * counts_per_g;
+    for (int i = 0; i < 3; i++) out[i] = m[3 * i] * w[0] + m[3 * i + 1] * w[1] + m[3 * i + 2] * w[2];
+}
+
+void fw_compensate_cubic(const fw_cubic_t *cu, float counts_per_g, const int32_t raw[3], float temp_c, int32_t out[3])
+{
+    float v[3];
+    fw_compensate_cubic_f32(cu, counts_per_g, raw, temp_c, v);
     for (int i = 0; i < 3; i++) out[i] = round_sat(v[i]);
 }

@@ -1,6 +1,7 @@
 /* fw_crc32.c: CRC-32 as zlib's crc32() (reflected polynomial 0xEDB88320, init/xorout 0xFFFFFFFF),
  * and the design 3.1/3.2 CRC of float32 values (little-endian bytes, -0.0 stored as +0.0 exactly as
- * the station's cal_record.to_f32 does). A 16-entry nibble table: small and fast enough. */
+ * the station's cal_record.to_f32 does), also over the 51 values of the cubic SFEM ($SFTC order).
+ * A 16-entry nibble table: small and fast enough. */
 #include "fw_board.h"
 #include "fw_num.h"
 
@@ -20,14 +21,23 @@ uint32_t fw_crc32(uint32_t crc, const uint8_t *buf, uint32_t len)
     return ~crc;
 }
 
-uint32_t fw_crc32_f32(const float *values, uint32_t n)
+static uint32_t crc_f32_more(uint32_t crc, const float *values, uint32_t n)
 {
-    uint32_t crc = 0;
     for (uint32_t i = 0; i < n; i++) {
         uint32_t u = fw_f32_bits(values[i]);
         if (u == 0x80000000u) u = 0;   /* -0.0 -> +0.0 (to_f32 adds 0.0) */
         uint8_t le[4] = { (uint8_t)u, (uint8_t)(u >> 8), (uint8_t)(u >> 16), (uint8_t)(u >> 24) };
         crc = fw_crc32(crc, le, 4);
     }
+    return crc;
+}
+
+uint32_t fw_crc32_f32(const float *values, uint32_t n) { return crc_f32_more(0, values, n); }
+
+uint32_t fw_cubic_crc(const fw_cubic_t *cu)
+{
+    const float head[3] = { cu->t_ref_c, cu->t_lo_c, cu->t_hi_c };
+    uint32_t crc = crc_f32_more(0, head, 3);
+    for (uint32_t k = 0; k < FW_CUBIC_POWERS; k++) crc = crc_f32_more(crc, cu->c[k], 12);
     return crc;
 }

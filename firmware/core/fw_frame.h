@@ -30,7 +30,9 @@ typedef struct fw_field { const char *p; uint32_t len; } fw_field_t;
 uint32_t fw_split(const uint8_t *body, uint32_t len, fw_field_t *f, uint32_t max);
 int fw_field_is(const fw_field_t *f, const char *text);
 
-/* Reply body builder; overflow makes fw_tx_frame return 0 (nothing sent). */
+/* Reply body builder; overflow makes fw_tx_frame return 0 (nothing sent). On the per-sample path
+ * (every D frame): numbers are formatted straight into body, fw_tx_frame copies and checksums a
+ * word at a time (fw_frame.c; targets/qemu/README.md has the instruction counts). */
 typedef struct fw_tx {
     char body[FW_TX_BODY_MAX];
     uint32_t len;

@@ -11,7 +11,18 @@
 #include <stdint.h>
 
 #define FW_NVM_SLOTS 2u          /* two record slots (A/B): a torn write never destroys the last good one */
-#define FW_NVM_SLOT_BYTES 256u   /* bytes per slot, enough for fw_nvm_record_t */
+/* Bytes per slot. 512 since issue 42 (was 256): a version-2 record (fw_nvm.h, the cubic SFEM) is
+ * 312 bytes. What it means for the targets:
+ *  - host: the --nvm file is 2 x 512 = 1024 bytes (host_nvm_open pads a shorter file with 0xFF);
+ *  - QEMU: nvm.bin is 1024 bytes, slot k at [512 k, 512 k + 512) (semihost.c scales with this
+ *    constant; targets/qemu/README.md still says 256);
+ *  - Discovery: each slot is still one 16 KB flash sector (2 and 3), so nothing moves; a write
+ *    programs at most 312 bytes (78 words, a multiple of 4) and reads back 512;
+ *  - a 512-byte file of older firmware reads as slot 0 = its old slots 0 and 1 back to back (the
+ *    old slot 0 record stays valid, the old slot 1 record is not seen) and slot 1 erased.
+ * Every nvm_read asks for FW_NVM_SLOT_BYTES (the erased check covers the whole slot); nvm_write
+ * gets the record length (104 or 312) and must leave the rest of the slot erased. */
+#define FW_NVM_SLOT_BYTES 512u
 
 typedef struct fw_hal {
     void *ctx;

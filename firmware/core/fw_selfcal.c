@@ -139,7 +139,7 @@ int fw_selfcal_update(fw_selfcal_t *c, uint32_t t_us, const int32_t acc_counts[3
         float ft, g = 0.0f;
         for (k = 0; k < 3u; k++)
             c->facc[k] = c->facc[k] * C_ACC + A_ACC * x[k];
-        ft = c->ft_off * C_ACC + A_ACC * (float)(temp_count - c->t_ref);
+        ft = c->ft_off * C_ACC + A_ACC * (float)((int64_t)temp_count - (int64_t)c->t_ref);
         if (du != 0u && du < 0x80000000u)  /* time increased (modulo 2^32) */
             g = (ft - c->ft_off) * (60.0e6f / ((float)du * scale->t_lsb_per_c));
         c->grad = c->grad * C_GRAD + A_GRAD * g;

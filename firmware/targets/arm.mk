@@ -5,6 +5,8 @@
 #                prints arm-none-eabi-size and the flash/RAM use (also in build/disc/size.txt)
 #   make qemu    the emulated board for qemu-system-arm -M netduinoplus2 -> build/qemu/fw.elf
 #   make bench   instructions per sample under QEMU -icount shift=0 -> build/bench/bench.txt
+#   make sizes   builds every ARM image (disc, qemu, bench) and prints flash (text+data) and RAM
+#                (data+bss) of each (also in build/sizes.txt)
 #
 # Every ARM variable is ARM_* / DISC_* / QEMU_* / BENCH_* so nothing collides with the host rules.
 
@@ -26,18 +28,18 @@ ARM_DEPS     = $(wildcard core/*.c core/*.h drivers/*.c drivers/*.h targets/stm3
 ARM_FLASH_KB = 992
 ARM_RAM_KB   = 128
 
-DISC_DIR = build/disc
+DISC_DIR = $(BUILD)/disc
 DISC_SRC = $(ARM_STARTUP) $(wildcard targets/stm32f407disc/*.c) drivers/lis3dsh.c $(CORE_SRC)
 DISC_SRC := $(sort $(DISC_SRC))
 
-QEMU_DIR = build/qemu
+QEMU_DIR = $(BUILD)/qemu
 QEMU_SRC = $(ARM_STARTUP) targets/qemu/main.c targets/qemu/semihost.c $(CORE_SRC)
 
-BENCH_DIR = build/bench
+BENCH_DIR = $(BUILD)/bench
 BENCH_SRC = $(ARM_STARTUP) targets/qemu/bench.c targets/qemu/semihost.c $(CORE_SRC)
 BENCH_N  ?= 20000
 
-.PHONY: disc qemu bench
+.PHONY: disc qemu bench sizes
 
 # The size report runs every time (CI greps it), the link only when a source changed.
 disc: $(DISC_DIR)/fw.elf
@@ -71,3 +73,10 @@ bench: $(BENCH_DIR)/bench.elf
 	  -kernel bench.elf > bench.txt 2>&1; rc=$$?; cat bench.txt; \
 	  if [ $$rc -ne 0 ] || ! grep -q '^bench: instructions per sample' bench.txt; then \
 	    echo "bench failed (rc $$rc)"; exit 1; fi
+
+# flash = text + data (the initialised data is stored in flash too), RAM = data + bss (the stack and
+# the rest of the 128 KB are not counted). One line per image, greppable.
+sizes: $(DISC_DIR)/fw.elf $(QEMU_DIR)/fw.elf $(BENCH_DIR)/bench.elf
+	@for elf in $^; do $(ARM_SIZE) $$elf | awk -v f=$$elf 'NR==2 { \
+	  printf "size %-26s flash %6d B (text %d + data %d), RAM %6d B (data %d + bss %d)\n", \
+	  f, $$1+$$2, $$1, $$2, $$2+$$3, $$2, $$3 }'; done | tee $(BUILD)/sizes.txt
