@@ -55,8 +55,11 @@ def lib(tmp_path_factory):
     assert proc.returncode == 0, proc.stderr
     lib = ctypes.CDLL(str(so))
     for name in ("lis3dsh_init", "lis3dsh_data_ready", "lis3dsh_read_sample", "lis3dsh_who_am_i",
+                 "lis3dsh_fifo_stream", "lis3dsh_fifo_status", "lis3dsh_fifo_read",
                  "adxl355_init", "adxl355_data_ready", "adxl355_read_sample"):
         getattr(lib, name).restype = ctypes.c_int32
+    lib.lis3dsh_fifo_t_us.restype = ctypes.c_uint32
+    lib.lis3dsh_fifo_t_us.argtypes = [ctypes.c_uint32] * 4
     lib.lis3dsh_temp_c.restype = ctypes.c_float
     lib.lis3dsh_temp_c.argtypes = [ctypes.c_int32]
     lib.adxl355_temp_c.restype = ctypes.c_float
@@ -170,6 +173,112 @@ def test_lis3dsh_burst_needs_add_inc(lib):
     assert lib.lis3dsh_init(ctypes.byref(spi.ctx), 6, 0) == 0
     assert lib.lis3dsh_read_sample(ctypes.byref(spi.ctx), ctypes.byref(s)) == 0
     assert list(s.acc) == [0x0201, 0x0403, 0x0605]
+
+
+class LisFifo(FakeSpi):
+    """A LIS3DSH with its 32-level FIFO: samples pushed by the test; a 6-byte burst from OUT_X_L
+    pops the oldest one (what the part does in FIFO mode); FIFO_SRC reports the level, WTM, EMPTY."""
+
+    def __init__(self) -> None:
+        super().__init__({0x0F: 0x3F}, auto_inc=lambda r: bool(r[0x25] & 0x10))
+        self.fifo: list[tuple[int, int, int]] = []
+        self.overrun = False
+
+    def push(self, xyz) -> None:
+        self.fifo.append(tuple(xyz))
+        if len(self.fifo) > 32:   # stream mode: the oldest is overwritten
+            self.fifo.pop(0)
+            self.overrun = True
+
+    def read(self, handle, reg, buf, n):
+        if self.fail:
+            return -1
+        self.reads.append((reg, n))
+        if reg == 0x2F:
+            wtm = self.regs[0x2E] & 0x1F
+            level = len(self.fifo)
+            v = (level & 0x1F) | (0x20 if level == 0 else 0) | (0x40 if self.overrun else 0) | (0x80 if level >= wtm else 0)
+            buf[0] = v
+            return 0
+        if reg == 0x28 and n == 6 and self.fifo:
+            raw = b"".join(int(v & 0xFFFF).to_bytes(2, "little") for v in self.fifo.pop(0))
+            for i in range(6):
+                buf[i] = raw[i]
+            return 0
+        return super().read(handle, reg, buf, n)
+
+
+def test_lis3dsh_fifo_stream_mode_registers(lib):
+    spi = LisFifo()
+    assert lib.lis3dsh_init(ctypes.byref(spi.ctx), 6, 0) == 0
+    spi.writes.clear()
+    assert lib.lis3dsh_fifo_stream(ctypes.byref(spi.ctx), 10) == 0
+    assert spi.writes == [
+        (0x2E, 0x00),   # FIFO_CTRL: bypass first (empties the FIFO)
+        (0x25, 0x74),   # CTRL_REG6: FIFO_EN, WTM_EN, ADD_INC, P1_WTM (watermark on INT1)
+        (0x2E, 0x4A),   # FIFO_CTRL: stream mode (010), watermark 10
+        (0x23, 0x48),   # CTRL_REG3: INT1 on, active high; data-ready NOT routed
+    ]
+    assert lib.lis3dsh_fifo_stream(ctypes.byref(spi.ctx), 0) == -3
+    assert lib.lis3dsh_fifo_stream(ctypes.byref(spi.ctx), 32) == -3
+
+
+def test_lis3dsh_fifo_status_and_read_oldest_first(lib):
+    spi = LisFifo()
+    assert lib.lis3dsh_init(ctypes.byref(spi.ctx), 6, 0) == 0
+    assert lib.lis3dsh_fifo_stream(ctypes.byref(spi.ctx), 10) == 0
+    count, src = ctypes.c_uint32(99), ctypes.c_uint8()
+    assert lib.lis3dsh_fifo_status(ctypes.byref(spi.ctx), ctypes.byref(count), ctypes.byref(src)) == 0
+    assert count.value == 0 and src.value & 0x20   # EMPTY
+    pushed = [(i, -2 * i, 1000 + i) for i in range(12)]
+    for xyz in pushed:
+        spi.push(xyz)
+    spi.regs[0x0C] = 0xFB   # OUT_T -5 -> 20 C
+    assert lib.lis3dsh_fifo_status(ctypes.byref(spi.ctx), ctypes.byref(count), ctypes.byref(src)) == 0
+    assert count.value == 12 and src.value & 0x80 and not src.value & 0x40
+    out = (RawSample * 32)()
+    assert lib.lis3dsh_fifo_read(ctypes.byref(spi.ctx), out, 12) == 0
+    assert [tuple(out[k].acc) for k in range(12)] == pushed
+    assert {out[k].temp for k in range(12)} == {-5}
+    assert spi.fifo == []
+    # a full FIFO: FSS has 5 bits, 32 stored reads as 0 with EMPTY clear
+    for i in range(40):
+        spi.push((i, 0, 0))
+    assert lib.lis3dsh_fifo_status(ctypes.byref(spi.ctx), ctypes.byref(count), ctypes.byref(src)) == 0
+    assert count.value == 32 and src.value & 0x40   # OVRN: 8 samples were overwritten
+    assert lib.lis3dsh_fifo_read(ctypes.byref(spi.ctx), out, 32) == 0
+    assert [out[k].acc[0] for k in range(32)] == list(range(8, 40))
+    assert lib.lis3dsh_fifo_read(ctypes.byref(spi.ctx), out, 33) == -3
+
+
+def test_lis3dsh_fifo_sample_times_from_the_watermark(lib):
+    # watermark 10 at 100 Hz: the edge is the 10th sample's data-ready; the others 10 ms apart
+    t_wtm, p = 5_000_000, 10_000
+    got = [lib.lis3dsh_fifo_t_us(t_wtm, 10, k, p) for k in range(12)]
+    assert got == [t_wtm + (k - 9) * p for k in range(12)]
+    # across the uint32 wrap of the board clock
+    assert lib.lis3dsh_fifo_t_us(20_000, 10, 0, p) == (20_000 - 9 * p) % 2**32
+    assert lib.lis3dsh_fifo_t_us(2**32 - 5_000, 10, 11, p) == (2**32 - 5_000 + 2 * p) % 2**32
+
+
+def test_bus_errors_reach_the_caller(lib):
+    """A platform read/write that fails (an SPI timeout on the board) is an error at every level."""
+    spi = LisFifo()
+    assert lib.lis3dsh_init(ctypes.byref(spi.ctx), 6, 0) == 0
+    spi.push((1, 2, 3))
+    spi.fail = True
+    count = ctypes.c_uint32()
+    out = (RawSample * 32)()
+    assert lib.lis3dsh_fifo_stream(ctypes.byref(spi.ctx), 10) == -1
+    assert lib.lis3dsh_fifo_status(ctypes.byref(spi.ctx), ctypes.byref(count), None) == -1
+    assert lib.lis3dsh_fifo_read(ctypes.byref(spi.ctx), out, 1) == -1
+    assert lib.lis3dsh_read_sample(ctypes.byref(spi.ctx), ctypes.byref(RawSample())) == -1
+    assert lib.lis3dsh_data_ready(ctypes.byref(spi.ctx)) == -1
+    adxl = adxl_model()
+    assert lib.adxl355_init(ctypes.byref(adxl.ctx), 5, 1) == 0
+    adxl.fail = True
+    assert lib.adxl355_read_sample(ctypes.byref(adxl.ctx), ctypes.byref(RawSample())) == -1
+    assert lib.adxl355_data_ready(ctypes.byref(adxl.ctx)) == -1
 
 
 # ---- ADXL355 ------------------------------------------------------------------------------

@@ -12,6 +12,27 @@ Truth: the simulator's parameters (TDB/TDSF within the e2e tolerances of tests/t
 the firmware's own NVM bytes on disk (decoded independently of the C code by tests/firmware_nvm.py),
 and after the batch a power cycle of one QEMU board: it boots from its NVM (CRC checked at boot) and
 reads back the same coefficients with the same CRC, compensation on.
+
+Which axes the verified E is judged on (the verification's noise must be able to tell a board that
+compensates from one that does not). The drift an axis would show uncompensated is taken from the
+simulator's parameters, at the verification's own orientation g (the profile's last step, N:
+-0.577 g per axis): E_raw = 70 C x |tdb + tdsf x 1e-3 x g| mg. The limit is the verification's,
+L = max(0.25 E_raw, 2 mg). An axis is JUDGED when
+
+    E_raw - L >= 2 x K_FAMILY x sigma      (sigma: the station's measured 1-sigma of that axis's E)
+
+i.e. a board that does not compensate (E ~ E_raw) lands K_FAMILY sigma over the limit even after a
+K_FAMILY sigma low draw, and one that compensates (E ~ 0) stays under it unless its noise draws
+K_FAMILY sigma high. Axes that hardly drift (s01 x: E_raw 4.3 mg against a 2 mg floor and 2-4 mg of
+noise) cannot tell the two apart: a loaded run once read 10.05 +- 2.99 mg there, which said nothing
+about the firmware. Their calibration (TDB/TDSF within tolerance), the written record and its CRC
+are still checked on every axis. So that the test cannot pass by judging nothing, every firmware
+board needs at least one judged axis and at least MIN_JUDGED of the 24 axes must be judged (with the
+seed's population and 1.5-4 mg of noise: 16-19 in 12 runs, 2026-11-28; the closest judged axis stayed
+3.6 sigma inside its allowance over 10 runs beside two busy loops). A compensation with the wrong
+sign doubles E on a judged axis (E ~ 2 E_raw, at least 2 x 30 mg, against L = 0.25 E_raw) and fails
+it: a build of fw_comp.c with the sign of eq. 13 flipped failed here on s01 y, 58.1 +- 1.9 mg
+against a 7.5 mg limit.
 """
 
 from __future__ import annotations
@@ -22,11 +43,13 @@ import os
 import pytest
 
 from contracts.types import AXES
+from contracts.positions import direction
 from drivers.protocol.cal_record import crc32_f32, to_f32
 from drivers.sim.firmware_build import missing_tools
 from drivers.sim.physics import draw_population
 from drivers.sim.station_sim import SimStation
 from drivers.serial_board import SerialBoard
+from station.profiles import BUILTIN_PROFILES
 from tests.firmware_nvm import read_nvm
 from tests.test_daemon_e2e import TDB_TOL_MG_PER_C, TDSF_TOL_PPM_PER_C, coil, daemon
 
@@ -38,8 +61,26 @@ SPEED = 250.0
 # (Bonferroni, one-sided) while a board that does not compensate (E after = E before, 4-94 mg
 # here) still fails it by many sigmas.
 K_FAMILY = 3.0
+FULL_RANGE_C, E_RATIO_MAX, E_FLOOR_MG = 70.0, 0.25, 2.0  # the verification's rule (VerifyCriteria defaults)
+MIN_JUDGED = 12  # of 24 axes (module doc): fewer means the noise grew until the test can no longer see compensation
+PROFILE = "fast-thermal-verified"
 GUARD_K, E_FS_LIMIT_PCT = 2.0, 1.0  # the product's guard band and verified E_FS limit (docs/verdicts.md)
 FIRMWARE = {0: "qemu", 1: "qemu", 2: "host", 3: "host", 6: "host"}  # DUT index -> target
+
+
+def verify_gravity_g() -> list[float]:
+    """Gravity per axis (g) at the verification step's orientation: what the TDSF term scales."""
+    return [float(x) for x in direction(BUILTIN_PROFILES[PROFILE].steps[-1].position)]
+
+
+def drift_mg(tdb_mg_per_c: float, tdsf_ppm_per_c: float, g: float) -> float:
+    """Eq. 10 over the 70 C range of a linear drift: what an axis with these coefficients shows."""
+    return FULL_RANGE_C * abs(tdb_mg_per_c + tdsf_ppm_per_c * 1e-3 * g)
+
+
+def resolvable(e_raw_mg: float, sigma_mg: float) -> bool:
+    """The module doc's rule: the gap between the uncompensated drift and the limit spans 2 K sigma."""
+    return e_raw_mg - max(E_RATIO_MAX * e_raw_mg, E_FLOOR_MG) >= 2.0 * K_FAMILY * sigma_mg
 
 
 def _need_tools() -> None:
@@ -71,7 +112,8 @@ async def test_fast_thermal_verified_batch_on_firmware_boards(tmp_path):
                 print(n, slots[n]["state"], slots[n]["fault_reason"], slots[n]["link_stats"],
                       {a: (round(v["e_after_mg"][a], 2), round(v["axes"][a]["e_after_sigma_mg"], 2),
                            round(v["e_before_mg"][a], 1)) for a in v["e_after_mg"]})
-            n_passed = 0
+            g_verify = verify_gravity_g()
+            judged: list[tuple[str, str]] = []
             for i, name in enumerate(names):
                 s = slots[name]
                 assert s["state"] == "done", (name, s["fault_reason"], s["link_stats"])
@@ -83,21 +125,24 @@ async def test_fast_thermal_verified_batch_on_firmware_boards(tmp_path):
                 want = to_f32([axes[a]["tdb_mg_per_c"] for a in AXES] + [axes[a]["tdsf_ppm_per_c"] for a in AXES])
                 assert p["programmed"] and p["comp"] and p["readback_identical"], (name, p)
                 assert p["crc"] == f"{crc32_f32(want):08X}" == p["readback_crc"], (name, p)
-                # verified E on these linear parts (the rule of tests/test_program_verify_e2e.py): never
-                # below the drift the written coefficients really leave (the simulator's truth), and
-                # within the limit up to its own noise (an axis that barely drifts meets a 2 mg floor
-                # with 2-4 mg of noise: its pass or fail is the noise's, not the firmware's). 24 axes
-                # are judged at once, so the noise allowance is family-wise: K_FAMILY sigma
+                # verified E on these linear parts (the rule of tests/test_program_verify_e2e.py), on the
+                # axes whose drift the noise can resolve (module doc): never below the drift the written
+                # coefficients really leave (the simulator's truth), and within the limit up to its own
+                # noise. Up to 24 axes are judged at once, so the noise allowance is family-wise: K_FAMILY sigma
                 v = s["verification"]
                 assert v is not None and not v["flags"] or all("verified E" in f for f in v["flags"]), (name, v)
                 for k, a in enumerate(AXES):
                     after, before, sig = v["e_after_mg"][a], v["e_before_mg"][a], v["axes"][a]["e_after_sigma_mg"]
-                    e_true = 70.0 * abs(t.tdb_mg_per_c[k] - want[k] + (t.tdsf_ppm_per_c[k] - want[3 + k]) * 1e-3 * 0.577)
-                    assert after + K_FAMILY * sig >= e_true, (name, a, after, sig, e_true)
-                    assert e_true < max(0.25 * before, 2.0), (name, a, e_true, before)
-                    assert after - K_FAMILY * sig <= max(0.25 * before, 2.0), (name, a, after, sig, before)
                     assert not v["axes"][a]["curved"], (name, a)
-                n_passed += v["passed"]
+                    e_raw = drift_mg(t.tdb_mg_per_c[k], t.tdsf_ppm_per_c[k], g_verify[k])
+                    if not resolvable(e_raw, sig):
+                        continue
+                    judged.append((name, a))
+                    e_true = drift_mg(t.tdb_mg_per_c[k] - want[k], t.tdsf_ppm_per_c[k] - want[3 + k], g_verify[k])
+                    limit = max(E_RATIO_MAX * before, E_FLOOR_MG)
+                    assert after + K_FAMILY * sig >= e_true, (name, a, after, sig, e_true)
+                    assert e_true < limit, (name, a, e_true, before)
+                    assert after - K_FAMILY * sig <= limit, (name, a, after, sig, before, e_raw)
                 # the verdict by docs/verdicts.md: an axis failing the verification fails the part; a
                 # verified E_FS whose k=2 band crosses the 1 %FS limit holds it (marginal: a 2-4 mg sigma
                 # is 0.1-0.2 %FS, so a healthy axis at 2.5 sigma can reach it); otherwise pass
@@ -114,7 +159,11 @@ async def test_fast_thermal_verified_batch_on_firmware_boards(tmp_path):
                     assert rec.thermal == want and rec.comp, (name, rec)
                     assert rec.thermal_crc == crc32_f32(want), name
 
-            assert n_passed >= 6, n_passed  # most pass outright (2 of 24 axes are within their noise of the floor)
+            print("judged axes", len(judged), judged)
+            # the test judged enough to see compensation, on every firmware board (module doc)
+            assert len(judged) >= MIN_JUDGED, judged
+            for i in FIRMWARE:
+                assert any(n == names[i] for n, _ in judged), (names[i], judged)
 
         # power cycle one QEMU board after the write: it boots from its NVM and reads back the same record
         board = sim.board(0)

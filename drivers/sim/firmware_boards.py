@@ -10,6 +10,13 @@ design of firmware/README.md):
 and answers `$READY*HH` on it once booted. Everything the station sees (framing, identity, ODR,
 sample clock, NVM with CRC, compensation, the CAN twin) is the C firmware's own doing.
 
+Recovery (issue 42, firmware/core/fw_bridge.h): a board sends `$BOOT*HH` when it starts
+(after a watchdog or fault reset too), and the simulator answers with the strap again; `$INIT*HH`
+when it (re-)initialises its sensor. Tests inject faults through the bridge: `sensor_reset()` (the
+simulated sensor resets itself and sends nothing until the board's `$INIT`; its sample clock runs
+on, so the samples it could not deliver are lost and the board's seq must show them),
+`inject("hardfault")`, `inject("hang")`, `selfcal_skew(mg_per_c)` (`$X,...`).
+
 Two ways to run one, with the same interface as drivers/sim/serial_pty.SimSerialBoard so that
 SimStation puts them in slots beside the Python boards:
   host   `firmware/build/host/fwboard`, one Linux process per board; the station link is a pty
@@ -34,6 +41,7 @@ import subprocess
 import tempfile
 import threading
 import tty
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -67,11 +75,25 @@ def sample_frames(t_us: np.ndarray, acc_counts: np.ndarray, temp_counts: np.ndar
     return b"".join(parts)
 
 
-class _Bridge:
-    """The simulator's end of a sensor bridge: a non-blocking socket with an output queue."""
+def _unframe(line: bytes) -> str | None:
+    """The body of one `$BODY*HH` line from the board, or None (bad checksum, not a frame)."""
+    if len(line) < 4 or line[:1] != b"$" or line[-3:-2] != b"*":
+        return None
+    body = line[1:-3]
+    try:
+        ok = int(line[-2:], 16) == sf.checksum(body)
+    except ValueError:
+        return None
+    return body.decode("ascii", "replace") if ok else None
 
-    def __init__(self, sock: socket.socket) -> None:
+
+class _Bridge:
+    """The simulator's end of a sensor bridge: a non-blocking socket with an output queue, and the
+    board's lines back (`$READY`, `$BOOT`, `$INIT`; others are skipped)."""
+
+    def __init__(self, sock: socket.socket, on_line: Callable[[str], None] | None = None) -> None:
         self.sock = sock
+        self.on_line = on_line
         sock.setblocking(False)
         # a small kernel buffer: a board that cannot keep up shows as a backlog here, which holds
         # the plant (SimStation backpressure) instead of hiding seconds of samples in the socket
@@ -95,10 +117,21 @@ class _Bridge:
             self.close()
             return
         self._rx += data
-        if b"$READY*" in self._rx:
-            self.ready.set()
-            self._rx.clear()
-        del self._rx[:-16]
+        while True:
+            end = self._rx.find(b"\n")
+            if end < 0:
+                break
+            line = bytes(self._rx[:end]).strip()
+            del self._rx[: end + 1]
+            start = line.rfind(b"$")  # bytes a reset cut off before the frame are skipped
+            body = _unframe(line[start:]) if start >= 0 else None
+            if body is None:
+                continue
+            if body == "READY":
+                self.ready.set()
+            if self.on_line is not None:
+                self.on_line(body)
+        del self._rx[:-256]
 
     def write(self, data: bytes) -> None:
         if self.closed:
@@ -177,6 +210,13 @@ class FirmwareBoard:
         self._can_fw_end: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closed = False
+        # recovery (issue 42): what the board said on the bridge, and the simulated sensor's fault
+        self.boots_seen = 0  # `$BOOT` lines: starts of the firmware, resets included
+        self.sensor_inits: list[float | None] = []  # sample clock (s) at each `$INIT` from the board
+        self.sensor_held = False  # the sensor reset itself: no `$S` until the board's `$INIT`
+        self.sensor_reset_at_s: float | None = None  # sample clock when it did
+        self.samples_dropped = 0  # samples the held sensor could not deliver (lost for good)
+        self.last_fed_s: float | None = None  # the sample clock: the newest sample the world made
 
     # ---- lifecycle --------------------------------------------------------------------------
     def start(self) -> None:
@@ -209,7 +249,7 @@ class FirmwareBoard:
                 self.proc = subprocess.Popen(args, pass_fds=(self._master_fd, theirs.fileno()), stdin=subprocess.DEVNULL,
                                              stdout=subprocess.DEVNULL, stderr=log)
             theirs.close()
-            self.bridge = _Bridge(ours)
+            self.bridge = _Bridge(ours, self._on_bridge_line)
         else:
             elf = build("qemu") / "fw.elf"
             sock_path = self.workdir / "bridge.sock"
@@ -272,7 +312,7 @@ class FirmwareBoard:
         self._listener.setblocking(False)
         conn, _ = await self._loop.sock_accept(self._listener)
         self._listener.close()
-        self.bridge = _Bridge(conn)
+        self.bridge = _Bridge(conn, self._on_bridge_line)
         self.bridge.write(strap_frame(self.identity))
         # QEMU's own messages go to a log file, read by a thread of its own (not the loop's
         # executor, which the daemon needs and which N boards would fill for their lifetime)
@@ -325,6 +365,7 @@ class FirmwareBoard:
         Await `wait_ready()` afterwards; a QEMU board's `path` is new once it is ready."""
         self._kill()
         self.power_cycles += 1
+        self.sensor_held = False  # the sensor loses power too: it starts afresh with the board
         self._launch()
 
     def backlog_bytes(self, now: float) -> int:
@@ -333,10 +374,50 @@ class FirmwareBoard:
         b = self.bridge
         return len(b._out) if b is not None and not b.closed and self.connected else 0
 
+    # ---- the board's lines on the bridge, and fault injection (issue 42) ------------------------
+    def _on_bridge_line(self, body: str) -> None:
+        if body == "BOOT":
+            # the firmware (re)started: it may have kept its identity (answers `$READY` again) or
+            # not (then this strap boots it); either way the simulator does not restart anything
+            self.boots_seen += 1
+            if self.bridge is not None:
+                self.bridge.write(strap_frame(self.identity))
+        elif body == "INIT":
+            self.sensor_inits.append(self.last_fed_s)
+            self.sensor_held = False
+
+    def sensor_reset(self) -> None:
+        """The simulated sensor resets itself (a supply glitch): it stops sending samples until the
+        board re-initialises it (`$INIT`); its clock runs on, the samples meanwhile are lost."""
+        self.sensor_held = True
+        self.sensor_reset_at_s = self.last_fed_s
+
+    def inject(self, fault: str) -> None:
+        """`$X,<fault>` on the bridge: "hardfault" (an undefined instruction) or "hang" (the main
+        loop stops: the watchdog must reset the board)."""
+        if fault not in ("hardfault", "hang"):
+            raise ValueError(f"unknown fault {fault!r}; selfcal_skew has its own method")
+        self._bridge_send(sf.encode(f"X,{fault}"))
+
+    def selfcal_skew(self, tdb_mg_per_c: float) -> None:
+        """`$X,selfcal_skew,<mg_per_c>`: the board's on-board calibrator's TDB is off by this much."""
+        self._bridge_send(sf.encode(f"X,selfcal_skew,{sf.fmt_number(float(tdb_mg_per_c))}"))
+
+    def _bridge_send(self, frame: bytes) -> None:
+        if self.bridge is None or self.bridge.closed:
+            raise RuntimeError(f"firmware board {self.identity.serial} has no bridge (not started?)")
+        self.bridge.write(frame)
+
     # ---- the sensor: samples from the world ---------------------------------------------------
     def feed(self, time_s: np.ndarray, acc_counts: np.ndarray, temp_counts: np.ndarray) -> None:
         """What the board's sensor measured; the firmware decides what (if anything) to send."""
-        if len(time_s) == 0 or self.bridge is None or not self.bridge.ready.is_set():
+        if len(time_s) == 0:
+            return
+        self.last_fed_s = float(time_s[-1])
+        if self.sensor_held:
+            self.samples_dropped += len(time_s)
+            return
+        if self.bridge is None or not self.bridge.ready.is_set():
             return
         t_us = (np.round(np.asarray(time_s) * 1e6).astype(np.int64) + self.t0_us) & 0xFFFFFFFF
         self.bridge.write(sample_frames(t_us, acc_counts, temp_counts))

@@ -88,6 +88,77 @@ int32_t lis3dsh_read_sample(const lis3dsh_ctx_t *ctx, fw_raw_sample_t *out)
     return 0;
 }
 
+int32_t lis3dsh_fifo_stream(const lis3dsh_ctx_t *ctx, uint8_t wtm)
+{
+    int32_t rc;
+
+    if (wtm == 0u || wtm >= LIS3DSH_FIFO_DEPTH) {
+        return LIS3DSH_ERR_ARG;
+    }
+    /* bypass first: a mode change from stream straight to stream does not empty the FIFO */
+    rc = lis3dsh_write_reg(ctx, LIS3DSH_FIFO_CTRL, 0u);
+    if (rc == 0) {
+        rc = lis3dsh_write_reg(ctx, LIS3DSH_CTRL_REG6, (uint8_t)(LIS3DSH_CTRL6_ADD_INC | LIS3DSH_CTRL6_FIFO_EN
+                                                                | LIS3DSH_CTRL6_WTM_EN | LIS3DSH_CTRL6_P1_WTM));
+    }
+    if (rc == 0) {
+        rc = lis3dsh_write_reg(ctx, LIS3DSH_FIFO_CTRL, (uint8_t)(LIS3DSH_FIFO_MODE_STREAM | wtm));
+    }
+    if (rc == 0) {
+        /* INT1 on, active high, data-ready NOT routed (the watermark is) */
+        rc = lis3dsh_write_reg(ctx, LIS3DSH_CTRL_REG3, (uint8_t)(LIS3DSH_CTRL3_IEA | LIS3DSH_CTRL3_INT1_EN));
+    }
+    return rc;
+}
+
+int32_t lis3dsh_fifo_status(const lis3dsh_ctx_t *ctx, uint32_t *count, uint8_t *src)
+{
+    uint8_t v = 0;
+    int32_t rc = lis3dsh_read_reg(ctx, LIS3DSH_FIFO_SRC, &v, 1u);
+    if (rc != 0) {
+        return rc;
+    }
+    if (src != 0) {
+        *src = v;
+    }
+    if (count != 0) {
+        uint32_t fss = (uint32_t)v & 0x1Fu;
+        /* FSS has 5 bits: 32 stored reads as 0 with EMPTY clear */
+        *count = (v & LIS3DSH_FIFO_SRC_EMPTY) ? 0u : (fss == 0u ? LIS3DSH_FIFO_DEPTH : fss);
+    }
+    return 0;
+}
+
+int32_t lis3dsh_fifo_read(const lis3dsh_ctx_t *ctx, fw_raw_sample_t *out, uint32_t n)
+{
+    uint8_t raw[6];
+    uint8_t t = 0;
+    int32_t rc;
+    uint32_t k;
+    unsigned i;
+
+    if (out == 0 || n > LIS3DSH_FIFO_DEPTH) {
+        return LIS3DSH_ERR_ARG;
+    }
+    rc = n > 0u ? lis3dsh_read_reg(ctx, LIS3DSH_OUT_T, &t, 1u) : 0;
+    for (k = 0; k < n && rc == 0; k++) {
+        rc = lis3dsh_read_reg(ctx, LIS3DSH_OUT_X_L, raw, 6u);
+        if (rc == 0) {
+            for (i = 0; i < 3u; i++) {
+                out[k].acc[i] = (int32_t)(int16_t)(uint16_t)((uint16_t)raw[2u * i] | ((uint16_t)raw[2u * i + 1u] << 8));
+            }
+            out[k].temp = (int32_t)(int8_t)t;
+        }
+    }
+    return rc;
+}
+
+uint32_t lis3dsh_fifo_t_us(uint32_t t_wtm_us, uint32_t wtm, uint32_t k, uint32_t period_us)
+{
+    /* unsigned arithmetic on purpose: the board clock wraps at 2^32 */
+    return t_wtm_us + k * period_us - (wtm - 1u) * period_us;
+}
+
 float lis3dsh_odr_hz(lis3dsh_odr_t odr)
 {
     static const float hz[10] = {0.0f, 3.125f, 6.25f, 12.5f, 25.0f, 50.0f, 100.0f, 400.0f, 800.0f, 1600.0f};

@@ -23,6 +23,8 @@
 #define LIS3DSH_CTRL_REG6    0x25u   /* BOOT[7] FIFO_EN[6] WTM_EN[5] ADD_INC[4] ... */
 #define LIS3DSH_STATUS       0x27u   /* ZYXOR[7] .. ZYXDA[3] ZDA[2] YDA[1] XDA[0] */
 #define LIS3DSH_OUT_X_L      0x28u   /* .. OUT_Z_H 0x2D */
+#define LIS3DSH_FIFO_CTRL    0x2Eu   /* FMODE[7:5] WTMP[4:0] */
+#define LIS3DSH_FIFO_SRC     0x2Fu   /* WTM[7] OVRN_FIFO[6] EMPTY[5] FSS[4:0] */
 
 #define LIS3DSH_ID           0x3Fu
 #define LIS3DSH_SPI_READ     0x80u
@@ -33,6 +35,14 @@
 #define LIS3DSH_CTRL3_IEA    0x40u   /* interrupt active high */
 #define LIS3DSH_CTRL3_INT1_EN 0x08u
 #define LIS3DSH_CTRL6_ADD_INC 0x10u
+#define LIS3DSH_CTRL6_FIFO_EN 0x40u
+#define LIS3DSH_CTRL6_WTM_EN  0x20u
+#define LIS3DSH_CTRL6_P1_WTM  0x04u   /* FIFO watermark on INT1 */
+#define LIS3DSH_FIFO_MODE_STREAM 0x40u   /* FMODE 010: the oldest sample is overwritten when full */
+#define LIS3DSH_FIFO_SRC_WTM  0x80u
+#define LIS3DSH_FIFO_SRC_OVRN 0x40u
+#define LIS3DSH_FIFO_SRC_EMPTY 0x20u
+#define LIS3DSH_FIFO_DEPTH    32u
 #define LIS3DSH_STATUS_ZYXDA 0x08u
 
 /* Scaling constants of the identity frame at +-2 g */
@@ -79,6 +89,19 @@ int32_t lis3dsh_init(const lis3dsh_ctx_t *ctx, lis3dsh_odr_t odr, lis3dsh_fs_t f
 int32_t lis3dsh_data_ready(const lis3dsh_ctx_t *ctx);
 /* Read X/Y/Z (16-bit two's complement) and OUT_T (8-bit) into counts; t_us is left to the caller. */
 int32_t lis3dsh_read_sample(const lis3dsh_ctx_t *ctx, fw_raw_sample_t *out);
+/* FIFO in stream mode with a watermark of wtm samples (1..31) on INT1 instead of data-ready: the
+ * part keeps the newest 32 samples, INT1 rises when wtm are stored (the wtm-th sample's data-ready)
+ * and stays high while at least wtm are. Call after lis3dsh_init. */
+int32_t lis3dsh_fifo_stream(const lis3dsh_ctx_t *ctx, uint8_t wtm);
+/* FIFO_SRC: *count = samples stored (0..32), *src = the raw register (OVRN: samples were lost). */
+int32_t lis3dsh_fifo_status(const lis3dsh_ctx_t *ctx, uint32_t *count, uint8_t *src);
+/* Read n stored samples, oldest first (one 6-byte burst X_L..Z_H each pops one), and OUT_T once
+ * (the temperature is not in the FIFO; every sample of the batch gets it). t_us is left to the caller. */
+int32_t lis3dsh_fifo_read(const lis3dsh_ctx_t *ctx, fw_raw_sample_t *out, uint32_t n);
+/* The data-ready time of sample k (0 = oldest) of a batch whose watermark edge came at t_wtm_us:
+ * the edge is the wtm-th sample's data-ready, the others one output period apart
+ * (t_wtm_us + (k - (wtm - 1)) * period_us, modulo 2^32 like the board clock). */
+uint32_t lis3dsh_fifo_t_us(uint32_t t_wtm_us, uint32_t wtm, uint32_t k, uint32_t period_us);
 /* Output data rate in Hz of a code (0 for an invalid code). */
 float lis3dsh_odr_hz(lis3dsh_odr_t odr);
 /* Temperature in C of an OUT_T count: 25 + count (1 LSB/C). */
