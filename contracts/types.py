@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from contracts.board_health import BoardRecordInfo as BoardRecordInfo  # re-exported: Identity.record
 from contracts.json_safe import JsonDict
 
 AXES = ("x", "y", "z")
@@ -18,7 +19,15 @@ T_REF_C = 25.0  # reference temperature of the thermal model (martinez2022 eq. 1
 
 @dataclass(frozen=True)
 class Identity:
-    """A board's identity reply (design 3.1 `I,...` frame or the CAN 0x580 frames)."""
+    """A board's identity reply (design 3.1 `I,...` frame or the CAN 0x580 frames).
+
+    The first seven fields say WHICH board this is and how to read its counts: two identities are
+    equal when these are. The fields after them are what the board reports of its own health
+    (docs/design.md 3.1, contracts/board_health.py), None / empty when it reports none
+    (older firmware, the simulated Python boards): they change legitimately over a board's life
+    (a reset moves `boots`), so they are kept out of the equality (compare=False) and a board is
+    never taken for another one because it restarted. A restart within a run is its own finding
+    (station/daemon/identity_check.board_restart)."""
 
     serial: str
     sensor: str = "LIS3DSH"
@@ -27,8 +36,17 @@ class Identity:
     t_lsb_per_c: float = 1.0
     t_lsb_at_25c: float = 0.0
     odr_hz: float = 3.125
+    reset_cause: str | None = field(default=None, compare=False)  # `reset=`: power pin watchdog fault ...
+    boots: int | None = field(default=None, compare=False)  # `boots=`: starts since power-up (1 after power-on)
+    fault_cfsr: int | None = field(default=None, compare=False)  # `fault=`: CFSR stored by the fault handler
+    fault_pc: int | None = field(default=None, compare=False)  # `fault_pc=`: stacked PC of the faulting code
+    record: BoardRecordInfo | None = field(default=None, compare=False)  # `rec_*=`: the NVM record in force
+    caps: frozenset[str] = field(default=frozenset(), compare=False)  # `caps=`: scal, sfem3, ...
+    sensor_reinits: int | None = field(default=None, compare=False)  # `sensor_reinit=`: silent sensor re-inits
 
     def __post_init__(self) -> None:
+        if not isinstance(self.caps, frozenset):  # a set or a list given: the record stays hashable
+            object.__setattr__(self, "caps", frozenset(self.caps))
         # A NaN or zero scale would turn every sample into NaN and blind the over-temperature
         # check of this DUT: such an identity is refused where it is decoded (a malformed frame).
         for name in ("ug_per_lsb", "t_lsb_per_c", "t_lsb_at_25c", "odr_hz"):

@@ -12,11 +12,20 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass, field
 
+from contracts.board_health import BoardRecordInfo
+from contracts.sfem_cubic import SfemCubicRecord
 from contracts.types import Identity, SampleBlock
+from drivers.protocol.selfcal_frames import SegmentReportFrame
 
 
 class DriverError(Exception):
     """A link failed (port vanished, device unreachable, no reply). Faults one slot or device."""
+
+
+class NotSupportedByBoard(DriverError):
+    """The board (or its kind of link) cannot do what was asked: no on-board calibrator, no
+    version-2 record. A caller checks the capability property first (`supports_selfcal`,
+    `supports_sfem_cubic`); this is what it gets when it did not."""
 
 
 CAL_ERROR_KINDS = ("crc_mismatch", "refused", "no_reply", "readback_mismatch", "comp_not_set", "unsupported")
@@ -42,6 +51,19 @@ class CalReadback:
     values: tuple[float, ...]
     crc: int
     comp: bool
+    record: BoardRecordInfo | None = None  # the `rec_*` keys of a `C` reply (version-2 firmware)
+
+
+@dataclass(frozen=True)
+class BoardSelfCalResult:
+    """The board's own streaming calibrator's result (`$SCRR` -> `R`, design 3.1): per axis x y z
+    the TDB in mg/C and the TDSF in ppm/C, how many segments it used, and which axes' TDSF came out
+    positive and were clamped to 0 (flags bit k)."""
+
+    tdb_mg_per_c: tuple[float, float, float]
+    tdsf_ppm_per_c: tuple[float, float, float]
+    n_segments: int
+    clamped_axes: tuple[bool, bool, bool]
 
 
 @dataclass
@@ -87,6 +109,9 @@ class LinkStats:
     resets: int = 0  # the board restarted while streaming (its seq went back): StreamBreak "reset"
     clock_jumps: int = 0  # its clock jumped while its seq ran on: StreamBreak "clock_jump"
     frames_after_break: int = 0  # sample frames of another timeline (from the one that confirmed a break to the next START): not taken
+    # the board restarted between two identity replies (its `boots` moved, docs/design.md 3.1)
+    board_restarts: int = 0
+    sensor_reinits_reported: int = 0  # of errors_reported: `E,SENSOR,...` (the board re-initialised its sensor)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -108,6 +133,10 @@ class BoardDriver(abc.ABC):
     """One DUT board. All methods are coroutines that never block the event loop."""
 
     stats: LinkStats
+    identity: Identity | None = None  # the latest identity reply (drivers set it in identify())
+    # the latest unsolicited `E,SENSOR,...` / `E,NVM,...` the board sent, as "SENSOR: <text>": what
+    # the board said of its own trouble, for the run's notes (None: nothing said)
+    last_board_error: str | None = None
 
     @abc.abstractmethod
     async def open(self) -> None: ...
@@ -175,6 +204,47 @@ class BoardDriver(abc.ABC):
 
     async def read_sfem(self) -> CalReadback:
         raise CalibrationError("unsupported", f"{self!r} cannot read an SFEM")
+
+    # ---- issue 42: the board's own calibrator and the version-2 record (docs/design.md 3.1)
+    # A board says what it can in its identity (`caps=`); a link or board without it keeps these
+    # defaults: the capability is False and the methods raise NotSupportedByBoard (a DriverError).
+    def _unsupported(self, what: str) -> NotSupportedByBoard:
+        return NotSupportedByBoard(f"{self!r}: {what} is not supported by this board")
+
+    def _has_cap(self, cap: str) -> bool:
+        return self.identity is not None and cap in self.identity.caps
+
+    @property
+    def supports_selfcal(self) -> bool:
+        """The board runs martinez2022 3.3 itself (`caps` holds "scal"): set_selfcal / read_selfcal work."""
+        return False
+
+    async def set_selfcal(self, on: bool) -> None:
+        """The on-board streaming calibrator off / on (on restarts it)."""
+        raise self._unsupported("the on-board calibrator ($SCAL)")
+
+    async def read_selfcal(self) -> BoardSelfCalResult:
+        """The on-board calibrator's result now."""
+        raise self._unsupported("the on-board calibrator's result ($SCRR)")
+
+    def take_selfcal_segments(self) -> list[SegmentReportFrame]:
+        """The segments the on-board calibrator reported (`G` frames) since the last call; a board
+        without a calibrator reports none."""
+        return []
+
+    @property
+    def supports_sfem_cubic(self) -> bool:
+        """The board stores and applies a version-2 record, the cubic thermal SFEM (`caps` holds "sfem3")."""
+        return False
+
+    async def write_sfem_cubic(self, rec: SfemCubicRecord) -> int:
+        """Store a cubic SFEM; returns the CRC the board reports (equal to rec.crc32(), else
+        CalibrationError). One attempt, like the primitives above: the caller retries."""
+        raise CalibrationError("unsupported", f"{self!r}: the cubic SFEM ($SFTW) is not supported by this board")
+
+    async def read_sfem_cubic(self) -> SfemCubicRecord:
+        """The cubic SFEM the board stores (CalibrationError when none)."""
+        raise CalibrationError("unsupported", f"{self!r}: the cubic SFEM ($SFTR) is not supported by this board")
 
     async def _retried(self, step, retries: list[str], label: str, failed: str):
         """Run step() up to cal_retries times: a CalibrationError other than "unsupported" is

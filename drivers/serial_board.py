@@ -21,8 +21,11 @@ import time
 import numpy as np
 import serial
 
-from drivers.base import BoardDriver, CalibrationError, CalReadback, DriverError, LinkStats, StreamBreak
+from drivers.base import DriverError, LinkStats, StreamBreak
 from drivers.protocol import serial_frames as sf
+from drivers.protocol.selfcal_frames import SegmentReportFrame, SelfCalResultFrame
+from drivers.serial_board_commands import BoardErrorReply as BoardErrorReply  # re-exported: callers import it here
+from drivers.serial_board_commands import SerialBoardCommands, reply_key
 from drivers.protocol.sample_lines import SampleLines
 from drivers.protocol.stream_timeline import ClockUnwrapper, SeqTracker, StreamTimeline
 from drivers.sample_buffer import MAX_PENDING_SAMPLES as MAX_PENDING_SAMPLES, Row, SampleBuffer
@@ -30,6 +33,7 @@ from contracts.types import Identity, SampleBlock
 
 
 RAW_PARSE_BYTES = 1 << 18  # unparsed bytes beyond this are parsed at once (nobody reads: a bound)
+MAX_HELD_SEGMENTS = 4096  # G frames nobody took: the oldest go (a calibrator saves a few per hour)
 CLEAN_BAND = 0.2  # of the period: a clock step this close to it is "ok" for every per-frame check (see _take_clean)
 
 
@@ -46,15 +50,7 @@ def _columns(rows: list[Row]) -> tuple[np.ndarray, np.ndarray]:
     return t_us / 1e6, counts
 
 
-class BoardErrorReply(DriverError):
-    """The board answered a command with `E,<code>,<text>`."""
-
-    def __init__(self, port: str, code: str, text: str) -> None:
-        super().__init__(f"board {port} error {code}: {text}")
-        self.code, self.text = code, text
-
-
-class SerialBoard(BoardDriver):
+class SerialBoard(SerialBoardCommands):
     """One serial board.
 
     url_or_port: "/dev/ttyACM0", "/dev/pts/7", "socket://host:port", "loop://", ...
@@ -95,8 +91,10 @@ class SerialBoard(BoardDriver):
         self._breaks: list[StreamBreak] = []
         self._error: DriverError | None = None
         self._ident_fut: asyncio.Future[Identity] | None = None
-        self._ack_waiters: dict[str, asyncio.Future[sf.AckFrame]] = {}
+        self._ack_waiters: dict[str, asyncio.Future] = {}
         self._cmd_lock = asyncio.Lock()
+        self._segments: list[SegmentReportFrame] = []  # G frames not taken yet (take_selfcal_segments)
+        self.segments_dropped = 0  # G frames dropped because nobody took them (MAX_HELD_SEGMENTS)
 
     def __repr__(self) -> str:
         return f"SerialBoard({self.port!r})"
@@ -274,12 +272,23 @@ class SerialBoard(BoardDriver):
         elif isinstance(frame, sf.IdentityFrame):
             if self._ident_fut is not None and not self._ident_fut.done():
                 self._ident_fut.set_result(frame.identity)
-        elif isinstance(frame, (sf.AckFrame, sf.CalReadFrame, sf.SfemReadFrame)):
-            key = frame.command if isinstance(frame, sf.AckFrame) else ("C" if isinstance(frame, sf.CalReadFrame) else "S")
-            fut = self._ack_waiters.get(key)
+        elif isinstance(frame, SegmentReportFrame):
+            # the on-board calibrator saved a segment: held for take_selfcal_segments, never a sample
+            self._segments.append(frame)
+            if len(self._segments) > MAX_HELD_SEGMENTS:
+                del self._segments[0]
+                self.segments_dropped += 1
+        elif isinstance(frame, (sf.AckFrame, sf.CalReadFrame, sf.SfemReadFrame, SelfCalResultFrame,
+                                sf.SfemCubicHeadFrame, sf.SfemCubicRowFrame)):
+            fut = self._ack_waiters.get(reply_key(frame))
             if fut is not None and not fut.done():
                 fut.set_result(frame)
         elif isinstance(frame, sf.ErrorFrame):
+            if frame.code in sf.UNSOLICITED_ERRORS:
+                # the board's own report (a sensor it re-initialised, a damaged NVM slot): counted by
+                # the parser, kept for the run's notes, never the answer to a command in flight
+                self.last_board_error = f"{frame.code}: {frame.text}"
+                return
             for fut in self._ack_waiters.values():
                 if not fut.done():
                     fut.set_exception(BoardErrorReply(self.port, frame.code, frame.text))
@@ -362,10 +371,19 @@ class SerialBoard(BoardDriver):
                     continue
                 finally:
                     self._ident_fut = None
+                self._note_restart(ident)
                 self.identity = ident
                 return ident
         self._check()
         raise DriverError(f"no identity reply from {self.port} within {timeout_s:g} s")
+
+    def _note_restart(self, ident: Identity) -> None:
+        """Count a restart of the board between the previous identity reply and this one: its
+        `boots` moved (both reported). A power cycle is not seen here (boots is 1 after every
+        power-on); a stream that broke on a reset is counted as `resets` as well."""
+        before = self.identity
+        if before is not None and before.boots is not None and ident.boots is not None and before.boots != ident.boots:
+            self.stats.board_restarts += 1
 
     async def _command(self, raw: bytes, key: str) -> None:
         self._check()
@@ -410,51 +428,6 @@ class SerialBoard(BoardDriver):
         self._timeline.restart()
         if self.identity is not None:
             self.identity = dataclasses.replace(self.identity, odr_hz=float(odr_hz))
-
-    # ---- calibration write-back (one attempt each; BoardDriver.program_thermal retries) ------
-    async def _exchange(self, raw: bytes, key: str, what: str):
-        """Send one command and wait for its reply frame (ack `key`, or `C`/`S`); one attempt."""
-        self._check()
-        assert self._loop is not None
-        async with self._cmd_lock:
-            fut = self._loop.create_future()
-            self._ack_waiters[key] = fut
-            try:
-                self._write(raw)
-                return await asyncio.wait_for(asyncio.shield(fut), self.ack_timeout_s)
-            except asyncio.TimeoutError:
-                self._check()
-                raise CalibrationError("no_reply", f"no reply to {what} from {self.port} within {self.ack_timeout_s:g} s") from None
-            except BoardErrorReply as exc:
-                raise CalibrationError("refused", f"{what} refused by {self.port}: {exc.code} {exc.text}") from None
-            finally:
-                self._ack_waiters.pop(key, None)
-
-    @staticmethod
-    def _ack_crc(frame: sf.AckFrame, what: str) -> int:
-        try:
-            return int(frame.args[0], 16)
-        except (IndexError, ValueError):
-            raise CalibrationError("crc_mismatch", f"{what} acknowledged without a CRC: {frame.args!r}") from None
-
-    async def write_thermal(self, tdb_mg_per_c, tdsf_ppm_per_c) -> int:
-        ack = await self._exchange(sf.cmd_calw(tdb_mg_per_c, tdsf_ppm_per_c), "CALW", "CALW")
-        return self._ack_crc(ack, "CALW")
-
-    async def read_thermal(self) -> CalReadback:
-        c = await self._exchange(sf.cmd_calr(), "C", "CALR")
-        return CalReadback(tuple(c.values), c.crc, c.comp)
-
-    async def set_compensation(self, on: bool) -> None:
-        await self._exchange(sf.cmd_comp(on), "COMP", "COMP")
-
-    async def write_sfem(self, a_3x3, b_g) -> int:
-        ack = await self._exchange(sf.cmd_sfew(a_3x3, b_g), "SFEW", "SFEW")
-        return self._ack_crc(ack, "SFEW")
-
-    async def read_sfem(self) -> CalReadback:
-        s = await self._exchange(sf.cmd_sfer(), "S", "SFER")
-        return CalReadback(tuple(s.values), s.crc, False)
 
     # ---- samples ---------------------------------------------------------------------------
     async def read_block(self, timeout_s: float = 1.0) -> SampleBlock:

@@ -5,6 +5,10 @@
     0x600+N station -> board  command: 0x01 START, 0x02 STOP, 0x03 IDENTIFY, 0x04 SET_ODR + f32 Hz
     0x580+N board -> station  identity: four frames, byte 0 = index; 0,1: serial chars (7 each,
                                       NUL padded); 2: f32 ug_per_lsb; 3: f32 ODR Hz
+                              issue 42 (docs/design.md 3.2), optional: 11: byte 1
+                                      reset cause, 2 record state, 3 record version, 4-7 record
+                                      generation (uint32 LE); 12,13: serial chars 15..28 (NUL
+                                      padded, only for a serial longer than 14)
 
 Calibration write-back (program and verify):
     0x600+N  0x05 CAL_FIELD  byte 1 field index 0..5 (tdb x y z mg/C, tdsf x y z ppm/C), bytes 2-5 f32
@@ -24,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from contracts.board_health import RECORD_STATES, RESET_CAUSES, BoardRecordInfo
 from contracts.types import Identity
 
 SAMPLE_BASE = 0x180
@@ -47,7 +52,10 @@ CAL_CRC_MISMATCH = 1
 CAL_WRITE_FAILED = 2
 CAL_STATUS_TEXT = {CAL_STORED: "stored", CAL_CRC_MISMATCH: "CRC mismatch", CAL_WRITE_FAILED: "write failed"}
 
-SERIAL_MAX_CHARS = 14
+SERIAL_MAX_CHARS = 14  # frames 0 and 1 (a board without frames 12/13)
+SERIAL_MAX_CHARS_EXT = 28  # with frames 12 and 13
+IDENT_HEALTH_INDEX = 11
+IDENT_SERIAL_EXT = (12, 13)
 TEMP_C_AT_ZERO = 25.0
 
 _SAMPLE = struct.Struct("<hhhbB")
@@ -199,10 +207,14 @@ def decode_command(data: bytes) -> tuple[int, float | None]:
 
 
 def encode_identity(serial: str, ug_per_lsb: float, odr_hz: float) -> list[bytes]:
-    """The four 0x580+N reply payloads."""
+    """The four 0x580+N reply payloads of a board without the issue-42 frames (serial at most 14)."""
     raw = serial.encode("ascii")
     if len(raw) > SERIAL_MAX_CHARS:
         raise ValueError(f"serial {serial!r} longer than {SERIAL_MAX_CHARS} characters")
+    return _identity_base(raw, ug_per_lsb, odr_hz)
+
+
+def _identity_base(raw: bytes, ug_per_lsb: float, odr_hz: float) -> list[bytes]:
     raw = raw.ljust(SERIAL_MAX_CHARS, b"\0")
     return [
         bytes([0]) + raw[:7],
@@ -212,26 +224,74 @@ def encode_identity(serial: str, ug_per_lsb: float, odr_hz: float) -> list[bytes
     ]
 
 
+def encode_identity_v2(serial: str, ug_per_lsb: float, odr_hz: float, *, reset_cause: str | None = None,
+                       record: BoardRecordInfo | None = None) -> list[bytes]:
+    """The reply of an issue-42 board (docs/design.md 3.2): frames 0..3, then 11 (reset
+    cause and record), then 12 and 13 when the serial is longer than 14 characters (at most 28)."""
+    raw = serial.encode("ascii")
+    if len(raw) > SERIAL_MAX_CHARS_EXT:
+        raise ValueError(f"serial {serial!r} longer than {SERIAL_MAX_CHARS_EXT} characters")
+    out = _identity_base(raw[:SERIAL_MAX_CHARS], ug_per_lsb, odr_hz)
+    out.append(encode_identity_health(reset_cause, record))
+    if len(raw) > SERIAL_MAX_CHARS:
+        ext = raw[SERIAL_MAX_CHARS:].ljust(SERIAL_MAX_CHARS_EXT - SERIAL_MAX_CHARS, b"\0")
+        out += [bytes([12]) + ext[:7], bytes([13]) + ext[7:14]]
+    return out
+
+
+def encode_identity_health(reset_cause: str | None, record: BoardRecordInfo | None) -> bytes:
+    """Identity frame 11: reset cause, record state, record version, record generation (uint32 LE)."""
+    cause = RESET_CAUSES.index(reset_cause) if reset_cause in RESET_CAUSES else 0
+    rec = record or BoardRecordInfo()
+    state = RECORD_STATES.index(rec.rec_state) if rec.rec_state in RECORD_STATES else 0
+    return bytes([IDENT_HEALTH_INDEX, cause, state, (rec.rec_ver or 0) & 0xFF]) + _U32.pack((rec.rec_gen or 0) & 0xFFFFFFFF)
+
+
+def decode_identity_health(data: bytes) -> tuple[str, BoardRecordInfo]:
+    """(reset cause, record info) of identity frame 11. A code this station does not know is
+    "unknown" (a newer board's); ValueError for a frame shorter than 8 bytes."""
+    if len(data) < 8 or data[0] != IDENT_HEALTH_INDEX:
+        raise ValueError("identity frame 11 needs 8 bytes")
+    cause = RESET_CAUSES[data[1]] if data[1] < len(RESET_CAUSES) else "unknown"
+    state = RECORD_STATES[data[2]] if data[2] < len(RECORD_STATES) else "unknown"
+    return cause, BoardRecordInfo(rec_ver=data[3], rec_gen=_U32.unpack(bytes(data[4:8]))[0], rec_slot=None,
+                                  rec_state=state)
+
+
 @dataclass
 class IdentityAssembler:
-    """Collects the four identity frames (any order); `complete` once all four are in."""
+    """Collects the identity frames (any order); `complete` once the four base frames are in.
+
+    Frames 11, 12 and 13 (issue 42) are optional: `waits_for_more` says whether the reply so far
+    can only be the beginning of a longer one (frames 0 and 1 hold 14 serial characters and 12/13
+    have not come, or only one of them came): a driver then gives the rest a moment; otherwise
+    the identity is taken as it is, so a board that sends none of them answers as fast as before."""
 
     serial_a: bytes | None = None
     serial_b: bytes | None = None
     ug_per_lsb: float | None = None
     odr_hz: float | None = None
+    serial_c: bytes | None = None  # frame 12: serial chars 15..21
+    serial_d: bytes | None = None  # frame 13: serial chars 22..28
+    health: tuple[str, BoardRecordInfo] | None = None  # frame 11: reset cause, record info
 
     def feed(self, data: bytes) -> bool:
         """Returns True when the identity is complete. Malformed frames raise ValueError."""
         if not data:
             raise ValueError("empty identity frame")
         idx = data[0]
-        if idx in (0, 1):
+        if idx in (0, 1, *IDENT_SERIAL_EXT):
             part = bytes(data[1:8]).ljust(7, b"\0")
             if idx == 0:
                 self.serial_a = part
-            else:
+            elif idx == 1:
                 self.serial_b = part
+            elif idx == 12:
+                self.serial_c = part
+            else:
+                self.serial_d = part
+        elif idx == IDENT_HEALTH_INDEX:
+            self.health = decode_identity_health(data)
         elif idx in (2, 3):
             if len(data) < 5:
                 raise ValueError(f"identity frame {idx} shorter than 5 bytes")
@@ -241,7 +301,7 @@ class IdentityAssembler:
             else:
                 self.odr_hz = value
         else:
-            raise ValueError(f"identity frame index {idx} not in 0..3")
+            raise ValueError(f"identity frame index {idx} not in 0..3, 11..13")
         return self.complete
 
     @property
@@ -249,8 +309,24 @@ class IdentityAssembler:
         return None not in (self.serial_a, self.serial_b, self.ug_per_lsb, self.odr_hz)
 
     @property
+    def waits_for_more(self) -> bool:
+        """The serial may go on in frames 12/13 that have not (all) come: frames 0 and 1 are full
+        (14 characters, no NUL) without 12 and 13, or one of 12/13 came without the other."""
+        if (self.serial_c is None) != (self.serial_d is None):
+            return True
+        full = self.serial_a is not None and self.serial_b is not None and b"\0" not in self.serial_a + self.serial_b
+        return full and self.serial_c is None
+
+    @property
+    def extension_incomplete(self) -> bool:
+        """Only one of frames 12/13 came: the serial cannot be known (the reply is asked again)."""
+        return (self.serial_c is None) != (self.serial_d is None)
+
+    @property
     def serial(self) -> str:
         raw = (self.serial_a or b"") + (self.serial_b or b"")
+        if self.serial_c is not None and self.serial_d is not None and b"\0" not in raw:
+            raw += self.serial_c + self.serial_d
         return raw.split(b"\0", 1)[0].decode("ascii", errors="replace")
 
     def identity(self, sensor: str | None) -> Identity:
@@ -259,8 +335,10 @@ class IdentityAssembler:
         assert self.ug_per_lsb is not None and self.odr_hz is not None
         ug = float(f"{self.ug_per_lsb:.7g}")
         odr = float(f"{self.odr_hz:.7g}")
+        cause, record = self.health if self.health is not None else (None, None)
         return Identity(serial=self.serial, sensor=sensor or sensor_from_ug(ug), fw="",
-                        ug_per_lsb=ug, t_lsb_per_c=1.0, t_lsb_at_25c=0.0, odr_hz=odr)
+                        ug_per_lsb=ug, t_lsb_per_c=1.0, t_lsb_at_25c=0.0, odr_hz=odr,
+                        reset_cause=cause, record=record)
 
 
 def float32(value: float) -> float:

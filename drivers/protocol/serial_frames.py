@@ -4,15 +4,14 @@ Pure codec: bytes in, frame records out, no I/O. The parser is incremental (feed
 read returned: split frames, several frames, garbage) and counts everything it skips in a
 LinkStats, so a noisy line is measurable but never fatal. The sample stream's seq and clock
 bookkeeping (SeqTracker, ClockUnwrapper, StreamTimeline) is drivers/protocol/stream_timeline.py,
-re-exported here.
+the framing and number texts frame_text.py, the optional families (issue 42) identity_keys.py and
+sfem_cubic_frames.py, beside selfcal_frames.py: all re-exported here (callers import them here).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from functools import reduce
-from operator import xor
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -24,30 +23,23 @@ from drivers.protocol.sample_lines import SampleLines, decode_sample_lines
 from drivers.protocol.stream_timeline import ClockUnwrapper as ClockUnwrapper  # re-exported: callers import them here
 from drivers.protocol.stream_timeline import SeqTracker as SeqTracker
 from drivers.protocol.stream_timeline import StreamTimeline as StreamTimeline
+from drivers.protocol import sfem_cubic_frames
+from drivers.protocol.frame_text import checksum as checksum, encode as encode, fmt_crc as fmt_crc  # re-exported
+from drivers.protocol.frame_text import fmt_f32 as fmt_f32, fmt_f32_short as fmt_f32_short, fmt_number as fmt_number
+from drivers.protocol.identity_keys import health_fields, identity_health, parse_key_values, record_fields, record_info
+from drivers.protocol.sfem_cubic_frames import SfemCubicHeadFrame as SfemCubicHeadFrame  # re-exported
+from drivers.protocol.sfem_cubic_frames import SfemCubicRowFrame as SfemCubicRowFrame
+from drivers.protocol.sfem_cubic_frames import cmd_sftc as cmd_sftc, cmd_sftr as cmd_sftr, cmd_sftw as cmd_sftw
+from drivers.protocol.sfem_cubic_frames import sfem_cubic_commands as sfem_cubic_commands
+from contracts.board_health import BoardRecordInfo
 from contracts.types import Identity
 
 _U32_MAX = (1 << 32) - 1
 _U64_MAX = (1 << 64) - 1
 _I32_MIN, _I32_MAX = -(1 << 31), (1 << 31) - 1
-MAX_LINE_BYTES = 512  # no valid frame is this long; longer runs without a newline are garbage
-
-
-def checksum(body: bytes) -> int:
-    """XOR of every byte of BODY."""
-    return reduce(xor, body, 0)
-
-
-def encode(body: str | bytes) -> bytes:
-    """`$BODY*HH\\n` for one frame body (e.g. "ID", "ODR,50", "D,1,2,3,4,5,6")."""
-    raw = body.encode("ascii") if isinstance(body, str) else bytes(body)
-    return b"$%s*%02X\n" % (raw, checksum(raw))
-
-
-def fmt_number(value: float) -> str:
-    """Shortest decimal text for a float field ("60", "3.9", "3.125", "-9.05")."""
-    if float(value).is_integer():
-        return str(int(value))
-    return f"{value:.10g}"
+# no valid frame is this long; longer runs without a newline are garbage. A `T` row (12 float32 in
+# positional text, up to ~50 characters each for the tiniest values) is the longest frame there is.
+MAX_LINE_BYTES = 1024
 
 
 # ---- station to board ----------------------------------------------------------------------
@@ -69,16 +61,6 @@ def cmd_odr(odr_hz: float) -> bytes:
 
 
 # ---- calibration write-back (program and verify): the record is drivers/protocol/cal_record.py
-
-def fmt_crc(crc: int) -> str:
-    """8 hex digits, upper case like the frame checksum."""
-    return f"{int(crc) & 0xFFFFFFFF:08X}"
-
-
-def fmt_f32(value: float) -> str:
-    """Shortest decimal text that parses back to the same float32 ("-0.35", "1.2e-05" never: positional)."""
-    return np.format_float_positional(np.float32(value), unique=True, trim="-")
-
 
 def _values_body(kind: str, values: Iterable[float], n: int) -> str:
     vals = to_f32(values)
@@ -142,10 +124,9 @@ class IdentityFrame:
 
     def encode(self) -> bytes:
         i = self.identity
-        return encode(
+        return encode(",".join((
             f"I,{i.serial},{i.sensor},{i.fw},{fmt_number(i.ug_per_lsb)},{fmt_number(i.t_lsb_per_c)},"
-            f"{fmt_number(i.t_lsb_at_25c)},{fmt_number(i.odr_hz)}"
-        )
+            f"{fmt_number(i.t_lsb_at_25c)},{fmt_number(i.odr_hz)}", *health_fields(i))))
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,9 +154,11 @@ class CalReadFrame:
     values: tuple[float, ...]  # 6: tdb x y z (mg/C), tdsf x y z (ppm/C), as float32
     crc: int
     comp: bool
+    record: BoardRecordInfo | None = None  # `rec_*=` after <comp> (version-2 firmware)
 
     def encode(self) -> bytes:
-        return encode(",".join(("C", *(fmt_f32(v) for v in self.values), fmt_crc(self.crc), "1" if self.comp else "0")))
+        return encode(",".join(("C", *(fmt_f32(v) for v in self.values), fmt_crc(self.crc), "1" if self.comp else "0",
+                                *record_fields(self.record))))
 
 
 @dataclass(frozen=True, slots=True)
@@ -199,7 +182,10 @@ class CommandFrame:
 
 
 Frame = (SampleFrame | IdentityFrame | AckFrame | ErrorFrame | CommandFrame | CalReadFrame | SfemReadFrame
+         | SfemCubicHeadFrame | SfemCubicRowFrame
          | selfcal_frames.SegmentReportFrame | selfcal_frames.SelfCalResultFrame)
+
+UNSOLICITED_ERRORS = ("SENSOR", "NVM")  # `E` codes a board sends of its own accord, never a command's reply
 
 
 def _crc_field(text: str) -> int:
@@ -231,6 +217,9 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
                 return CommandFrame(kind, tuple(fields[1:]))
             if kind in ("COMP", "SCAL") and len(fields) == 2 and fields[1] in ("0", "1"):
                 return CommandFrame(kind, (fields[1],))
+            if kind in ("SFTW", "SFTC", "SFTR"):
+                args = sfem_cubic_frames.board_command_args(fields)
+                return CommandFrame(kind, args) if args is not None else None
             return None
         if kind == "D":
             if len(fields) != 7:
@@ -244,7 +233,7 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
                 return None
             return SampleFrame(seq, t_us, ax, ay, az, t)
         if kind == "I":
-            if len(fields) != 8:
+            if len(fields) < 8:
                 return None
             return IdentityFrame(
                 Identity(
@@ -255,12 +244,17 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
                     t_lsb_per_c=float(fields[5]),
                     t_lsb_at_25c=float(fields[6]),
                     odr_hz=float(fields[7]),
+                    **identity_health(parse_key_values(fields[8:])),
                 )
             )
         if kind == "C":
-            if len(fields) != 1 + N_THERMAL + 2 or fields[-1] not in ("0", "1"):
+            n = 1 + N_THERMAL + 2
+            if len(fields) < n or fields[n - 1] not in ("0", "1"):
                 return None
-            return CalReadFrame(_finite_floats(fields[1 : 1 + N_THERMAL]), _crc_field(fields[-2]), fields[-1] == "1")
+            return CalReadFrame(_finite_floats(fields[1 : 1 + N_THERMAL]), _crc_field(fields[n - 2]), fields[n - 1] == "1",
+                                record_info(parse_key_values(fields[n:])))
+        if kind == "T":
+            return sfem_cubic_frames.decode(fields)
         if kind == "S":
             if len(fields) != 1 + N_SFEM + 1:
                 return None
@@ -367,4 +361,6 @@ class FrameParser:
         stats.frames_ok += 1
         if isinstance(frame, ErrorFrame):
             stats.errors_reported += 1
+            if frame.code == "SENSOR":
+                stats.sensor_reinits_reported += 1
         return frame

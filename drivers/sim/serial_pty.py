@@ -239,6 +239,10 @@ class SimSerialBoard:
         self.sent_until_s: float | None = None  # plant time of the newest sample sent (the lead a reader has to catch up)
         self.cal = CalFirmware()
         self.power_cycles = 0
+        # what the board reports of its starts (docs/design.md 3.1 `reset=`, `boots=`): 1
+        # after a power-on, +1 per reset that is not one (reset_streaming: its watchdog)
+        self.boots = 1
+        self.reset_cause = "power"
         self._restart_at_s: float | None = None  # reset_streaming(): the clock restarts at the next sample
         self._offset_counts = np.zeros(3, dtype=np.int64)  # swap_to(): another board's offsets
         # called as STOP takes effect, before its ack: what was already on its way goes out first
@@ -275,6 +279,7 @@ class SimSerialBoard:
         self.identity = dataclasses.replace(self.identity, odr_hz=self.source_odr_hz)
         self.parser = sf.FrameParser(board_side=True)
         self.power_cycles += 1
+        self.boots, self.reset_cause = 1, "power"
 
     def reset_streaming(self, boot_s: float = 0.05) -> None:
         """The board resets (a brown-out, its watchdog) and, as some firmware does, streams again
@@ -283,6 +288,8 @@ class SimSerialBoard:
         self._restart_at_s = float(boot_s)
         self.seq = 0
         self.power_cycles += 1
+        self.boots += 1
+        self.reset_cause = "watchdog"
 
     def jump_clock(self, seconds: float) -> None:
         """The board's clock jumps by `seconds` (back when negative) while its seq runs on."""
@@ -321,7 +328,8 @@ class SimSerialBoard:
     def _command(self, frame: sf.CommandFrame) -> None:
         cmd = frame.command
         if cmd == "ID":
-            self._send(sf.IdentityFrame(self.identity).encode())
+            self._send(sf.IdentityFrame(dataclasses.replace(self.identity, reset_cause=self.reset_cause,
+                                                            boots=self.boots)).encode())
         elif cmd == "START":
             self.streaming = True
             self._send(sf.AckFrame("START").encode())

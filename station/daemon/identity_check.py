@@ -13,7 +13,10 @@ identity. So before any run is made (before the lamp heats), each slot's serial 
 And the board must stay the same from the run's start to its end: `identity_change` names what
 differs between the identity a run started with and the one its board gives at the end (or before
 it is programmed): a different serial, sensor, firmware or scaling is another board, or a board
-whose firmware was changed under the run.
+whose firmware was changed under the run. Its health (contracts/board_health.py: reset cause,
+boots, record, ...) is not part of WHICH board it is, but `board_restart` reads it: a `boots` that
+moved between the two replies is the same board restarted during the run (a watchdog, a fault),
+and a run that spans a restart is not one run of one board's life either.
 """
 
 from __future__ import annotations
@@ -21,10 +24,11 @@ from __future__ import annotations
 import re
 from collections import defaultdict
 
+from contracts.board_health import reset_words
 from contracts.trace import serial_key
 from contracts.types import Identity
 
-SERIAL_MAX_CHARS = 32  # a CAN board's serial is at most 14 (design 3.2); a serial board's 32
+SERIAL_MAX_CHARS = 32  # a CAN board's serial is at most 14, or 28 with identity frames 12/13 (design 3.2); a serial board's 32
 SERIAL_CHARS = "A-Z a-z 0-9 . _ + -"
 _SERIAL = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+\-]*")
 # what must not change within a run; the ODR may (the station sets it)
@@ -73,3 +77,15 @@ def identity_change(before: Identity, after: Identity) -> str | None:
     changed = [f"{name} {getattr(before, name)!r} -> {getattr(after, name)!r}" for name in SAME_BOARD_FIELDS
                if getattr(before, name) != getattr(after, name)]
     return ", ".join(changed) or None
+
+
+def board_restart(before: Identity, after: Identity) -> str | None:
+    """Did the board restart between the identity a run started with and its identity now? Yes when
+    both report `boots` and it moved (a power cycle gives boots 1 again: only a board that was at 1
+    already hides one). Returns the reason the run cannot stand, with the cause the board gives
+    ("the board restarted during the run: watchdog reset (boots 1 -> 2)"; a fault with its PC in
+    hex), or None."""
+    if before.boots is None or after.boots is None or before.boots == after.boots:
+        return None
+    cause = reset_words(after.reset_cause, after.fault_cfsr, after.fault_pc)
+    return f"the board restarted during the run: {cause} (boots {before.boots} -> {after.boots})"

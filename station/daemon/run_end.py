@@ -25,6 +25,7 @@ from contracts.events import DutResult
 from contracts.types import StationError
 from station.daemon import program_verify
 from station.daemon.dut_run import DutRun
+from station.daemon.identity_check import board_restart
 from station.daemon.program_verify import ProgramHost
 from station.daemon.results import sfem_result, thermal_result
 from station.daemon.sequencer import Sequencer
@@ -100,6 +101,22 @@ class RunEnd:
 
         await asyncio.gather(*(one(d) for d in duts))
 
+    def _restarted(self, d: DutRun) -> str | None:
+        """The same board, restarted during its run (its `boots` moved between the identity the run
+        started with and the one board_changed just read, identity_check.board_restart): the reason
+        the run ends error, naming the cause. The restart is counted on the link (the driver did,
+        LinkStats.board_restarts) and that count goes with the run."""
+        drv = self.slots.driver_of(d.slot)
+        now = getattr(drv, "identity", None)
+        if drv is None or d.identity is None or now is None:
+            return None
+        restart = board_restart(d.identity, now)
+        if restart is None:
+            return None
+        if d.link_stats:  # taken at STOP, before the identity that showed the restart was read
+            d.link_stats["board_restarts"] = drv.stats.board_restarts
+        return f"{d.slot}: {restart}"
+
     async def release_duts(self, seq: Sequencer) -> None:
         """Stop the batch's streams and boards, set every DUT's end state, then judge every run."""
         await self.slots.stop_streams(seq)
@@ -113,6 +130,8 @@ class RunEnd:
             answered = await self.slots.stop_board(d)
             changed = await self.slots.board_changed(d, "at the end of its run") \
                 if d.live and finished and why is None else None
+            if changed is None and d.live and finished and why is None:
+                changed = self._restarted(d)
             if d.live:
                 if why is not None:
                     d.state, d.fault_reason = "faulted", f"results not stored: {why}"
