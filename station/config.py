@@ -260,6 +260,10 @@ class ProgramVerifyConfig(_Model):
     e_floor_mg: float = Field(default=2.0, ge=0)
     full_range_c: float = Field(default=70.0, gt=0)
     curvature_limit_mg: float = Field(default=4.0, ge=0)
+    # an SFEM profile's verification is a cool-down back through the SFEM's range (station/profiles.py
+    # with_program_verify): how long, in sample seconds
+    sfem_verify_dwell_s: float = Field(default=1800.0, gt=0, description="SFEM profiles: the verification "
+                                       "cool-down's length, sample seconds")
 
 
 class ProfileConfig(_Model):
@@ -271,6 +275,10 @@ class ProfileConfig(_Model):
     # the fixture's direction error where a step cannot measure it (default: station/science/sfem.py)
     sfem_reference_temp_c: float | None = Field(default=None, ge=-60.0, le=150.0)
     sfem_ref_sigma_deg: float | None = Field(default=None, gt=0.0, le=20.0)
+    # thermal profiles: the boards' own calibrators as a second opinion (station/profiles.py, docs/profiles.md)
+    board_selfcal: bool = Field(default=False, description="boards with caps 'scal': their own calibrator on during "
+                                "the thermal steps, its TDB/TDSF compared with the station's (check "
+                                "board_selfcal_agrees)")
 
 
 class CertificateConfig(_Model):

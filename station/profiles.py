@@ -10,7 +10,15 @@ none, program, heat, and any kind a site registers): what every DUT must log bef
 the kind's rules (checked here, so an unknown kind or a bad parameter is an error at load, never at
 run time), its time estimate and the page's words for it.
 A profile ends with program and verify by `with_program_verify(profile)`; `fast-thermal-verified`
-is the built-in one.
+is the built-in one. An SFEM profile may end with it too: boards that store the version-2 record
+(caps `sfem3`) get the station's thermal SFEM as a cubic, read back, applied and verified on the
+cool-down that follows (station/daemon/sfem_program.py); other boards are not programmed.
+
+Issue 42 options (docs/profiles.md "Board options"):
+  board_selfcal  (thermal profiles, default off) each board that runs its own calibrator (caps
+                 `scal`) has it switched on before the thermal steps and read at their end; its
+                 TDB/TDSF are compared with the station's (the verdict's check `board_selfcal_agrees`,
+                 station/daemon/board_selfcal.py); a board without one: the check is not applicable.
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ from station.science.verify import VerifyCriteria
 from station.steps import Step as Step, kind_names
 
 ANALYSES = ("thermal", "sfem", "none")
+SFEM_VERIFY_DWELL_S = 1800.0  # an SFEM profile's verification cool-down, sample seconds (with_program_verify)
 
 
 @dataclass(frozen=True)
@@ -38,6 +47,8 @@ class Profile:
     # where a step has too few positions to measure it (None: station.science.sfem's documented default)
     sfem_reference_temp_c: float | None = None
     sfem_ref_sigma_deg: float | None = None
+    # the boards' own calibrators as a second opinion (module doc; thermal profiles only)
+    board_selfcal: bool = False
 
     def __post_init__(self) -> None:
         if not self.steps:
@@ -46,6 +57,9 @@ class Profile:
             raise ValueError(f"analysis must be one of {ANALYSES}, not {self.analysis!r}")
         if self.sfem_ref_sigma_deg is not None and not self.sfem_ref_sigma_deg > 0:
             raise ValueError("sfem_ref_sigma_deg must be > 0")
+        if self.board_selfcal and self.analysis != "thermal":
+            raise ValueError("board_selfcal compares the boards' own TDB/TDSF with the station's: a thermal profile's option "
+                             f"(this profile's analysis is {self.analysis!r})")
         known = kind_names()
         for i, s in enumerate(self.steps):
             if s.require not in known:
@@ -69,6 +83,7 @@ class Profile:
             "steps": [s.to_json() for s in self.steps],
             "program_verify": self.program_step is not None,
             "verify": self.verify.to_json() if self.program_step is not None else None,
+            "board_selfcal": self.board_selfcal,
         }
 
 
@@ -173,25 +188,38 @@ def with_program_verify(
     settle_s: float = 20.0,
     timeout_s: float = 2400.0,
     criteria: VerifyCriteria | None = None,
+    sfem_verify_dwell_s: float = SFEM_VERIFY_DWELL_S,
 ) -> Profile:
     """The profile ending with program and verify (design 4): a program step, then a verification
     step that heats the plate again by heat_c (lamp on) at `position` (default: where the profile
-    ends, so no turn is needed) while the boards send compensated output."""
+    ends, so no turn is needed) while the boards send compensated output.
+
+    An SFEM profile's verification is a cool-down instead (station/daemon/sfem_program.py): the
+    cubic SFEM holds only over the temperatures its steps spanned (a board clamps to them), so the
+    plate goes back through that range, not above it: the chamber back to the profile's coldest set
+    point (the lamp off without a chamber) for `sfem_verify_dwell_s` of sample time."""
     pos = profile.steps[-1].position if position is None else _pos(position)
-    steps = profile.steps + (
-        Step("program", pos, lamp=False, require="program", timeout_s=600.0),
-        Step("verify hot", pos, lamp=True, require="heat", heat_c=heat_c, settle_s=settle_s, timeout_s=timeout_s),
-    )
+    if profile.analysis == "sfem":
+        set_points = [s.chamber_setpoint_c for s in profile.steps if s.chamber_setpoint_c is not None]
+        verify = Step("verify cool-down", pos, lamp=False, chamber_setpoint_c=min(set_points) if set_points else None,
+                      require="none", settle_s=settle_s, dwell_s=sfem_verify_dwell_s,
+                      timeout_s=max(timeout_s, 2.0 * (settle_s + sfem_verify_dwell_s)))
+        what = f"verify (the plate cools back through the SFEM's range for {sfem_verify_dwell_s:g} s, compensated " \
+               "output against the station's model)"
+    else:
+        verify = Step("verify hot", pos, lamp=True, require="heat", heat_c=heat_c, settle_s=settle_s, timeout_s=timeout_s)
+        what = f"verify (lamp heats +{heat_c:g} C, compensated drift E judged)"
+    steps = profile.steps + (Step("program", pos, lamp=False, require="program", timeout_s=600.0), verify)
     return Profile(
         name or f"{profile.name}-verified",
         steps,
-        description=f"{profile.description}; then program (write, read back, compensation on) and verify "
-                    f"(lamp heats +{heat_c:g} C, compensated drift E judged)",
+        description=f"{profile.description}; then program (write, read back, compensation on) and {what}",
         analysis=profile.analysis,
         builtin=profile.builtin,
         verify=criteria or VerifyCriteria(),
         sfem_reference_temp_c=profile.sfem_reference_temp_c,
         sfem_ref_sigma_deg=profile.sfem_ref_sigma_deg,
+        board_selfcal=profile.board_selfcal,
     )
 
 
@@ -218,13 +246,15 @@ def profile_from_config(name: str, cfg) -> Profile:
     )
     prof = Profile(name, steps, description=cfg.description, analysis=cfg.analysis, builtin=False,
                    sfem_reference_temp_c=getattr(cfg, "sfem_reference_temp_c", None),
-                   sfem_ref_sigma_deg=getattr(cfg, "sfem_ref_sigma_deg", None))
+                   sfem_ref_sigma_deg=getattr(cfg, "sfem_ref_sigma_deg", None),
+                   board_selfcal=bool(getattr(cfg, "board_selfcal", False)))
     pv = getattr(cfg, "program_verify", None)
     if pv is not None:
         prof = with_program_verify(
             prof, name=name, position=pv.position, heat_c=pv.heat_c, settle_s=pv.settle_s, timeout_s=pv.timeout_s,
             criteria=VerifyCriteria(e_ratio_max=pv.e_ratio_max, e_floor_mg=pv.e_floor_mg,
                                     full_range_c=pv.full_range_c, curvature_limit_mg=pv.curvature_limit_mg),
+            sfem_verify_dwell_s=float(getattr(pv, "sfem_verify_dwell_s", SFEM_VERIFY_DWELL_S)),
         )
     return prof
 

@@ -38,7 +38,8 @@ from drivers.sim.station_sim import SimStation
 from tests.db_helpers import HOLD_LOCK
 from tests.ownership_support import check_during_batch
 from tests.fault_matrix_support import (
-    MATRIX, PROFILES, VERIFIED, Ctx, Expect, KillCtx, Plan, board_hook, fill, run_all, wait_for,
+    LIMITS, MATRIX, PLAN_SLACK_S, PROFILES, ROWS, VERIFIED, Ctx, Expect, KillCtx, Plan, board_hook, coil,
+    collect_and_check, daemon, fill, run_all, wait_for,
 )
 
 FAST = 250.0  # fast-thermal(-verified): x250, like tests/test_program_verify_e2e.py
@@ -76,6 +77,12 @@ def _own_serial(sim: SimStation, slot: str) -> str:
     kind, k = slot[0], int(slot[1:]) - 1
     index = k if kind == "s" else sim.n_serial + k
     return sim.world.identity(index).serial
+
+
+# issue 42: the board's own calibrator as a second opinion (profile option board_selfcal, firmware boards)
+SELFCAL_ROWS = ["board calibrator disagrees (board_selfcal)", "board calibrator: $SCRR answers E"]
+ROWS[:] = [r for r in ROWS if r not in SELFCAL_ROWS]
+ROWS[-1:-1] = SELFCAL_ROWS  # before the healthy DUTs' row
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -548,6 +555,67 @@ def _sfem_plans() -> list[Plan]:
     return plans
 
 
+# ------------------------------------------------------------------------------- board_selfcal (issue 42)
+def _selfcal_plan() -> Plan:
+    """fast-thermal with the option board_selfcal (a site profile under the built-in's name), on
+    firmware boards (caps scal) beside a Python board (no calibrator): s01's calibrator is skewed
+    through the bridge (its TDB 0.25 mg/C off: the check fails), s02's is restarted ($SCAL,1) as N
+    ambient begins so that at the end it has no result ($SCRR answers E: error, never pass)."""
+    from station.profiles import BUILTIN_PROFILES
+
+    steps = [{k: v for k, v in st.to_json().items() if k in ("name", "position", "lamp", "chamber_setpoint_c", "require",
+                                                             "dwell_s", "settle_s", "timeout_s")}
+             for st in BUILTIN_PROFILES["fast-thermal"].steps]
+    profiles = {"fast-thermal": {"description": "fast-thermal, the boards' own calibrators compared",
+                                 "analysis": "thermal", "steps": steps, "board_selfcal": True}}
+
+    def arm(sim: SimStation) -> None:
+        sim.board(0).selfcal_skew(0.25)
+
+    async def restart_s02(ctx: Ctx) -> None:
+        async with ctx.at_step(3, 10):  # N ambient: the board's calibrator loses every segment so far
+            drv = ctx.st.bank.driver_of("s02")
+            assert drv is not None and drv.supports_selfcal
+            await drv.set_selfcal(True)
+
+    return Plan("ft-selfcal", "fast-thermal", FAST, 4, 0, 140, arm=arm, inject=restart_s02,
+                kw={"profiles": profiles}, timeout_s=150.0, expects={
+        "s01": Expect(SELFCAL_ROWS[0], "faulted", ("calibrator disagrees",)),
+        "s02": Expect(SELFCAL_ROWS[1], "faulted", ("scrr",)),
+        "s03": Expect(SELFCAL_ROWS[0], "healthy"),  # firmware, agrees
+        "s04": Expect(SELFCAL_ROWS[0], "healthy"),  # Python board: no calibrator, not applicable
+    })
+
+
+async def _run_firmware_plan(plan: Plan, tmp, firmware: dict[int, str]) -> None:
+    """fault_matrix_support's plan run, with these slots' boards running the C firmware (host)."""
+    tmp.mkdir(parents=True, exist_ok=True)
+    async with SimStation(n_serial=plan.n_serial, n_can=plan.n_can, seed=plan.seed, speed=plan.speed,
+                          firmware=firmware) as sim:
+        if plan.arm is not None:
+            plan.arm(sim)
+        async with daemon(sim, tmp, plan.speed, limits=LIMITS, **plan.kw) as st:
+            bid = st.start_batch(plan.profile, None, "fault-matrix")
+            ctx = Ctx(sim, st, bid, plan)
+            sim.pace = ctx.lead_pace
+            extra: list[str] = []
+            inj = asyncio.create_task(plan.inject(ctx)) if plan.inject is not None else None
+            status = await st.wait_batch(bid, timeout_s=plan.timeout_s)
+            if inj is not None:
+                if not inj.done():
+                    inj.cancel()
+                    extra.append(f"the fault was never injected: the batch ended first ({status['state']})")
+                try:
+                    await inj
+                except asyncio.CancelledError:
+                    pass
+                except Exception as exc:  # noqa: BLE001
+                    extra.append(f"injection failed: {type(exc).__name__}: {exc}")
+            if await coil(sim):
+                extra.append("lamp coil still on after the batch")
+            await collect_and_check(plan, st, st.db, bid, st.batch_status(bid), extra)
+
+
 # ------------------------------------------------------------------------------- the tests
 @pytest.mark.timeout(420)
 async def test_fault_matrix_fast_thermal_verified(tmp_path):
@@ -558,6 +626,20 @@ async def test_fault_matrix_fast_thermal_verified(tmp_path):
 @pytest.mark.timeout(300)
 async def test_fault_matrix_fast_thermal(tmp_path):
     await run_all(_fast_thermal_plans(), tmp_path, PARALLEL)
+    _report("fast-thermal")
+
+
+@pytest.mark.timeout(300)
+async def test_fault_matrix_board_selfcal(tmp_path):
+    from drivers.sim.firmware_build import missing_tools
+
+    if missing_tools("host"):
+        pytest.skip(f"firmware tools missing: {missing_tools('host')}")
+    for prof in (VERIFIED, "sfem-24"):
+        _na(prof, SELFCAL_ROWS, "n/a (run in fast-thermal)")
+    plan = _selfcal_plan()
+    await asyncio.wait_for(_run_firmware_plan(plan, tmp_path / plan.name, {0: "host", 1: "host", 2: "host"}),
+                           plan.timeout_s + PLAN_SLACK_S)
     _report("fast-thermal")
 
 

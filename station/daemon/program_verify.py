@@ -17,6 +17,8 @@ bank: what these need of the slots, nothing more):
                               the same orientation from the first pass as "before".
 Both publish events (DutProgrammed, DutVerified) that the writer stores and the web shows; neither
 judges: the run's verdict is decided once at its end (station/decisions/moment.py), from these records.
+After an SFEM analysis both hand over to station/daemon/sfem_program.py (issue 42: the cubic SFEM
+as the board's version-2 record, verified on a cool-down), with the same host and conventions.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from station.science.bias_wander import BiasWander
 from station.science.part_noise import wander_of_budget
 from station.science.verify import drift_before_mg, verify_compensated
 from contracts.types import AXES, SampleBlock, Segment
+from station.daemon import sfem_program
 from station.daemon.dut_run import DutRun
 from station.daemon.sequencer import Sequencer
 from station.profiles import Profile
@@ -90,6 +93,9 @@ async def _quiesce(drv: BoardDriver) -> bool:
 
 async def program_duts(station: ProgramHost, seq: Sequencer) -> None:
     """The program step (see module doc): the first pass is analysed already (run_end.RunEnd)."""
+    if seq.profile.analysis == "sfem":
+        await sfem_program.program_sfem_duts(station, seq, _quiesce)
+        return
     duts = [d for d in seq.duts if d.live]
 
     async def one(d: DutRun) -> None:
@@ -206,6 +212,9 @@ async def verify_duts(station: ProgramHost, seq: Sequencer) -> None:
     profile = seq.profile
     program_index = profile.program_step
     if program_index is None:
+        return
+    if profile.analysis == "sfem":
+        await sfem_program.verify_sfem_duts(station, seq)
         return
     heat_index = next((i for i in range(program_index + 1, len(profile.steps)) if profile.steps[i].require == "heat"), None)
     if heat_index is None:

@@ -31,6 +31,7 @@ from drivers.base import Chamber, Fixture
 from contracts.events import BatchStateChanged, EventBus, PromptAnswered, StepCompleted, StepStarted
 from contracts.trace import Trace
 from station.daemon import batch_view, plate_watch
+from station.daemon.board_selfcal import BoardCalibrators
 from station.daemon.dut_run import DutRun, wall_text
 from station.daemon.positioning import BatchFailed, Plate, device_call
 from station.daemon.intake_monitor import ATTRIBUTE_BEHIND_S
@@ -131,6 +132,8 @@ class Sequencer:
         self._placement_step = -1
         self._set_up_placement(start_step)
         self.storage_error: str | None = None  # set by release_duts: the batch's data is not stored
+        # profile option board_selfcal: the boards' own calibrators on before the thermal steps, read at their end
+        self.board_calibrators = BoardCalibrators(profile.board_selfcal, resumed_at_step=start_step)
 
     # ------------------------------------------------------------ helpers
     def _set_up_placement(self, index: int) -> None:
@@ -325,6 +328,7 @@ class Sequencer:
     async def _state_connecting(self) -> str:
         await self.hw.connect_duts(self)
         self._ensure_live()
+        await self.board_calibrators.start(self.hw, self.duts)
         return "step_setup" if self.step_index + 1 < len(self.profile.steps) else "analysing"
 
     async def _state_step_setup(self) -> str:
@@ -352,7 +356,9 @@ class Sequencer:
     async def _state_programming(self) -> str:
         # No heat while writing: the lamp is off (the analysis and the writes take wall time).
         await self.hw.lamp.off(f"step {self.step_index} program")
+        await self.board_calibrators.finish(self.hw, self.duts)  # the thermal steps are over
         await self.hw.program_duts(self)
+        await self.board_calibrators.compare(self.duts)
         self._ensure_live()
         self._complete_step()
         return "step_done"
@@ -473,7 +479,9 @@ class Sequencer:
             d.step_position = d.prev_position = d.next_position = None
         # Lamp off before the (possibly long) fits: the heat is no longer needed.
         await self.hw.lamp.off("profile complete")
+        await self.board_calibrators.finish(self.hw, self.duts)  # the thermal steps are over
         await self.hw.analyse(self)
+        await self.board_calibrators.compare(self.duts)
         return "finished"
 
     # ------------------------------------------------------------ reporting (batch_view.py)

@@ -19,8 +19,11 @@ check in registration order; adding a check is one class and one `register(...)`
     register(MaxAbsTdb())
 
 Built in: `SpecLimits` (every limit of the product in force for the run's analysis, with the
-profile's requirements; station/decisions/judging.py) and `SfemFitMark` (the SFEM model check's
-words, a mark).
+profile's requirements; station/decisions/judging.py), `SfemFitMark` (the SFEM model check's
+words, a mark), `BoardSelfCalAgrees` (issue 42: the board's own calibrator against the station's
+result, the named check `board_selfcal_agrees`) and `SfemOnBoardMarks` (issue 42: the cubic SFEM's
+residual on the board per axis, beside the contract's verify_failed_axes); the last two read their
+records through station/decisions/board_checks.py.
 """
 
 from __future__ import annotations
@@ -33,6 +36,9 @@ from typing import Protocol, Union
 from station.decisions.judging import Check, judge, limits_in_force, matching, missing_checks
 from station.decisions.limits import Limit, ProductSpec
 from station.decisions.measurements import SFEM_RESIDUAL_RATIO, Measurement, MeasurementDef, declare, undeclare
+from station.decisions.board_checks import (BOARD_SELFCAL_AGREES, BOARD_SELFCAL_TDB, BOARD_SELFCAL_TDSF, Finding as
+                                            BoardFinding, selfcal_findings, sfem_verify_findings)
+from station.decisions.measurements import SFEM_VERIFIED_RESIDUAL_MAX, SFEM_VERIFIED_RESIDUAL_RMS
 from station.decisions.sfem_checks import sfem_fit_mark
 
 
@@ -45,6 +51,8 @@ class RunView:
     required: tuple[Limit | str, ...] = ()  # what the profile requires (verdicts.profile_requirements)
     result: Mapping[str, object] | None = None  # the analysis result as stored (None: decide() on measurements only)
     judged: tuple[Check, ...] = field(default=())  # the checks the checks registered before this one found
+    verification: Mapping[str, object] | None = None  # program and verify, part 2 (None: no such record)
+    board_selfcal: Mapping[str, object] | None = None  # the board's calibrator's opinion (None: option off)
 
     def named(self, name: str) -> list[Measurement]:
         return [m for m in self.measurements if m.name == name]
@@ -186,9 +194,42 @@ class SfemFitMark:
                           words), tell="misses an effect" in words)
 
 
+def _as_finding(items: list[BoardFinding]) -> Finding:
+    return [f.check if f.decides else Mark(f.check, tell=f.tell) for f in items] or None
+
+
+@dataclass(frozen=True)
+class BoardSelfCalAgrees:
+    """The board's own calibrator as a second opinion (board_checks.py selfcal_findings): the flag
+    decides, the figures side by side per axis are shown beside it; not applicable on a board
+    without a calibrator; nothing when the profile's option is off."""
+
+    name: str = "board_selfcal_agrees"
+    needs: frozenset[str] | None = frozenset()
+    declares: tuple[MeasurementDef, ...] = (BOARD_SELFCAL_AGREES, BOARD_SELFCAL_TDB, BOARD_SELFCAL_TDSF)
+
+    def apply(self, run: RunView, spec: ProductSpec) -> Finding:
+        return _as_finding(selfcal_findings(run.board_selfcal))
+
+
+@dataclass(frozen=True)
+class SfemOnBoardMarks:
+    """The cubic SFEM verified on the board: residual rms and max per axis against the run's own
+    limits, as marks (the failing ones told); verify_failed_axes (a contract limit) decides."""
+
+    name: str = "sfem_on_board"
+    needs: frozenset[str] | None = frozenset()
+    declares: tuple[MeasurementDef, ...] = (SFEM_VERIFIED_RESIDUAL_RMS, SFEM_VERIFIED_RESIDUAL_MAX)
+
+    def apply(self, run: RunView, spec: ProductSpec) -> Finding:
+        return _as_finding(sfem_verify_findings(run.verification))
+
+
 register(SpecLimits())
 register(SfemFitMark())
+register(BoardSelfCalAgrees())
+register(SfemOnBoardMarks())
 
 
 __all__ = ["RunView", "Mark", "Finding", "VerdictCheck", "register", "unregister", "registered", "verdict_checks",
-           "run_checks", "SpecLimits", "SfemFitMark"]
+           "run_checks", "SpecLimits", "SfemFitMark", "BoardSelfCalAgrees", "SfemOnBoardMarks"]

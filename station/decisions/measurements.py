@@ -42,8 +42,10 @@ KINDS: tuple[Kind, ...] = ("signed", "size", "ratio", "count", "flag")
 #   residual  the residual-drift report, result["residual"]["axes"][axis]
 #   ""        computed or read by its own code (SFEM, link, program and verify, a check's own)
 Section = Literal["axes", "residual", ""]
-# Which part of a profile requires a measurement whatever the product's limits (design 8)
-Requirer = Literal["thermal", "sfem", "program_verify"]
+# Which part of a profile requires a measurement whatever the product's limits (design 8):
+# program_verify a thermal profile's, sfem_program an SFEM profile's program and verify (issue 42:
+# the cubic SFEM on the board, verified against the station's model on a cool-down)
+Requirer = Literal["thermal", "sfem", "program_verify", "sfem_program"]
 LimitAnalysis = Literal["thermal", "sfem", "any"]
 
 # The unit strings of the checks are ASCII for logs and CSV; a person reads °C, µg and √Hz.
@@ -244,17 +246,29 @@ LINK_ERRORS = declare(MeasurementDef(
     test_number=3000))
 PROGRAM_CRC_MATCH = declare(MeasurementDef(
     "program_crc_match", "", "readback CRC equal to the written one", "readback CRC equal to written", False, "flag",
-    "", "program", analysis="any", required_by=("program_verify",), contract=(1.0, 1.0), test_number=4000))
+    "", "program", analysis="any", required_by=("program_verify", "sfem_program"), contract=(1.0, 1.0), test_number=4000))
 COMPENSATION_ON = declare(MeasurementDef(
     "compensation_on", "", "on-board compensation on", "compensation on", False, "flag", "", "CALR after COMP 1",
-    analysis="any", required_by=("program_verify",), contract=(1.0, 1.0), test_number=4010))
+    analysis="any", required_by=("program_verify", "sfem_program"), contract=(1.0, 1.0), test_number=4010))
 VERIFIED_DRIFT_ERROR_FS = declare(MeasurementDef(
     "verified_drift_error_fs_pct", "%FS", "verified drift E_FS", "verified drift error E_FS", True, "size",
     "station/science/verify.py: spread of E under the (b1, b2) covariance (block scatter and the part's bias wander), "
     "fixed-seed Monte Carlo", "program-and-verify", analysis="any", required_by=("program_verify",), test_number=4020))
 VERIFY_FAILED_AXES = declare(MeasurementDef(
     "verify_failed_axes", "axes", "axes failing the verification", "axes failing verification", False, "count", "",
-    "program-and-verify", analysis="any", required_by=("program_verify",), contract=(None, 0.0), test_number=4030))
+    "program-and-verify", analysis="any", required_by=("program_verify", "sfem_program"), contract=(None, 0.0), test_number=4030))
+
+# Issue 42. SFEM program and verify: the board's compensated output against the station's model over the
+# cool-down, per axis (station/daemon/sfem_program.py); figures beside the contract's verify_failed_axes
+_SFEM_VERIFY_SIGMA = ("station/daemon/sfem_program.py: the station model's own prediction sigma (its coefficient sigmas "
+                      "and polynomial misfit), the block means' noise, the part's bias wander and the board's 1 C "
+                      "temperature steps")
+SFEM_VERIFIED_RESIDUAL_RMS = declare(MeasurementDef(
+    "sfem_verified_residual_rms_mg", "mg", "SFEM on the board: residual rms", "SFEM verified residual rms", True,
+    "size", _SFEM_VERIFY_SIGMA, "program-and-verify", analysis="sfem"))
+SFEM_VERIFIED_RESIDUAL_MAX = declare(MeasurementDef(
+    "sfem_verified_residual_max_mg", "mg", "SFEM on the board: residual max", "SFEM verified residual max", True,
+    "size", _SFEM_VERIFY_SIGMA, "program-and-verify", analysis="sfem"))
 
 
 __all__ = ["Measurement", "MeasurementDef", "Kind", "KINDS", "declare", "undeclare", "declared_for_now", "declared",
@@ -262,4 +276,4 @@ __all__ = ["Measurement", "MeasurementDef", "Kind", "KINDS", "declare", "undecla
            "UNIT_WORDS", "FLAG_UNIT_WORDS", "TDB", "TDSF", "FIT_AGREEMENT_TDB", "FIT_AGREEMENT_TDSF", "DRIFT_ERROR_FS",
            "DRIFT_ERROR", "BOW", "RAMP_RESIDUAL", "NOISE", "SFEM_BIAS", "SFEM_SCALE_ERROR", "SFEM_HELDOUT_RMSE",
            "SFEM_RESIDUAL_RATIO", "LOST_SAMPLES", "LINK_ERRORS", "PROGRAM_CRC_MATCH", "COMPENSATION_ON",
-           "VERIFIED_DRIFT_ERROR_FS", "VERIFY_FAILED_AXES"]
+           "VERIFIED_DRIFT_ERROR_FS", "VERIFY_FAILED_AXES", "SFEM_VERIFIED_RESIDUAL_RMS", "SFEM_VERIFIED_RESIDUAL_MAX"]

@@ -32,7 +32,8 @@ from contracts.events import DutVerdict
 from contracts.types import Identity
 from station.config import ProfileConfig
 from station.decisions.limits import ProductSpec
-from station.decisions.verdict_context import EndedBatch, VerdictContext, VerdictStore
+from contracts.selfcal_opinion import SELFCAL_OPINION_SHAPE
+from station.decisions.verdict_context import BoardOpinions, EndedBatch, VerdictContext, VerdictStore
 from station.decisions.verdicts import RunRecord, final_verdict
 from station.profiles import Profile, profile_from_config
 from station.science.residual import DEFAULT_OPERATING_RANGE_C
@@ -108,15 +109,37 @@ def end_of(seq: EndedBatch, d: DutRun) -> tuple[str, str]:
     return (d.state if d.state != "done" else ending), f"{why}, DUT incomplete"
 
 
+def board_opinion(seq: EndedBatch, d: DutRun) -> dict[str, object] | None:
+    """The board calibrator's opinion of this run (profile option board_selfcal; the batch's
+    station/daemon/board_selfcal.py BoardCalibrators), None with the option off. With the option on
+    and no reading at all (a batch that kept none), an error opinion: never a pass."""
+    if not seq.profile.board_selfcal:
+        return None
+    cal = getattr(seq, "board_calibrators", None)  # a Sequencer's; a test's plain batch may have none
+    if isinstance(cal, BoardOpinions):
+        return dict(cal.opinion_of(d.slot))
+    return {"shape": SELFCAL_OPINION_SHAPE, "applicable": True, "error": "the batch kept no board calibrator readings"}
+
+
+def programmed_by_profile(seq: EndedBatch, d: DutRun) -> bool:
+    """Does this run's verdict require program and verify? Its profile's program step, unless the
+    board could not take what the step writes: an SFEM profile's board without the version-2 record
+    (its program record says `not_applicable`) is judged as an SFEM run only (issue 42)."""
+    if seq.profile.program_step is None:
+        return False
+    return not (d.program is not None and not d.program.programmed and d.program.readback.get("not_applicable") is True)
+
+
 def run_record(ctx: VerdictContext, seq: EndedBatch, d: DutRun) -> RunRecord:
     """The run as the verdict reads it: its records in the JSON form they are stored in, so a run
     judged live and one judged again from the database read the very same figures (readings.py
     reads them by each measurement's declaration)."""
     state, why = end_of(seq, d)
-    return RunRecord(analysis=seq.profile.analysis, program_verify=seq.profile.program_step is not None,
+    return RunRecord(analysis=seq.profile.analysis, program_verify=programmed_by_profile(seq, d),
                      end_state=state, end_reason=why, result=None if d.result is None else d.result.to_json(),
                      link_stats=_link_stats(ctx, d), n_samples=int(d.n_samples),
-                     program=None if d.program is None else d.program.to_json(), verification=d.verification)
+                     program=None if d.program is None else d.program.to_json(), verification=d.verification,
+                     board_selfcal=board_opinion(seq, d))
 
 
 def _judge(ctx: VerdictContext, batch_id: int, slot: str, serial: str | None, run_id: int | None, run: RunRecord,
@@ -230,5 +253,6 @@ def judge_unjudged_runs(ctx: VerdictContext, exclude_batches: list[int]) -> int:
     return n
 
 
-__all__ = ["judge_final", "judge_interrupted_runs", "judge_unjudged_runs", "run_record", "end_of", "slim", "operating_range_c", "attempt_of",
+__all__ = ["judge_final", "judge_interrupted_runs", "judge_unjudged_runs", "run_record", "board_opinion",
+           "programmed_by_profile", "end_of", "slim", "operating_range_c", "attempt_of",
            "spec_of", "profile_of_batch"]

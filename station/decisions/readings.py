@@ -128,12 +128,15 @@ def contract_limit(d: MeasurementDef) -> Limit:
 
 def profile_requirements(analysis: str, program_verify: bool) -> tuple[Limit | str, ...]:
     """Measurements (names, or fixed contract limits) a run of this profile must have to pass, in
-    declaration order: its analysis's (thermal, sfem; none for any other), then program and verify's."""
+    declaration order: its analysis's (thermal, sfem; none for any other), then program and verify's
+    (an SFEM profile's: the readback CRC, compensation on and no axis failing the verification on the
+    board; its figure is the residual against the station's model, not a thermal drift error E)."""
     by = _ANALYSES.get(analysis)
     names: tuple[Limit | str, ...] = tuple(d.name for d in required_by(by)) if by is not None else ()
     if not program_verify:
         return names
-    return names + tuple(contract_limit(d) if d.contract else d.name for d in required_by("program_verify"))
+    pv: Requirer = "sfem_program" if analysis == "sfem" else "program_verify"
+    return names + tuple(contract_limit(d) if d.contract else d.name for d in required_by(pv))
 
 
 @dataclass(frozen=True)
@@ -150,6 +153,9 @@ class RunRecord:
     n_samples: int = 0
     program: Record | None = None
     verification: Record | None = None
+    # the board's own calibrator against the station's result (contracts/selfcal_opinion.py, its JSON):
+    # None when the profile's option board_selfcal is off
+    board_selfcal: Record | None = None
 
 
 def run_measurements(run: RunRecord) -> list[Measurement]:

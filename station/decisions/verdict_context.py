@@ -96,6 +96,14 @@ class VerdictContext:
             raise TypeError(f"VerdictContext.profiles: not a Profile: {', '.join(map(str, wrong))}")
 
 
+@runtime_checkable
+class BoardOpinions(Protocol):
+    """The boards' own calibrators of a batch (station/daemon/board_selfcal.py BoardCalibrators):
+    the opinion the verdict judges per slot, as its JSON (contracts/selfcal_opinion.py)."""
+
+    def opinion_of(self, slot: str) -> Mapping[str, object]: ...
+
+
 class EndedBatch(Protocol):
     """What the moment reads of a batch whose DUTs were released (station/daemon/sequencer.py)."""
 
@@ -121,5 +129,5 @@ class EndedBatch(Protocol):
     def trace(self) -> Trace: ...
 
 
-__all__ = ["VerdictContext", "VerdictStore", "Publisher", "EndedBatch", "ProductLookup", "LinkStatsLookup",
+__all__ = ["VerdictContext", "VerdictStore", "Publisher", "EndedBatch", "BoardOpinions", "ProductLookup", "LinkStatsLookup",
            "no_live_links"]

@@ -118,11 +118,14 @@ def decide(
     fault_reason: str = "",
     required: Iterable[Limit | str] = (),
     result: Record | None = None,
+    verification: Record | None = None,
+    board_selfcal: Record | None = None,
 ) -> Verdict:
     """The verdict of one DUT run. `state` is the run's end state: anything but 'done' is error.
     `required`: what the profile itself requires (profile_requirements), on top of the product.
     Every registered check (checks.py) judges the run; `result` is the analysis result as stored,
-    for a check that reads it (the SFEM mark)."""
+    for a check that reads it (the SFEM mark); `verification` and `board_selfcal` the program-and-verify
+    record and the board calibrator's opinion, for the checks that read those."""
     ms = list(measurements)
     product, name, version = (spec.sensor, spec.name, spec.version) if spec else (None, None, None)
 
@@ -134,7 +137,8 @@ def decide(
         return verdict("error", "retest", error_tray, [fault_reason or f"run {state}: incomplete"], [])
     if spec is None:
         return verdict("error", "retest", error_tray, ["no spec limits for this sensor / part number"], [])
-    checks, marks = run_checks(RunView(tuple(ms), analysis, tuple(required), result), spec)
+    checks, marks = run_checks(RunView(tuple(ms), analysis, tuple(required), result, verification=verification,
+                                       board_selfcal=board_selfcal), spec)
     worst = max((c.outcome for c in checks), key=RANK.__getitem__, default="pass")
     reasons = [c.reason for c in sorted((c for c in checks if c.outcome != "pass"), key=lambda c: -RANK[c.outcome])]
     if worst == "error":
@@ -190,7 +194,8 @@ def final_verdict(run: RunRecord, spec: ProductSpec | None) -> Verdict:
     done and every measurement its profile and product require is present and inside its limits
     after the guard band."""
     v = decide(run_measurements(run), spec, analysis=run.analysis, state=run.end_state, fault_reason=run.end_reason,
-               required=profile_requirements(run.analysis, run.program_verify), result=run.result)
+               required=profile_requirements(run.analysis, run.program_verify), result=run.result,
+               verification=run.verification if run.program_verify else None, board_selfcal=run.board_selfcal)
     if v.verdict == "error" and run.end_state == "done" and run.program_verify:
         v.reasons[:0] = _program_verify_causes(run)  # the cause first, then what it left unmeasured
     return v

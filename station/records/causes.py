@@ -37,9 +37,19 @@ _RULES: tuple[tuple[str, str], ...] = (
     # one board, one record (design 3.1): the identity read again, a reset, a clock jump; said
     # before "programming" ("program: not written: s01 answers ... before programming")
     ("board swapped mid-run", r"\ba board swapped mid-run\?|'s board changed\b|\bidentity could not be read again\b"),
-    ("board reset mid-run", r"\bthe board restarted while streaming\b"),
+    ("board reset mid-run", r"\bthe board restarted (?:while streaming|during the run)\b"),
     ("board clock jumped", r"\bits clock jumped \d"),
     ("board clock slow", r"\bthe station's clock ran \d+ s since Done, this board's own clock\b"),
+    # the board's own calibrator as a second opinion (issue 42, station/science/selfcal_compare.py
+    # opinion_words, the check board_selfcal_agrees): anchored, as they are verdict reasons, so that
+    # a line whose worst reason is another (a limit, a missing measurement) keeps that one's name
+    ("board calibrator disagrees", r"^board's own calibrator disagrees: "),
+    ("board calibrator not read", r"^board's own calibrator: no comparison: "),
+    # the cubic SFEM verified on the board (station/decisions/board_checks.py sfem_verify_findings, a
+    # told mark beside the contract's verify_failed_axes that decides): the line of a run failed by
+    # it alone; its write and read-back failures are "programming" ("program: crc_mismatch: ...")
+    ("SFEM verification failed", r"^(?:axes failing the verification [^;]*; )*[xyz] SFEM on the board: "
+                                 r"residual (?:rms|max) [^;]* over its limit\b"),
     ("temperature sensor", r"\btemperature sensor (?:stuck|implausible)\b"),
     ("plate never arrived", r"\bplate never arrived at \S+"),
     ("plate at wrong position", r"\bfaces? \S+, not \S+"),
@@ -129,7 +139,7 @@ def reason_code(reason: str | None) -> str | None:
     return next((code for code, rx in _VERDICT_RX if rx.search(first)), None)
 
 
-def _failing_check(run: dict[str, Any]) -> dict | None:
+def _failing_check(run: dict[str, Any]) -> dict[str, Any] | None:
     """The check that failed the run: the one its first (worst) reason names, else the first failing."""
     checks = [c for c in run.get("checks") or [] if isinstance(c, dict) and c.get("outcome") == "fail"]
     first = next(iter(run.get("reasons") or []), None)

@@ -6,7 +6,9 @@
   none     the step just lasts `dwell_s` of sample time (a soak, a lamp-off cool-down)
   program  program and verify, part 1 (design 4): the thermal analysis runs, then every live DUT
            with a thermal result gets its coefficients written, read back (CRC and values) and its
-           on-board compensation switched on; a DUT whose write fails is faulted alone
+           on-board compensation switched on; a DUT whose write fails is faulted alone. After an
+           SFEM analysis, the boards that store the version-2 record get the cubic SFEM instead
+           (station/daemon/sfem_program.py; the others are not programmed)
   heat     program and verify, part 2: the lamp heats the plate again until every DUT's own
            temperature has risen `heat_c` (>= 15 C) above where the step started, while the station
            logs the boards' COMPENSATED output; `settle_s` at the start is not judged. The verified
@@ -109,8 +111,8 @@ class Program(StepKind):
     machine_state = "programming"
 
     def check(self, steps: Sequence[Step], i: int, analysis: str) -> None:
-        if analysis != "thermal":
-            raise ValueError(f"steps[{i}]: a program step needs analysis='thermal' (coefficients to write)")
+        if analysis not in ("thermal", "sfem"):
+            raise ValueError(f"steps[{i}]: a program step needs analysis='thermal' or 'sfem' (coefficients to write)")
 
     def done(self, d: DutRun, step: Step, index: int) -> bool:
         return True  # never asked: the step logs nothing
