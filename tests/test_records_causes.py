@@ -109,7 +109,42 @@ def _daemon_reasons() -> list[tuple[str, str]]:
          "lamp went on", "temperature sensor"),
         ("temperature sensor implausible: 24 C -> 91 C in 0.3 s", "temperature sensor"),
         ("run interrupted: incomplete", "interrupted"),  # verdicts.decide without a fault reason
+        # issue 42: a restart the board reports itself (its `boots` moved between two identity
+        # replies: station/daemon/run_end.py "<slot>: " + identity_check.board_restart)
+        ("s01: " + _restart_words(None), "board reset mid-run"),
+        ("s02: " + _restart_words(0x08001A2C), "board reset mid-run"),
+        # issue 42: the cubic SFEM written as the board's version-2 record (station/daemon/sfem_program.py
+        # f"program: {exc.kind}: {exc}" after drivers/serial_board_commands.py's CalibrationError, retried
+        # by sfem_program._tries): its write and read-back failures are "programming"
+        ("program: crc_mismatch: failed after 3 attempts: /dev/pts/4 stored the cubic SFEM with CRC 1234ABCD, "
+         "station computed 89AB0001", "programming"),
+        ("program: crc_mismatch: failed after 3 attempts: board stored CRC 1234ABCD, station computed 89AB0001",
+         "programming"),
+        ("program: readback_mismatch: failed after 3 attempts: /dev/pts/4: the cubic SFEM read back has CRC "
+         "1234ABCD, the board names 89AB0001", "programming"),
+        ("program: readback_mismatch: failed after 3 attempts: read back CRC 1234ABCD differs from the written "
+         "89AB0001 or its values do", "programming"),
+        ("program: refused: failed after 3 attempts: SFTW,2 refused by /dev/pts/4: NVM write failed", "programming"),
+        ("program: comp_not_set: compensation failed after 3 attempts: compensation still off after COMP 1",
+         "programming"),
+        ("program: nothing to write: no SFEM thermal model (one temperature step, or no SFEM result)", "programming"),
+        ("not verified: no programming record for this run in this session: not verified", "verification"),
+        ("not verified: only 12 compensated samples within the record's range 27.4..67.4 C after programming: "
+         "not verified", "verification"),
     ]
+
+
+def _restart_words(fault_pc: int | None) -> str:
+    """station/daemon/identity_check.py board_restart's words for a watchdog or a fault reset."""
+    from contracts.types import Identity
+    from station.daemon.identity_check import board_restart
+
+    before = Identity("SIM0001", boots=1, reset_cause="power")
+    after = Identity("SIM0001", boots=2, reset_cause="fault" if fault_pc else "watchdog",
+                     fault_pc=fault_pc, fault_cfsr=0x400 if fault_pc else None)
+    words = board_restart(before, after)
+    assert words is not None
+    return words
 
 
 @pytest.mark.parametrize("reason,cause", _daemon_reasons())
@@ -164,6 +199,97 @@ def test_run_cause_of_real_verdicts():
     # the fault reason wins over a verdict reason that says less
     assert causes.run_cause({"verdict": "error", "state": "faulted", "reasons": ["run faulted: incomplete"],
                              "fault_reason": "serial /dev/ttyACM3: no samples for 10.1 s"})[0] == "no samples"
+
+
+def _opinion(board_tdb_x: float, error: str | None = None) -> dict:
+    """A board calibrator's opinion as station/science/selfcal_compare.py makes it (its JSON)."""
+    from contracts.selfcal_opinion import OpinionRow, SelfCalOpinion
+
+    if error is not None:
+        return SelfCalOpinion(True, error=error).to_json()
+    rows = tuple(OpinionRow(ax, fig, board, station, u, 0.003, 3.0)
+                 for ax, b in zip("xyz", (board_tdb_x, -0.3, 0.4))
+                 for fig, board, station, u in (("tdb_mg_per_c", b, (0.2, -0.3, 0.4)["xyz".index(ax)], 0.004),
+                                                ("tdsf_ppm_per_c", -150.0, -150.0, 3.0)))
+    return SelfCalOpinion(True, rows, n_segments_board=8, n_segments_station=8).to_json()
+
+
+def _selfcal_run(opinion: dict, result: dict | None = None) -> dict:
+    """A thermal run with the profile option board_selfcal, judged by the station's own verdict."""
+    v = final_verdict(RunRecord("thermal", False, "done", "", result or thermal(), {"samples_lost": 0}, 2000,
+                                board_selfcal=opinion), default_products()["LIS3DSH"]).to_json()
+    return {"verdict": v["verdict"], "reasons": v["reasons"], "reason": v["reason"], "checks": v["checks"],
+            "state": "done", "fault_reason": ""}
+
+
+def test_board_calibrator_reasons_are_named():
+    """Issue 42: the verdict's words of the board's own calibrator (the check board_selfcal_agrees),
+    made by the station's own functions: a disagreement names its cause (a fail: the Pareto counts it
+    by its check), a calibrator that could not be read names its own (an error); the code on the
+    line follows its worst reason, so a limit failed first keeps its own."""
+    from station.daemon.board_selfcal import BoardCalibrators
+    from station.decisions.moment import board_opinion
+
+    bad = _selfcal_run(_opinion(0.45))  # x TDB 0.25 mg/C off, u 0.005: 50 sigmas
+    assert bad["verdict"] == "fail"
+    assert bad["reasons"][0].startswith("board's own calibrator disagrees: x TDB board 0.45"), bad["reasons"]
+    assert causes.cause_of(bad["reasons"][0]) == "board calibrator disagrees"
+    assert causes.reason_code(bad["reason"]) == "board_calibrator_disagrees"
+    assert causes.run_cause(bad)[0] == "limit: board calibrator agrees"
+    good = _selfcal_run(_opinion(0.2))
+    assert good["verdict"] == "pass" and causes.reason_code(good["reason"]) == "all_limits_met"
+    both = _selfcal_run(_opinion(0.45), thermal(tdsf=(-150.0, -120.0, -612.0)))  # a limit first, then the opinion
+    assert both["reasons"][0] == "z TDSF -612 ppm/C, limit -500" and len(both["reasons"]) == 2, both["reasons"]
+    assert causes.reason_code(both["reason"]) == "limit_exceeded"
+    unread = [
+        _opinion(0.0, error="$SCRR failed: no reply to $SCRR from /dev/pts/4 within 1 s (3 tries)"),
+        BoardCalibrators(True).opinion_of("s01"),  # never read at the end of the thermal steps
+        board_opinion(SimpleNamespace(profile=SimpleNamespace(board_selfcal=True)), SimpleNamespace(slot="s01")),
+    ]
+    for op in unread:
+        run = _selfcal_run(dict(op))
+        assert run["verdict"] == "error", run
+        assert run["reasons"][0].startswith("board's own calibrator: no comparison: "), run["reasons"]
+        assert causes.run_cause(run) == ("board calibrator not read", run["reasons"][0])
+        assert causes.reason_code(run["reason"]) == "board_calibrator_not_read"
+    # a board without a calibrator: not applicable, a mark that is never among the reasons
+    na = _selfcal_run({"shape": "board-selfcal/1", "applicable": False, "note": "caps: none; 'scal' needed"})
+    assert na["verdict"] == "pass" and na["reasons"] == []
+
+
+def test_sfem_verified_on_the_board_names_its_cause():
+    """Issue 42: the cubic SFEM's verification on the board failed on an axis: the verdict's line
+    (the contract's verify_failed_axes, then the told residual of the axis) names the SFEM's
+    verification; the Pareto counts the fail by its check; a passing one says nothing."""
+    fit = {"temp_c": 26.0, "bias": [0.012, -0.03, 0.0], "bias_sigma": [1e-4] * 3, "scale": [1.002, 0.997, 1.001],
+           "scale_sigma": [1e-4] * 3}
+    result = {"shape": "sfem-record/1", "t_ref_c": 25.0, "steps": [fit]}  # contracts/sfem_result.py
+    prog = {"programmed": True, "comp": True, "attempts": 1, "crc": "70EFA827", "readback_crc": "70EFA827"}
+
+    def axis(rms: float) -> dict:
+        return {"passed": rms <= 2.97, "residual_rms_mg": rms, "residual_max_mg": 1.5 * rms, "limit_rms_mg": 2.97,
+                "limit_max_mg": 3.94, "sigma_mg": 0.97}
+
+    def judged(rms_y: float) -> dict:
+        ver = {"kind": "sfem-cubic", "passed": rms_y <= 2.97, "flags": [], "temp_range_c": [27.9, 66.8],
+               "axes": {"x": axis(0.4), "y": axis(rms_y), "z": axis(0.5)}}
+        v = final_verdict(RunRecord("sfem", True, "done", "", result, {"samples_lost": 0}, 2000, prog, ver),
+                          default_products()["LIS3DSH"]).to_json()
+        return {"verdict": v["verdict"], "reasons": v["reasons"], "reason": v["reason"], "checks": v["checks"],
+                "state": "done", "fault_reason": ""}
+
+    bad = judged(4.1)
+    assert bad["verdict"] == "fail", bad
+    told = [r for r in bad["reasons"] if "SFEM on the board" in r]
+    assert told and told[0].startswith("y SFEM on the board: residual rms 4.1 mg over 27.9..66.8 C over its limit")
+    assert causes.cause_of(told[0]) == "SFEM verification failed"
+    assert causes.reason_code(bad["reason"]) == "sfem_verification_failed", bad["reason"]
+    assert causes.run_cause(bad)[0] == "limit: axes failing verification"
+    good = judged(0.6)
+    assert good["verdict"] == "pass" and causes.reason_code(good["reason"]) == "all_limits_met", good["reasons"]
+    # an axis within its limit is never named a failure
+    within = "x SFEM on the board: residual rms 0.4 mg over 27.9..66.8 C within its limit 2.97 mg"
+    assert causes.cause_of(within) is None
 
 
 def test_pareto_counts_causes_by_name_never_faulted():

@@ -13,7 +13,8 @@ are documented by models but passed through unvalidated at runtime (schemas_comm
 cheaper on the daemon's event loop); the same test holds them to their models.
 
 The response models live by subject: web/schemas_common.py (shared parts), schemas_live.py (the
-daemon's batches and slots), schemas_thermal.py (a DUT's calibration result), schemas_history.py
+daemon's batches and slots), schemas_program.py (program and verify, live and stored),
+schemas_thermal.py (a DUT's calibration result), schemas_history.py
 (DUTs, runs, the MES feed), schemas_diagnosis.py, schemas_records.py (audit, SPC, replays); this
 module holds the request models, the small answers, the error models and the document's fix-ups,
 and re-exports the rest so routes import from one place.

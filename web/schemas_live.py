@@ -14,10 +14,10 @@ from pydantic import ConfigDict, Field
 
 from station.steps import kind_names, row_kinds
 from web.schemas_common import (
-    CodedWords, DecisionFields, DecisionOut, PerAxis, ProgramVerifyOut, TraceFields, _Out, free_form, one_of,
-    passed_through,
+    CodedWords, DecisionFields, DecisionOut, ProgramVerifyOut, TraceFields, _Out, free_form, one_of,
 )
 from web.schemas_thermal import CalibrationResultJson
+from web.schemas_program import LiveProgram, LiveVerificationJson
 
 
 class LinkStats(_Out):
@@ -35,6 +35,10 @@ class LinkStats(_Out):
     resets: int = Field(default=0, description="times the board restarted while streaming (its run ended there)")
     clock_jumps: int = Field(default=0, description="times its clock jumped while its seq ran on (its run ended there)")
     frames_after_break: int = Field(default=0, description="sample frames of another timeline after a reset or clock jump, not taken")
+    board_restarts: int = Field(default=0, description="times the board restarted between two identity replies "
+                                "(its reported boots count moved: watchdog, fault, pin or software reset)")
+    sensor_reinits_reported: int = Field(default=0, description="of errors_reported: E,SENSOR frames (the board "
+                                         "found its sensor silent and re-initialised it)")
 
 
 class Overload(_Out):
@@ -129,90 +133,6 @@ class Transition(_Out):
     to: str = Field(description="state after")
 
 
-class LiveProgram(_Out):
-    """What the program step did to one board (station/daemon/program_verify.py, drivers/base.py
-    ProgramReport.to_json); on a failure only programmed=false, error_kind, error (and what was tried)."""
-
-    programmed: bool | None = Field(default=None, description="written, read back identical, compensation on")
-    tdb_mg_per_c: list[float] | None = Field(default=None, description="TDB written x, y, z, mg/C")
-    tdsf_ppm_per_c: list[float] | None = Field(default=None, description="TDSF written x, y, z, ppm/C")
-    method: str | None = Field(default=None, description="which thermal result was written (offline, streaming)")
-    crc: str | None = Field(default=None, description="CRC-32 of the written float32 values (8 hex digits)")
-    readback_crc: str | None = Field(default=None, description="CRC-32 the board reports (8 hex digits)")
-    readback_values: list[float] | None = Field(default=None, description="values read back (TDB x y z mg/C, TDSF "
-                                                "x y z ppm/C, as float32)")
-    readback_identical: bool | None = Field(default=None, description="crc == readback_crc")
-    comp: bool | None = Field(default=None, description="the board's compensation is on")
-    attempts: int | None = Field(default=None, description="write attempts used (1 = first try)")
-    retries: list[str] | None = Field(default=None, description="why each failed attempt failed")
-    comp_from_t: float | None = Field(default=None, description="board time, s, from which samples are compensated")
-    error_kind: str | None = Field(default=None, description="why programming failed (refused, crc_mismatch, link, "
-                                   "no_result, ...)")
-    error: str | None = Field(default=None, description="the failure in words")
-
-
-class AxisVerificationOut(_Out):
-    """The verified drift of one axis (station/science/verify.py AxisVerification)."""
-
-    axis: str = Field(description="x, y or z")
-    e_before_mg: float | None = Field(default=None, description="drift error E before compensation, mg")
-    e_after_mg: float | None = Field(default=None, description="drift error E with compensation, mg")
-    ratio: float | None = Field(default=None, description="e_after / e_before")
-    residual_range_mg: float | None = Field(default=None, description="max - min of the compensated section means, mg")
-    curvature_mg_per_c2: float | None = Field(default=None, description="residual curvature, mg/C^2")
-    curvature_sigma_mg_per_c2: float | None = Field(default=None, description="its 1-sigma, mg/C^2")
-    curvature_bow_mg: float | None = Field(default=None, description="residual bow over the full range, mg")
-    curved: bool | None = Field(default=None, description="the bow is over its limit and significant")
-    passed: bool | None = Field(default=None, description="this axis passed")
-    reason: str = Field(default="", description="why not, in words")
-    e_after_sigma_mg: float | None = Field(default=None, description="1-sigma of e_after_mg, mg")
-
-
-class VerifyCriteriaOut(_Out):
-    """The pass rule of the verification (station/science/verify.py VerifyCriteria)."""
-
-    e_ratio_max: float | None = Field(default=None, description="E after at most this fraction of E before ...")
-    e_floor_mg: float | None = Field(default=None, description="... or at most this, mg")
-    full_range_c: float | None = Field(default=None, description="temperature range E is scaled to, C")
-    section_c: float | None = Field(default=None, description="width of a thermal section of the ramp, C")
-    min_section_samples: int | None = Field(default=None, description="samples a section needs")
-    curvature_limit_mg: float | None = Field(default=None, description="residual bow that flags a part, mg")
-    curvature_sigma: float | None = Field(default=None, description="... when this many sigmas from zero")
-    min_rise_c: float | None = Field(default=None, description="a verification heating less cannot judge, C")
-    range_centre_c: float | None = Field(default=None, description="centre of the judged range, C")
-    block_s: float | None = Field(default=None, description="batch-means block of the fit, s")
-    e_sigma_k: float | None = Field(default=None, description="an axis fails when E - k sigma is over its limit")
-    odr_hz: float | None = Field(default=None, description="sample rate assumed without sample times, Hz")
-
-
-class LiveVerification(_Out):
-    """The verification of one programmed board (station/science/verify.py VerificationResult.to_json
-    + step_index, duration_s, before_source); when it cannot be computed: passed=false, flags, null E."""
-
-    passed: bool = Field(description="the compensation works on this part")
-    flags: list[str] = Field(default_factory=list, description="named problems, or why it was not verified")
-    rise_c: float | None = Field(default=None, description="temperature rise of the verification heat, C")
-    temp_from_c: float | None = Field(default=None, description="temperature at its start, C")
-    temp_to_c: float | None = Field(default=None, description="temperature at its end, C")
-    n_samples: int | None = Field(default=None, description="compensated samples judged")
-    n_sections: int | None = Field(default=None, description="thermal sections of the ramp")
-    e_before_mg: PerAxis | None = Field(default=None, description="E before compensation per axis, mg")
-    e_after_mg: PerAxis | None = Field(default=None, description="E with compensation per axis, mg")
-    e_after_sigma_mg: PerAxis | None = Field(default=None, description="1-sigma of E after per axis, mg")
-    e_after_fs_pct: PerAxis | None = Field(default=None, description="E after per axis, % of full scale")
-    e_after_fs_sigma_pct: PerAxis | None = Field(default=None, description="its 1-sigma, % of full scale")
-    range_c: list[float] | None = Field(default=None, description="judged temperature range [low, high], C")
-    axes: dict[str, AxisVerificationOut] = Field(default_factory=dict, description="per axis (x, y, z) detail; "
-                                                 "empty when not computed")
-    criteria: VerifyCriteriaOut | None = Field(default=None, description="the pass rule applied")
-    step_index: int | None = Field(default=None, description="the heat step verified")
-    duration_s: float | None = Field(default=None, description="sample seconds of that step")
-    before_source: str | None = Field(default=None, description="where E before comes from, in words")
-
-
-LiveVerificationJson = passed_through(LiveVerification)  # documented, not validated at runtime (passed_through)
-
-
 class SlotStatus(DecisionFields):
     """One DUT of a batch: live (DutRun.status + web/views.py slot_view) or stored (web/db_repo.py)."""
 
@@ -239,7 +159,8 @@ class SlotStatus(DecisionFields):
     decision: DecisionOut | None = Field(default=None, description="the station's decision (without the passing "
                                          "checks); its fields are also given flat on the slot")
     program: LiveProgram | None = Field(default=None, description="program and verify: what the program step did")
-    verification: LiveVerificationJson = Field(default=None, description="program and verify: verified E")
+    verification: LiveVerificationJson = Field(default=None, description="program and verify: verified E (thermal), "
+                                               "or the cubic SFEM's residual on the board (SFEM, kind sfem-cubic)")
     program_verify: ProgramVerifyOut | None = Field(default=None, description="stored batch only: the stored "
                                                     "program-and-verify record")
     run_id: int | None = Field(default=None, description="this DUT's run in this batch")
