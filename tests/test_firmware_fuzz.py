@@ -61,10 +61,12 @@ def _need_libfuzzer(tmp: Path) -> None:
 
 
 def _run(bin_dir: Path, work: Path, seconds: int, targets: tuple[str, ...]) -> tuple[int, str, list[dict[str, Any]]]:
-    """The runner `make fuzz` uses, all targets at once; its exit code, output and per-target figures."""
+    """The runner `make fuzz` uses, all targets at once at a lower priority (four fuzzers on a CI
+    machine's two cores would otherwise starve the browser tests beside them); its exit code,
+    output and per-target figures."""
     summary = work / "summary.json"
     proc = subprocess.run([sys.executable, str(RUNNER), "--bin-dir", str(bin_dir), "--work-dir", str(work),
-                           "--seconds", str(seconds), "--targets", ",".join(targets), "--parallel",
+                           "--seconds", str(seconds), "--targets", ",".join(targets), "--parallel", "--nice", "10",
                            "--json", str(summary)], capture_output=True, text=True, timeout=seconds + 120)
     rows = json.loads(summary.read_text()) if summary.exists() else []
     return proc.returncode, proc.stdout + proc.stderr, rows

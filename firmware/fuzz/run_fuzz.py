@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import subprocess
 import sys
@@ -58,8 +59,9 @@ def _last_int(pattern: str, text: str, default: int = 0) -> int:
     return int(found[-1]) if found else default
 
 
-def start(target: str, bin_dir: Path, work: Path, seconds: int) -> tuple["subprocess.Popen[bytes]", dict[str, Any]]:
-    """Start one libFuzzer run (seeds + corpus in, reproducers out) and return it with its paths."""
+def start(target: str, bin_dir: Path, work: Path, seconds: int, nice: int = 0) -> tuple["subprocess.Popen[bytes]", dict[str, Any]]:
+    """Start one libFuzzer run (seeds + corpus in, reproducers out) and return it with its paths;
+    `nice` > 0 lowers its priority (on a shared machine the fuzzers take only spare CPU)."""
     corpus, seeds, crashes, logs = (work / "corpus" / target, work / "seeds" / target, work / "crashes" / target,
                                     work / "logs")
     for d in (corpus, crashes, logs):
@@ -74,7 +76,7 @@ def start(target: str, bin_dir: Path, work: Path, seconds: int) -> tuple["subpro
         cmd.append(f"-dict={dict_file}")
     cmd += [str(corpus), str(seeds)]
     fh = open(log, "w")
-    proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, preexec_fn=(lambda: os.nice(nice)) if nice > 0 else None)
     return proc, {"target": target, "crashes": crashes, "before": before, "log": log, "fh": fh, "t0": time.monotonic(),
                   "corpus": corpus}
 
@@ -107,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--targets", default=",".join(TARGETS))
     ap.add_argument("--parallel", action="store_true", help="run the targets at the same time (wall time of one)")
     ap.add_argument("--json", type=Path, help="also write the summary here")
+    ap.add_argument("--nice", type=int, default=0, help="run the fuzzers at this lower priority (the test suite: 10)")
     args = ap.parse_args(argv)
     targets = [t for t in args.targets.split(",") if t]
     unknown = [t for t in targets if t not in TARGETS]
@@ -115,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     subprocess.run([sys.executable, str(HERE / "gen_seeds.py"), str(args.work_dir / "seeds")], check=True)
     results: list[TargetRun] = []
     if args.parallel:
-        started = [start(t, args.bin_dir, args.work_dir, args.seconds) for t in targets]
+        started = [start(t, args.bin_dir, args.work_dir, args.seconds, args.nice) for t in targets]
         while any("ended" not in i for _, i in started):   # each run's own end time
             for p, i in started:
                 if "ended" not in i and p.poll() is not None:
@@ -124,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         results = [finish(p, i) for p, i in started]
     else:
         for t in targets:
-            results.append(finish(*start(t, args.bin_dir, args.work_dir, args.seconds)))
+            results.append(finish(*start(t, args.bin_dir, args.work_dir, args.seconds, args.nice)))
     failed = [r for r in results if r.crashes or r.exit_code != 0]
     for r in results:
         print(r.line())
