@@ -2,8 +2,8 @@
 
 Shared by tests/test_firmware_host.py and tests/test_firmware_records.py. The station side reads
 the pty slave itself; frames are checked with the station's own codec (drivers/protocol/
-serial_frames.py). The trailing `key=value` fields of the `I` and `C` frames (docs/firmware-
-contract-v2.md) are taken off before that codec sees a frame and kept in `keys`, so the checks of
+serial_frames.py). The trailing `key=value` fields of the `I` and `C` frames (docs/design.md
+3.1) are taken off before that codec sees a frame and kept in `keys`, so the checks of
 the base protocol stay exact whether or not the station's codec knows the keys.
 """
 
@@ -22,7 +22,10 @@ from typing import Any
 
 import numpy as np
 
+import pytest
+
 from contracts.types import Identity
+from drivers.sim.firmware_build import build, missing_tools
 from drivers.protocol import serial_frames as sf
 
 SAMPLE_STEP_US = 320_000  # the 3.125 Hz source period of the identities the tests use
@@ -137,3 +140,30 @@ class FwProc:
             self.bridge.close()
             os.close(self.slave)
         return rc
+
+
+# ---- fixtures shared by the test files that run fwboard processes (imported there by name) -----
+
+@pytest.fixture(scope="module")
+def fwboard():
+    """The host target's fwboard, built once per module (skipped without a C compiler)."""
+    if missing_tools("host"):
+        pytest.skip(f"no {missing_tools('host')}")
+    return build("host") / "fwboard"
+
+
+@pytest.fixture
+def procs():
+    """The fwboard processes a test started, killed at its end."""
+    started: list[FwProc] = []
+    yield started
+    for p in started:
+        if p.proc.poll() is None:
+            p.proc.kill()
+            p.proc.wait(5)
+
+
+def _spawn(procs, *a, **kw) -> FwProc:
+    p = FwProc(*a, **kw)
+    procs.append(p)
+    return p

@@ -18,43 +18,18 @@ import numpy as np
 import pytest
 
 from contracts.types import Identity
-from drivers.base import CalibrationError
 from drivers.protocol import can_frames as cf
 from drivers.protocol import serial_frames as sf
 from drivers.protocol.cal_record import crc32_f32, to_f32
 from drivers.protocol.slcan_lines import split_frames
 from drivers.serial_board import SerialBoard
 from drivers.sim.board_nvm import CalFirmware
-from drivers.sim.firmware_build import build, missing_tools
 from tests.firmware_nvm import SLOT_BYTES
-from tests.firmware_proc import FwProc
+from tests.firmware_proc import FwProc, _spawn, fwboard, procs  # noqa: F401 (fixtures)
 
 LIS = Identity("SN0001", "LIS3DSH", "fw-c-1.0", 60.0, 1.0, 0.0, 3.125)
 ADXL = Identity("AX0001", "ADXL355", "fw-c-1.0", 3.9, -9.05, 1885.0, 3.125)
 SLOT = SLOT_BYTES
-
-
-@pytest.fixture(scope="module")
-def fwboard():
-    if missing_tools("host"):
-        pytest.skip(f"no {missing_tools('host')}")
-    return build("host") / "fwboard"
-
-
-@pytest.fixture
-def procs():
-    started: list[FwProc] = []
-    yield started
-    for p in started:
-        if p.proc.poll() is None:
-            p.proc.kill()
-            p.proc.wait(5)
-
-
-def _spawn(procs, *a, **kw) -> FwProc:
-    p = FwProc(*a, **kw)
-    procs.append(p)
-    return p
 
 
 async def _collect(drv, n, timeout_s=10.0):

@@ -37,7 +37,7 @@ from drivers.sim.board_nvm import CalFirmware
 from drivers.sim.firmware_build import build, missing_tools
 from tests.firmware_nvm import (RECORD2_BYTES, RECORD_BYTES, SLOT_BYTES, crc_f32, decode_slot, encode_record,
                                 slot_image)
-from tests.firmware_proc import FwProc, bodies, split_keys
+from tests.firmware_proc import FwProc, _spawn, bodies, fwboard, procs, split_keys  # noqa: F401 (fixtures)
 
 CORE = Path(__file__).resolve().parents[1] / "firmware" / "core"
 LIS = Identity("SN0001", "LIS3DSH", "fw-c-1.0", 60.0, 1.0, 0.0, 3.125)
@@ -699,29 +699,6 @@ def test_scrr_adds_the_calibrator_skew_to_every_tdb(lib):
 
 
 # ---- real processes ---------------------------------------------------------------------------------
-
-@pytest.fixture(scope="module")
-def fwboard():
-    if missing_tools("host"):
-        pytest.skip(f"no {missing_tools('host')}")
-    return build("host") / "fwboard"
-
-
-@pytest.fixture
-def procs():
-    started: list[FwProc] = []
-    yield started
-    for p in started:
-        if p.proc.poll() is None:
-            p.proc.kill()
-            p.proc.wait(5)
-
-
-def _spawn(procs, *a, **kw) -> FwProc:
-    p = FwProc(*a, **kw)
-    procs.append(p)
-    return p
-
 
 def _p_ident(p: FwProc) -> tuple[list[str], dict[str, str], list[list[str]]]:
     got = p.command_fields("ID", 1)

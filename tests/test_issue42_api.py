@@ -30,7 +30,7 @@ import httpx
 import pytest
 
 from openapi_truth_support import DOC_URI, Checker
-from test_firmware_station import SFEM_POSITIONS, _need_host_firmware, _steps_of
+from test_firmware_station import _need_host_firmware, _short_sfem, _steps_of
 from test_openapi_truth import _passes_through
 
 from drivers.sim.physics import draw_population
@@ -176,19 +176,6 @@ async def test_board_selfcal_outputs_are_declared(tmp_path):
     assert runs["s02"]["reason_code"] == reason_code(runs["s02"]["reason"]) == "board_calibrator_disagrees"
     print(f"\n{len(wire.answers)} answers validated; s02: {bad['reason'][:120]}")
     assert problems == [], "\n".join(problems[:40])
-
-
-SFEM_SHORT = SFEM_POSITIONS
-
-
-def _short_sfem(temps_c: tuple[float, ...]) -> list[dict]:
-    steps = []
-    for t in temps_c:
-        for k, name in enumerate(SFEM_SHORT):
-            steps.append({"name": f"{name} @ {t:g} C", "position": name, "chamber_setpoint_c": t, "require": "static",
-                          "settle_s": 1500.0 if k == 0 else 10.0, "dwell_s": 64.0,
-                          "timeout_s": 6000.0 if k == 0 else 600.0})
-    return steps
 
 
 @pytest.mark.timeout(120)

@@ -88,19 +88,10 @@ T = TypeVar("T")
 
 
 async def _tries(drv: BoardDriver, step: Callable[[], Awaitable[T]], retries: list[str], label: str) -> tuple[T, int]:
-    """step() up to the driver's cal_retries times (drivers/base.py program_thermal's policy): a
-    CalibrationError is noted and retried, the last one raised; "unsupported" at once."""
-    last: CalibrationError | None = None
-    for attempt in range(1, drv.cal_retries + 1):
-        try:
-            return await step(), attempt
-        except CalibrationError as exc:
-            if exc.kind == "unsupported":
-                raise
-            last = exc
-            retries.append(f"{label}attempt {attempt}: {exc.kind}: {exc}")
-    assert last is not None
-    raise CalibrationError(last.kind, f"{label}failed after {drv.cal_retries} attempts: {last}", attempts=drv.cal_retries)
+    """step() up to the driver's cal_retries times: drivers/base.py BoardDriver._retried, the very
+    policy program_thermal uses (a CalibrationError is noted and retried, "unsupported" at once)."""
+    result: tuple[T, int] = await drv._retried(step, retries, label, f"{label}failed")
+    return result
 
 
 async def write_and_confirm(drv: BoardDriver, rec: SfemCubicRecord) -> tuple[int, SfemCubicRecord, int, list[str]]:
