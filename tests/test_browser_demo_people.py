@@ -43,7 +43,10 @@ def test_three_demo_batches_from_the_page_with_a_person_at_the_plate(tmp_path):
     url = f"http://127.0.0.1:{port}"
     log = open(tmp_path / "demo.log", "w")
     demo = subprocess.Popen(
-        [sys.executable, "-m", "cli", "demo", "--no-fixture", "--no-batch", "--speed", "500",
+        # x250, not x500: 12 boards at x500 (19 k samples/s) plus Chromium beside a CI worker's other
+        # files starved the demo on a 2-core machine (steps timed out at P ambient without a segment,
+        # 1 run in several); the person's timing and every assertion are in sample time, unchanged
+        [sys.executable, "-m", "cli", "demo", "--no-fixture", "--no-batch", "--speed", "250",
          "--port", str(port), "--db", f"sqlite:///{tmp_path / 'demo.db'}", "--seed", "3"],
         cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": str(ROOT)})
     try:
