@@ -13,6 +13,8 @@ from operator import xor
 
 import numpy as np
 
+from drivers.protocol.cal_record import to_f32
+
 
 def checksum(body: bytes) -> int:
     """XOR of every byte of BODY."""
@@ -54,3 +56,19 @@ def fmt_f32_short(value: float) -> str:
         if np.float32(float(text)) == v:
             return text
     return repr(float(v))  # a float64 repr always holds the float32 exactly
+
+
+def parse_crc(text: str) -> int:
+    """A CRC field: exactly 8 hex digits (fmt_crc's form)."""
+    if len(text) != 8:
+        raise ValueError("CRC field must be 8 hex digits")
+    return int(text, 16)
+
+
+def parse_finite_f32(fields: list[str]) -> tuple[float, ...]:
+    """Decimal fields as the float32 values they denote (the board stores float32); ValueError on a
+    non-finite one."""
+    vals = to_f32([float(f) for f in fields])
+    if not all(np.isfinite(vals)):
+        raise ValueError("non-finite value")
+    return vals

@@ -26,6 +26,7 @@ from drivers.protocol.stream_timeline import StreamTimeline as StreamTimeline
 from drivers.protocol import sfem_cubic_frames
 from drivers.protocol.frame_text import checksum as checksum, encode as encode, fmt_crc as fmt_crc  # re-exported
 from drivers.protocol.frame_text import fmt_f32 as fmt_f32, fmt_f32_short as fmt_f32_short, fmt_number as fmt_number
+from drivers.protocol.frame_text import parse_crc, parse_finite_f32
 from drivers.protocol.identity_keys import health_fields, identity_health, parse_key_values, record_fields, record_info
 from drivers.protocol.sfem_cubic_frames import SfemCubicHeadFrame as SfemCubicHeadFrame  # re-exported
 from drivers.protocol.sfem_cubic_frames import SfemCubicRowFrame as SfemCubicRowFrame
@@ -188,20 +189,6 @@ Frame = (SampleFrame | IdentityFrame | AckFrame | ErrorFrame | CommandFrame | Ca
 UNSOLICITED_ERRORS = ("SENSOR", "NVM")  # `E` codes a board sends of its own accord, never a command's reply
 
 
-def _crc_field(text: str) -> int:
-    if len(text) != 8:
-        raise ValueError("CRC field must be 8 hex digits")
-    return int(text, 16)
-
-
-def _finite_floats(fields: list[str]) -> tuple[float, ...]:
-    """Decimal fields as the float32 values they denote (the board stores float32)."""
-    vals = to_f32([float(f) for f in fields])
-    if not all(np.isfinite(vals)):
-        raise ValueError("non-finite value")
-    return vals
-
-
 def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
     """One frame from its comma-separated fields, or None if malformed/unknown."""
     kind = fields[0]
@@ -213,7 +200,7 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
                 float(fields[1])
                 return CommandFrame(kind, (fields[1],))
             if (kind == "CALW" and len(fields) == 1 + N_THERMAL) or (kind == "SFEW" and len(fields) == 1 + N_SFEM):
-                _finite_floats(fields[1:])
+                parse_finite_f32(fields[1:])
                 return CommandFrame(kind, tuple(fields[1:]))
             if kind in ("COMP", "SCAL") and len(fields) == 2 and fields[1] in ("0", "1"):
                 return CommandFrame(kind, (fields[1],))
@@ -251,14 +238,14 @@ def _decode_body(fields: list[str], board_side: bool) -> Frame | None:
             n = 1 + N_THERMAL + 2
             if len(fields) < n or fields[n - 1] not in ("0", "1"):
                 return None
-            return CalReadFrame(_finite_floats(fields[1 : 1 + N_THERMAL]), _crc_field(fields[n - 2]), fields[n - 1] == "1",
+            return CalReadFrame(parse_finite_f32(fields[1 : 1 + N_THERMAL]), parse_crc(fields[n - 2]), fields[n - 1] == "1",
                                 record_info(parse_key_values(fields[n:])))
         if kind == "T":
             return sfem_cubic_frames.decode(fields)
         if kind == "S":
             if len(fields) != 1 + N_SFEM + 1:
                 return None
-            return SfemReadFrame(_finite_floats(fields[1 : 1 + N_SFEM]), _crc_field(fields[-1]))
+            return SfemReadFrame(parse_finite_f32(fields[1 : 1 + N_SFEM]), parse_crc(fields[-1]))
         if kind in ("G", "R"):
             return selfcal_frames.decode(fields)
         if kind == "A":

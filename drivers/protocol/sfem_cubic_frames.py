@@ -19,7 +19,7 @@ import numpy as np
 
 from contracts.sfem_cubic import N_COEF, N_POWERS, SfemCubicRecord
 from drivers.protocol.cal_record import to_f32
-from drivers.protocol.frame_text import encode, fmt_crc, fmt_f32, fmt_f32_short
+from drivers.protocol.frame_text import encode, fmt_crc, fmt_f32, fmt_f32_short, parse_crc, parse_finite_f32
 
 
 def _sftw_body(power: int, coef12: Iterable[float]) -> str:
@@ -80,26 +80,13 @@ class SfemCubicRowFrame:
         return encode(",".join(("T", str(self.power), *(fmt_f32(v) for v in self.values))))
 
 
-def _crc_field(text: str) -> int:
-    if len(text) != 8:
-        raise ValueError("CRC field must be 8 hex digits")
-    return int(text, 16)
-
-
-def _finite_floats(fields: list[str]) -> tuple[float, ...]:
-    vals = to_f32([float(f) for f in fields])
-    if not all(np.isfinite(vals)):
-        raise ValueError("non-finite value")
-    return vals
-
-
 def decode(fields: list[str]) -> SfemCubicHeadFrame | SfemCubicRowFrame | None:
     """A `T` frame from its fields; None when malformed. Raises ValueError on bad numbers."""
     if len(fields) == 6 and fields[1] == "H":
-        t_ref, t_lo, t_hi = _finite_floats(fields[2:5])
-        return SfemCubicHeadFrame(t_ref, t_lo, t_hi, _crc_field(fields[5]))
+        t_ref, t_lo, t_hi = parse_finite_f32(fields[2:5])
+        return SfemCubicHeadFrame(t_ref, t_lo, t_hi, parse_crc(fields[5]))
     if len(fields) == 2 + N_COEF and fields[1] in tuple(str(k) for k in range(N_POWERS)):
-        return SfemCubicRowFrame(int(fields[1]), _finite_floats(fields[2:]))
+        return SfemCubicRowFrame(int(fields[1]), parse_finite_f32(fields[2:]))
     return None
 
 
@@ -113,7 +100,7 @@ def board_command_args(fields: list[str]) -> tuple[str, ...] | None:
         return tuple(fields[1:])
     if kind == "SFTC" and len(fields) == 5:
         [float(f) for f in fields[1:4]]
-        _crc_field(fields[4])
+        parse_crc(fields[4])
         return tuple(fields[1:])
     if kind == "SFTR" and len(fields) == 2 and (fields[1] == "H" or fields[1].isdigit()):
         return (fields[1],)
