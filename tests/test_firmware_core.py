@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import ctypes as C
 import random
-import re
 import struct
 import zlib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,53 +25,25 @@ from drivers.protocol.cal_record import crc32_f32, to_f32
 from drivers.sim.board_nvm import CalFirmware
 from drivers.sim.firmware_build import build, missing_tools
 from drivers.sim.slcan_pty import can_scale
+from tests.firmware_ctypes import header_define
+from tests.firmware_ctypes import CAN_FN, FwHal, FwIdentity, FwRawSample, NVM_RD, NVM_WR, UART_FN
 from tests.firmware_nvm import decode_slot, encode_record, slot_image
 from tests.firmware_proc import split_keys
 
 LIS = Identity("SN0001", "LIS3DSH", "fw-c-1.0", 60.0, 1.0, 0.0, 3.125)
 ADXL = Identity("AX0001", "ADXL355", "fw-c-1.0", 3.9, -9.05, 1885.0, 3.125)
-CORE = Path(__file__).resolve().parents[1] / "firmware" / "core"
 
 
-def _header_define(header: str, name: str) -> int:
-    """A `#define NAME 123u` of a core header: the mirrors below size their arrays from the C."""
-    m = re.search(rf"#define\s+{name}\s+(\d+)u", (CORE / header).read_text())
-    assert m, name
-    return int(m.group(1))
-
-
-SLOT = _header_define("fw_hal.h", "FW_NVM_SLOT_BYTES")  # 512 since the version-2 record
-SERIAL_MAX = _header_define("fw_board.h", "FW_SERIAL_MAX")
-RX_LINE_MAX = _header_define("fw_board.h", "FW_RX_LINE_MAX")
-TX_BODY_MAX = _header_define("fw_frame.h", "FW_TX_BODY_MAX")
-REPLY_STEP = _header_define("fw_board.h", "FW_REPLY_STEP_VALUES")
+SLOT = header_define("fw_hal.h", "FW_NVM_SLOT_BYTES")  # 512 since the version-2 record
+RX_LINE_MAX = header_define("fw_board.h", "FW_RX_LINE_MAX")
+TX_BODY_MAX = header_define("fw_frame.h", "FW_TX_BODY_MAX")
+REPLY_STEP = header_define("fw_board.h", "FW_REPLY_STEP_VALUES")
 NO_LAYOUT = 0xFFFFFFFF  # fw_layout of a name it does not know
-
-
-class FwIdentity(C.Structure):
-    _fields_ = [("serial", C.c_char * (SERIAL_MAX + 1)), ("sensor", C.c_char * 16), ("fw", C.c_char * 16),
-                ("ug_per_lsb", C.c_float), ("t_lsb_per_c", C.c_float), ("t_lsb_at_25c", C.c_float),
-                ("odr_hz", C.c_float)]
 
 
 class FwCal(C.Structure):
     _fields_ = [("thermal", C.c_float * 6), ("sfem", C.c_float * 12), ("thermal_crc", C.c_uint32),
                 ("sfem_crc", C.c_uint32), ("has_sfem", C.c_uint8), ("comp", C.c_uint8)]
-
-
-UART_FN = C.CFUNCTYPE(None, C.c_void_p, C.POINTER(C.c_uint8), C.c_uint32)
-CAN_FN = C.CFUNCTYPE(None, C.c_void_p, C.c_uint16, C.c_uint8, C.POINTER(C.c_uint8))
-NVM_RD = C.CFUNCTYPE(C.c_int, C.c_void_p, C.c_uint32, C.POINTER(C.c_uint8), C.c_uint32)
-NVM_WR = C.CFUNCTYPE(C.c_int, C.c_void_p, C.c_uint32, C.POINTER(C.c_uint8), C.c_uint32)
-
-
-class FwHal(C.Structure):
-    _fields_ = [("ctx", C.c_void_p), ("uart_write", UART_FN), ("can_send", CAN_FN),
-                ("nvm_read", NVM_RD), ("nvm_write", NVM_WR)]
-
-
-class FwRawSample(C.Structure):
-    _fields_ = [("t_us", C.c_uint32), ("acc", C.c_int32 * 3), ("temp", C.c_int32)]
 
 
 class FwBoardHead(C.Structure):

@@ -20,10 +20,8 @@ bytearrays) and as real fwboard processes on ptys (tests/firmware_proc.py).
 from __future__ import annotations
 
 import ctypes as C
-import re
 import struct
 import zlib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,11 +33,12 @@ from drivers.protocol.cal_record import crc32_f32, to_f32
 from drivers.protocol.slcan_lines import split_frames
 from drivers.sim.board_nvm import CalFirmware
 from drivers.sim.firmware_build import build, missing_tools
+from tests.firmware_ctypes import header_define
+from tests.firmware_ctypes import CAN_FN, FwHal, FwIdentity, FwRawSample, NVM_RD, NVM_WR, UART_FN
 from tests.firmware_nvm import (RECORD2_BYTES, RECORD_BYTES, SLOT_BYTES, crc_f32, decode_slot, encode_record,
                                 slot_image)
 from tests.firmware_proc import FwProc, _spawn, bodies, fwboard, procs, split_keys  # noqa: F401 (fixtures)
 
-CORE = Path(__file__).resolve().parents[1] / "firmware" / "core"
 LIS = Identity("SN0001", "LIS3DSH", "fw-c-1.0", 60.0, 1.0, 0.0, 3.125)
 ADXL = Identity("AX0001", "ADXL355", "fw-c-1.0", 3.9, -9.05, 1885.0, 3.125)
 PERIOD_US = 320_000  # 3.125 Hz
@@ -50,20 +49,7 @@ REC_KEYS = ["rec_ver", "rec_gen", "rec_slot", "rec_state"]
 F32_EPS = float(np.finfo(np.float32).eps)
 
 
-def _header_define(header: str, name: str) -> int:
-    m = re.search(rf"#define\s+{name}\s+(\d+)u", (CORE / header).read_text())
-    assert m, name
-    return int(m.group(1))
-
-
-SERIAL_MAX = _header_define("fw_board.h", "FW_SERIAL_MAX")
-assert _header_define("fw_hal.h", "FW_NVM_SLOT_BYTES") == SLOT_BYTES  # the layout tests/firmware_nvm.py decodes
-
-
-class FwIdentity(C.Structure):
-    _fields_ = [("serial", C.c_char * (SERIAL_MAX + 1)), ("sensor", C.c_char * 16), ("fw", C.c_char * 16),
-                ("ug_per_lsb", C.c_float), ("t_lsb_per_c", C.c_float), ("t_lsb_at_25c", C.c_float),
-                ("odr_hz", C.c_float)]
+assert header_define("fw_hal.h", "FW_NVM_SLOT_BYTES") == SLOT_BYTES  # the layout tests/firmware_nvm.py decodes
 
 
 class FwCubic(C.Structure):
@@ -73,21 +59,6 @@ class FwCubic(C.Structure):
 
 class FwBootInfo(C.Structure):
     _fields_ = [("cause", C.c_uint8), ("boots", C.c_uint32), ("fault_cfsr", C.c_uint32), ("fault_pc", C.c_uint32)]
-
-
-UART_FN = C.CFUNCTYPE(None, C.c_void_p, C.POINTER(C.c_uint8), C.c_uint32)
-CAN_FN = C.CFUNCTYPE(None, C.c_void_p, C.c_uint16, C.c_uint8, C.POINTER(C.c_uint8))
-NVM_RD = C.CFUNCTYPE(C.c_int, C.c_void_p, C.c_uint32, C.POINTER(C.c_uint8), C.c_uint32)
-NVM_WR = C.CFUNCTYPE(C.c_int, C.c_void_p, C.c_uint32, C.POINTER(C.c_uint8), C.c_uint32)
-
-
-class FwHal(C.Structure):
-    _fields_ = [("ctx", C.c_void_p), ("uart_write", UART_FN), ("can_send", CAN_FN),
-                ("nvm_read", NVM_RD), ("nvm_write", NVM_WR)]
-
-
-class FwRawSample(C.Structure):
-    _fields_ = [("t_us", C.c_uint32), ("acc", C.c_int32 * 3), ("temp", C.c_int32)]
 
 
 @pytest.fixture(scope="module")
